@@ -1,0 +1,59 @@
+"""Running one episode: plan, place, check stability, until the sequence ends or the tower falls."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Optional
+
+import numpy as np
+
+from overhang_framework.interfaces import Budget, Planner, Predictor, Task, Value, World
+
+
+def episode_rng(seed: int, task_index: int, repeat: int) -> np.random.Generator:
+    """The generator of one episode, independent of which other episodes run or in what order."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(task_index), int(repeat)]))
+
+
+def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner, value: Value,
+                rng: np.random.Generator, time_limit: Optional[float] = None) -> dict:
+    """Play ``task`` to its end and return the episode record (plain JSON-able data).
+
+    The episode ends at the first collapse; the reward is the final overhang if
+    the tower was stable after every placement and 0 otherwise.
+    """
+    state = world.initial_state(task)
+    steps = []
+    stable_throughout = True
+    while not state.done:
+        budget = Budget(seconds=time_limit)
+        started = time.perf_counter()
+        decision = planner.plan(state, predictor, value, budget, rng)
+        decision_time = time.perf_counter() - started
+        state = world.step(state, decision.action)
+        stable = world.is_stable(state.geometry)
+        steps.append(
+            {
+                "width": state.geometry.blocks[-1].width,
+                "x": decision.action.x,
+                "layer": decision.action.layer,
+                "predicted_stability": decision.predicted_stability,
+                "stable": stable,
+                "overhang": world.overhang(state.geometry),
+                "decision_time": decision_time,
+                "over_time_limit": time_limit is not None and decision_time > time_limit,
+                "spend": dataclasses.asdict(decision.spend),
+            }
+        )
+        if not stable:
+            stable_throughout = False
+            break
+    return {
+        "task_id": task.id,
+        "sequence": list(task.sequence),
+        "steps": steps,
+        "stable_throughout": stable_throughout,
+        "overhang": world.overhang(state.geometry),
+        "reward": world.reward(state.geometry, stable_throughout),
+    }

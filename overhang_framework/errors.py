@@ -1,0 +1,24 @@
+"""Errors a user can cause, each with a one-line message naming what is wrong and what is allowed."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+
+class OverhangError(Exception):
+    """Base class of errors caused by input; the CLI prints the message on one line and exits 2."""
+
+
+class UnknownPluginError(OverhangError, LookupError):
+    def __init__(self, kind: str, name: str, installed: Sequence[str]):
+        self.kind, self.name, self.installed = kind, name, list(installed)
+        listing = ", ".join(self.installed) if self.installed else "(none)"
+        super().__init__(f"unknown {kind} {name!r}; installed {kind}s: {listing}")
+
+
+class TaskError(OverhangError, ValueError):
+    """A malformed task or task set."""
+
+
+class IllegalActionError(OverhangError, ValueError):
+    """An action that breaks the placement rules."""

@@ -1,0 +1,117 @@
+"""Plain, immutable geometry of the Overhang Tower task.
+
+A tower lives in the x-z plane. Every block has the same height
+(:data:`BLOCK_HEIGHT`) and one of the :data:`WIDTHS`; its position is the x of
+its centre and a discrete layer (its bottom face is at ``z = layer * BLOCK_HEIGHT``).
+Layer 0 is the ground layer; only the first block of a task stands on it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import numpy as np
+
+BLOCK_HEIGHT = 0.6
+WIDTHS = (0.6, 1.2, 1.8)
+GRID_HALF_WIDTH = 4.0  # x in [-4, 4]
+GRID_HEIGHT = 8.0  # z in [0, 8]
+MAX_LAYER = int(round(GRID_HEIGHT / BLOCK_HEIGHT, 9)) - 1  # top layer whose block fits the grid
+EPS = 1e-9  # geometric tolerance for contact and overlap lengths
+KEY_DECIMALS = 6  # coordinates are rounded to this many decimals in canonical keys
+
+
+class IllegalWidth(ValueError):
+    """A block width outside :data:`WIDTHS`."""
+
+
+def check_width(width: float) -> float:
+    """Return ``width`` as one of :data:`WIDTHS`, or raise :class:`IllegalWidth`."""
+    for allowed in WIDTHS:
+        if abs(float(width) - allowed) < 1e-6:
+            return allowed
+    raise IllegalWidth(
+        f"illegal block width {width!r}; allowed widths are {', '.join(map(str, WIDTHS))}"
+    )
+
+
+@dataclass(frozen=True, order=True)
+class Block:
+    """One placed block: ``width``, the ``x`` of its centre, and its ``layer``."""
+
+    width: float
+    x: float
+    layer: int
+
+    @property
+    def left(self) -> float:
+        return self.x - self.width / 2
+
+    @property
+    def right(self) -> float:
+        return self.x + self.width / 2
+
+    @property
+    def z(self) -> float:
+        """Height of the block's centre."""
+        return (self.layer + 0.5) * BLOCK_HEIGHT
+
+
+@dataclass(frozen=True)
+class Action:
+    """Where to put the next block: the ``x`` of its centre and its ``layer``."""
+
+    x: float
+    layer: int
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The placed blocks, in placement order."""
+
+    blocks: tuple[Block, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def __iter__(self):
+        return iter(self.blocks)
+
+    def add(self, block: Block) -> "Geometry":
+        return Geometry(self.blocks + (block,))
+
+    @property
+    def key(self) -> tuple:
+        """Canonical, order-independent key: the sorted, rounded blocks."""
+        return canonical_key(self.blocks)
+
+    def as_array(self) -> np.ndarray:
+        """``(n, 3)`` float array of (width, x, layer)."""
+        return np.array([(b.width, b.x, b.layer) for b in self.blocks], dtype=float).reshape(-1, 3)
+
+    @classmethod
+    def from_tuples(cls, rows: Iterable[Sequence[float]]) -> "Geometry":
+        return cls(tuple(Block(check_width(w), float(x), int(layer)) for w, x, layer in rows))
+
+
+def canonical_key(blocks: Iterable[Block]) -> tuple:
+    """Order-independent key of a set of blocks (coordinates rounded to ``KEY_DECIMALS``)."""
+    return tuple(
+        sorted(
+            (round(b.width, KEY_DECIMALS), round(b.x, KEY_DECIMALS) + 0.0, int(b.layer))
+            for b in blocks
+        )
+    )
+
+
+def overhang(geometry: Geometry) -> float:
+    """Maximum lateral extension: ``max_i |x_i| + w_i / 2`` (0 for an empty geometry)."""
+    if not geometry.blocks:
+        return 0.0
+    return max(abs(b.x) + b.width / 2 for b in geometry.blocks)
+
+
+def overlap_length(a_left: float, a_right: float, b_left: float, b_right: float) -> float:
+    """Length of the intersection of two intervals (0 when disjoint)."""
+    return max(0.0, min(a_right, b_right) - max(a_left, b_left))

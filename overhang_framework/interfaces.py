@@ -1,0 +1,142 @@
+"""The four interfaces every model is built from: World, Predictor, Planner, Value.
+
+Implementations are plugins (see :mod:`overhang_framework.hookspecs`); the core
+only ever talks to these abstract classes.
+"""
+
+from __future__ import annotations
+
+import abc
+import time
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import Action, Geometry
+
+
+@dataclass(frozen=True)
+class Task:
+    """A block sequence; ``sequence[0]`` is the ground block, the rest are placed in order."""
+
+    id: str
+    sequence: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class State:
+    """A decision state: the placed geometry and the widths still to place."""
+
+    geometry: Geometry
+    remaining: tuple[float, ...]
+
+    @property
+    def next_width(self) -> Optional[float]:
+        return self.remaining[0] if self.remaining else None
+
+    @property
+    def done(self) -> bool:
+        return not self.remaining
+
+
+@dataclass
+class Budget:
+    """What a planner may spend on one decision; ``None`` means no limit."""
+
+    seconds: Optional[float] = None
+    predictor_calls: Optional[int] = None
+
+    def __post_init__(self):
+        self.started = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.started
+
+    def exhausted(self, spent_calls: int = 0) -> bool:
+        if self.seconds is not None and self.elapsed() >= self.seconds:
+            return True
+        return self.predictor_calls is not None and spent_calls >= self.predictor_calls
+
+
+@dataclass
+class Spend:
+    """What a decision cost."""
+
+    predictor_calls: int = 0
+    actions_scored: int = 0
+    nodes_expanded: int = 0
+    seconds: float = 0.0
+    budget_exhausted: bool = False
+
+
+@dataclass
+class Decision:
+    """A planner's choice, the predicted stability of the resulting tower, and what it cost."""
+
+    action: Action
+    predicted_stability: float
+    spend: Spend = field(default_factory=Spend)
+
+
+class World(abc.ABC):
+    """Rules and physics of a tower-building task."""
+
+    @abc.abstractmethod
+    def initial_state(self, task: Task) -> State:
+        """The state with the task's first block at the ground centre."""
+
+    @abc.abstractmethod
+    def legal_actions(self, state: State, resolution: Optional[float] = None) -> list[Action]:
+        """Legal placements of the next block with x on a grid of step ``resolution``."""
+
+    @abc.abstractmethod
+    def illegal_reason(self, state: State, action: Action) -> Optional[str]:
+        """Why ``action`` is illegal in ``state``, or ``None`` when it is legal (any real x)."""
+
+    def is_legal(self, state: State, action: Action) -> bool:
+        return self.illegal_reason(state, action) is None
+
+    @abc.abstractmethod
+    def step(self, state: State, action: Action) -> State:
+        """The successor state; raises ``ValueError`` for an illegal action."""
+
+    @abc.abstractmethod
+    def is_stable(self, geometry: Geometry) -> bool:
+        """Ground-truth stability of ``geometry``."""
+
+    def is_stable_batch(self, geometries: Sequence[Geometry]) -> np.ndarray:
+        return np.array([self.is_stable(g) for g in geometries], dtype=bool)
+
+    @abc.abstractmethod
+    def overhang(self, geometry: Geometry) -> float:
+        """The task objective of a geometry."""
+
+    def reward(self, geometry: Geometry, stable_throughout: bool) -> float:
+        """The final overhang if the tower was stable after every placement, else 0."""
+        return self.overhang(geometry) if stable_throughout else 0.0
+
+
+class Predictor(abc.ABC):
+    """Estimates the probability that the tower stands after each candidate action."""
+
+    @abc.abstractmethod
+    def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
+        """Probabilities in [0, 1], one per action, from one batched call."""
+
+
+class Value(abc.ABC):
+    """Scores a search leaf."""
+
+    @abc.abstractmethod
+    def __call__(self, state: State) -> float:
+        """The value of ``state``."""
+
+
+class Planner(abc.ABC):
+    """Chooses the next action."""
+
+    @abc.abstractmethod
+    def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
+             rng: np.random.Generator) -> Decision:
+        """The next action from ``state`` within ``budget``, with what it spent."""

@@ -1,0 +1,167 @@
+"""Reference physics: the tower in PyBullet (DIRECT mode).
+
+Each block is a box of ``width x depth x BLOCK_HEIGHT`` with uniform density,
+resting on a static ground box whose top face is ``z = 0``. The simulation
+steps at ``time_step`` for ``duration`` seconds; the tower is stable when no
+block's centre moved further than ``threshold`` from where it was placed.
+
+With ``early_stop`` the run ends as soon as its outcome is certain: a block
+moved beyond ``threshold`` (a falling block does not come back), or every block
+has been at rest (speed below ``rest_speed``) for ``rest_time`` seconds after
+``min_time``. The benchmark measures how often this agrees with the full run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import BLOCK_HEIGHT, Geometry
+
+
+@dataclass(frozen=True)
+class PyBulletParams:
+    time_step: float = 1.0 / 240.0
+    duration: float = 5.0
+    threshold: float = 0.05
+    density: float = 1000.0
+    depth: float = 0.6
+    friction: float = 0.5
+    restitution: float = 0.0
+    gravity: float = 9.81
+    solver_iterations: int = 50
+    early_stop: bool = True
+    check_every: int = 6
+    rest_speed: float = 0.005
+    rest_time: float = 0.25
+    min_time: float = 0.25
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one check found: the verdict, the largest displacement, the steps simulated."""
+
+    stable: bool
+    displacement: float
+    steps: int
+
+
+class PyBulletSimulator:
+    """One DIRECT-mode PyBullet client, reused for many checks."""
+
+    def __init__(self, params: PyBulletParams = PyBulletParams()):
+        import pybullet
+
+        self.params = params
+        self._p = pybullet
+        self._client = pybullet.connect(pybullet.DIRECT)
+
+    def close(self) -> None:
+        if self._client is not None:
+            try:
+                self._p.disconnect(physicsClientId=self._client)
+            except Exception:  # already gone with its process
+                pass
+            self._client = None
+
+    def __del__(self):
+        self.close()
+
+    def _build(self, geometry: Geometry, gravity: Optional[Sequence[float]], friction):
+        p, cid, prm = self._p, self._client, self.params
+        p.resetSimulation(physicsClientId=cid)
+        p.setPhysicsEngineParameter(
+            fixedTimeStep=prm.time_step,
+            numSolverIterations=prm.solver_iterations,
+            physicsClientId=cid,
+        )
+        gx, gz = (0.0, -prm.gravity) if gravity is None else (float(gravity[0]), float(gravity[1]))
+        p.setGravity(gx, 0.0, gz, physicsClientId=cid)
+        ground = p.createCollisionShape(p.GEOM_BOX, halfExtents=[50, 50, 0.5], physicsClientId=cid)
+        gid = p.createMultiBody(0, ground, basePosition=[0, 0, -0.5], physicsClientId=cid)
+        p.changeDynamics(gid, -1, lateralFriction=prm.friction, restitution=prm.restitution,
+                         physicsClientId=cid)
+        bodies = []
+        for i, b in enumerate(geometry.blocks):
+            half = [b.width / 2, prm.depth / 2, BLOCK_HEIGHT / 2]
+            shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=cid)
+            mass = prm.density * b.width * prm.depth * BLOCK_HEIGHT
+            bid = p.createMultiBody(mass, shape, basePosition=[b.x, 0.0, b.z], physicsClientId=cid)
+            mu = prm.friction if friction is None else float(friction[i])
+            p.changeDynamics(bid, -1, lateralFriction=mu, restitution=prm.restitution,
+                             linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
+            bodies.append(bid)
+        return bodies
+
+    def check(self, geometry: Geometry, gravity=None, friction=None,
+              early_stop: Optional[bool] = None) -> Outcome:
+        """Simulate ``geometry`` and return its :class:`Outcome`.
+
+        ``gravity`` is an optional ``(gx, gz)`` vector (default ``(0, -g)``);
+        ``friction`` an optional per-block friction coefficient.
+        """
+        p, cid, prm = self._p, self._client, self.params
+        early = prm.early_stop if early_stop is None else early_stop
+        bodies = self._build(geometry, gravity, friction)
+        start = np.array([[b.x, 0.0, b.z] for b in geometry.blocks]).reshape(-1, 3)
+        total = int(round(prm.duration / prm.time_step))
+        rest_needed = int(np.ceil(prm.rest_time / prm.time_step))
+        min_steps = int(np.ceil(prm.min_time / prm.time_step))
+        at_rest = 0
+        step = 0
+        displacement = 0.0
+        while step < total:
+            n = min(prm.check_every, total - step) if early else total
+            for _ in range(n):
+                p.stepSimulation(physicsClientId=cid)
+            step += n
+            if not early:
+                break
+            pos = np.array([p.getBasePositionAndOrientation(b, physicsClientId=cid)[0] for b in bodies])
+            displacement = float(np.max(np.linalg.norm(pos - start, axis=1))) if len(bodies) else 0.0
+            if displacement > prm.threshold:
+                return Outcome(False, displacement, step)
+            speed = max(
+                (np.linalg.norm(v) + np.linalg.norm(w) * BLOCK_HEIGHT
+                 for v, w in (p.getBaseVelocity(b, physicsClientId=cid) for b in bodies)),
+                default=0.0,
+            )
+            at_rest = at_rest + n if speed < prm.rest_speed else 0
+            if at_rest >= rest_needed and step >= min_steps:
+                return Outcome(True, displacement, step)
+        pos = np.array([p.getBasePositionAndOrientation(b, physicsClientId=cid)[0] for b in bodies])
+        displacement = float(np.max(np.linalg.norm(pos - start, axis=1))) if len(bodies) else 0.0
+        return Outcome(displacement <= prm.threshold, displacement, step)
+
+
+class PyBulletBackend:
+    """:class:`~overhang_framework.physics.PhysicsBackend` over one reused :class:`PyBulletSimulator`."""
+
+    name = "pybullet"
+
+    def __init__(self, params: PyBulletParams = PyBulletParams()):
+        self.params = params
+        self._sim: Optional[PyBulletSimulator] = None
+
+    @property
+    def simulator(self) -> PyBulletSimulator:
+        if self._sim is None:
+            self._sim = PyBulletSimulator(self.params)
+        return self._sim
+
+    def stable(self, geometry: Geometry, gravity=None, friction=None) -> bool:
+        return self.simulator.check(geometry, gravity, friction).stable
+
+    def stable_batch(self, geometries, gravity=None, friction=None) -> np.ndarray:
+        return np.array(
+            [
+                self.stable(g, None if gravity is None else gravity[i], None if friction is None else friction[i])
+                for i, g in enumerate(geometries)
+            ],
+            dtype=bool,
+        )
+
+    def __getstate__(self):
+        return {"params": self.params, "_sim": None}

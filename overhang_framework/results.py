@@ -1,0 +1,108 @@
+"""Results on disk: an episode log written as it grows, summaries written atomically."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+TIMING_KEYS = ("decision_time", "seconds")
+
+
+def atomic_write_text(path: Path | str, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same directory and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_json(path: Path | str, data: Any) -> None:
+    atomic_write_text(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+class EpisodeLog:
+    """``episodes.jsonl``, one JSON object per episode.
+
+    Lines go to ``episodes.jsonl.partial`` as episodes finish (flushed, so a
+    crash loses nothing already computed); :meth:`close` renames it into place.
+    """
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = open(self.partial, "w")
+
+    def write(self, record: Mapping[str, Any]) -> None:
+        self._fh.write(json.dumps(record, sort_keys=True) + "\n")
+        self._fh.flush()
+
+    def close(self) -> None:
+        self._fh.close()
+        os.replace(self.partial, self.path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self._fh.close()
+
+
+def read_episodes(path: Path | str) -> list[dict]:
+    with open(path) as fh:
+        return [json.loads(line) for line in fh if line.strip()]
+
+
+def _mean_sem(values: Iterable[float]) -> tuple[float, float]:
+    arr = np.asarray(list(values), dtype=float)
+    if arr.size == 0:
+        return math.nan, math.nan
+    sem = float(arr.std(ddof=1) / np.sqrt(arr.size)) if arr.size > 1 else 0.0
+    return float(arr.mean()), sem
+
+
+def summarize(episodes: list[dict]) -> dict:
+    """The summary of a run: reward, stability, overhang of successes and decision time (mean, SEM)."""
+    rewards = [e["reward"] for e in episodes]
+    placements = [s["stable"] for e in episodes for s in e["steps"]]
+    succ_overhang = [e["overhang"] for e in episodes if e["stable_throughout"]]
+    times = [s["decision_time"] for e in episodes for s in e["steps"]]
+    out: dict[str, Any] = {"episodes": len(episodes), "placements": len(placements)}
+    for key, values in (
+        ("reward", rewards),
+        ("stable_placement", [float(p) for p in placements]),
+        ("success", [float(e["stable_throughout"]) for e in episodes]),
+        ("overhang_successful", succ_overhang),
+        ("decision_time", times),
+    ):
+        mean, sem = _mean_sem(values)
+        out[f"{key}_mean"], out[f"{key}_sem"] = mean, sem
+    out["over_time_limit"] = int(sum(s["over_time_limit"] for e in episodes for s in e["steps"]))
+    return out
+
+
+def without_timing(record: Any) -> Any:
+    """``record`` with every timing field removed, for comparing runs."""
+    if isinstance(record, dict):
+        return {k: without_timing(v) for k, v in record.items()
+                if k not in TIMING_KEYS and k != "over_time_limit"}
+    if isinstance(record, list):
+        return [without_timing(v) for v in record]
+    return record

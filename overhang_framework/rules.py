@@ -1,0 +1,86 @@
+"""The placement rules: grid bounds, non-penetration and support.
+
+A block may be placed at (x, layer) when it lies inside the grid, overlaps no
+placed block of its layer over a positive length, and its bottom face rests on
+the top face of at least one block of the layer below over a positive length.
+Only the first block of a task stands on the ground (layer 0).
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from overhang_framework.geometry import (
+    EPS,
+    GRID_HALF_WIDTH,
+    MAX_LAYER,
+    Action,
+    Block,
+    Geometry,
+    overlap_length,
+)
+
+
+def illegal_reason(geometry: Geometry, width: float, action: Action) -> Optional[str]:
+    """Why placing a block of ``width`` at ``action`` is illegal, or ``None`` if it is legal."""
+    left, right, layer = action.x - width / 2, action.x + width / 2, action.layer
+    if left < -GRID_HALF_WIDTH - EPS or right > GRID_HALF_WIDTH + EPS:
+        return f"block spans x in [{left:g}, {right:g}], outside the grid [-{GRID_HALF_WIDTH:g}, {GRID_HALF_WIDTH:g}]"
+    if not 0 <= layer <= MAX_LAYER:
+        return f"layer {layer} is outside the grid (layers 0 to {MAX_LAYER})"
+    if layer == 0:
+        return "only the first block stands on the ground (layer 0)"
+    support = 0.0
+    for b in geometry.blocks:
+        if b.layer == layer and overlap_length(left, right, b.left, b.right) > EPS:
+            return f"block overlaps the block at x={b.x:g} in layer {layer}"
+        if b.layer == layer - 1:
+            support = max(support, overlap_length(left, right, b.left, b.right))
+    if support <= EPS:
+        return f"nothing in layer {layer - 1} supports a block at x={action.x:g}"
+    return None
+
+
+def is_legal(geometry: Geometry, width: float, action: Action) -> bool:
+    return illegal_reason(geometry, width, action) is None
+
+
+def candidate_xs(width: float, resolution: float) -> np.ndarray:
+    """Every x on the grid ``k * resolution`` at which a block of ``width`` fits inside the grid."""
+    limit = GRID_HALF_WIDTH - width / 2
+    k = int(np.floor(limit / resolution + 1e-9))
+    return np.round(np.arange(-k, k + 1) * resolution, 10)
+
+
+def legal_actions(geometry: Geometry, width: float, resolution: float) -> list[Action]:
+    """All legal placements of a block of ``width`` with x on the grid ``k * resolution``.
+
+    Vectorised over x: for each candidate layer, a candidate is kept when its
+    support length is positive and it overlaps no block of that layer.
+    """
+    xs = candidate_xs(width, resolution)
+    if not geometry.blocks:
+        return []
+    arr = geometry.as_array()
+    lefts, rights, layers = arr[:, 1] - arr[:, 0] / 2, arr[:, 1] + arr[:, 0] / 2, arr[:, 2].astype(int)
+    cl, cr = xs - width / 2, xs + width / 2
+    actions: list[Action] = []
+    for layer in range(1, min(int(layers.max()) + 1, MAX_LAYER) + 1):
+        below = layers == layer - 1
+        if not below.any():
+            continue
+        ov = np.minimum(cr[:, None], rights[below][None, :]) - np.maximum(cl[:, None], lefts[below][None, :])
+        ok = (ov > EPS).any(axis=1)
+        same = layers == layer
+        if same.any():
+            ov_same = np.minimum(cr[:, None], rights[same][None, :]) - np.maximum(cl[:, None], lefts[same][None, :])
+            ok &= ~(ov_same > EPS).any(axis=1)
+        actions.extend(Action(float(x), layer) for x in xs[ok])
+    return actions
+
+
+def place(geometry: Geometry, width: float, action: Action) -> Geometry:
+    """The geometry after placing a block of ``width`` at ``action`` (no legality check)."""
+    return geometry.add(Block(width, float(action.x), int(action.layer)))

@@ -1,0 +1,56 @@
+"""Task sets: block sequences from config or the command line."""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Mapping, Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.errors import TaskError
+from overhang_framework.geometry import WIDTHS, IllegalWidth, check_width
+from overhang_framework.interfaces import Task
+
+
+def generate_sequences(n: int, length: int, seed: int) -> list[list[float]]:
+    """``n`` sequences of ``length`` widths drawn uniformly from :data:`WIDTHS` with ``seed``."""
+    rng = np.random.default_rng(seed)
+    return [[WIDTHS[i] for i in rng.integers(len(WIDTHS), size=length)] for _ in range(n)]
+
+
+def parse_tasks(sequences: Optional[Sequence[Any]], ids: Optional[Sequence[Any]] = None,
+                prefix: str = "task") -> list[Task]:
+    """Validate ``sequences`` (lists of widths, at least two each) into :class:`Task` objects."""
+    if not sequences:
+        raise TaskError("no task sequences given; set tasks=paper20 or tasks.sequences=[[0.6,1.2,...],...]")
+    if ids is not None and len(ids) != len(sequences):
+        raise TaskError(f"tasks.ids has {len(ids)} entries but there are {len(sequences)} sequences")
+    tasks = []
+    for i, seq in enumerate(sequences):
+        task_id = str(ids[i]) if ids is not None else f"{prefix}{i:02d}"
+        if isinstance(seq, (str, bytes)) or not isinstance(seq, Iterable):
+            raise TaskError(f"task {task_id}: a sequence must be a list of widths, got {seq!r}")
+        seq = list(seq)
+        if len(seq) < 2:
+            raise TaskError(f"task {task_id}: a sequence needs the ground block and at least one more, got {seq!r}")
+        try:
+            widths = tuple(check_width(float(w)) for w in seq)
+        except (IllegalWidth, TypeError, ValueError) as err:
+            raise TaskError(f"task {task_id}: {err}") from None
+        tasks.append(Task(task_id, widths))
+    if len({t.id for t in tasks}) != len(tasks):
+        raise TaskError("task ids must be unique")
+    return tasks
+
+
+def tasks_from_config(cfg: Mapping[str, Any]) -> list[Task]:
+    """The tasks of a ``tasks`` config group entry, restricted to ``only`` when it is set."""
+    tasks = parse_tasks(cfg.get("sequences"), cfg.get("ids"), prefix=str(cfg.get("prefix", "task")))
+    only = cfg.get("only")
+    if only:
+        wanted = [str(x) for x in only]
+        known = {t.id for t in tasks}
+        missing = [x for x in wanted if x not in known]
+        if missing:
+            raise TaskError(f"tasks.only names unknown task ids {missing}; known ids: {', '.join(sorted(known))}")
+        tasks = [t for t in tasks if t.id in set(wanted)]
+    return tasks

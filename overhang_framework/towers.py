@@ -1,0 +1,181 @@
+"""Seeded random towers for benchmarks and analyses.
+
+Two sets are generated here:
+
+* :func:`random_towers` -- random *legal* towers of ``min_blocks`` to
+  ``max_blocks`` blocks. The first block (random width) stands on the ground at
+  ``x = 0``; every further block gets a random width and a uniformly random legal
+  action (:func:`overhang_framework.rules.legal_actions` at ``resolution``).
+  Legal does not mean stable: many of these towers fall.
+* :func:`near_critical_towers` -- towers whose last block sits within
+  ``window`` of the x at which a reference verdict flips. The flip is located by
+  bisection with the reference, batched over all towers so that a process pool
+  can serve the reference.
+
+Everything is deterministic for a given seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import EPS, GRID_HALF_WIDTH, WIDTHS, Block, Geometry
+from overhang_framework.rules import legal_actions, place
+
+Verdicts = Callable[[Sequence[Geometry]], np.ndarray]
+"""A batched stability reference: geometries in, boolean array out."""
+
+
+def random_tower(rng: np.random.Generator, n_blocks: int, resolution: float = 0.05) -> Geometry:
+    """One random legal tower of ``n_blocks`` blocks drawn with ``rng``.
+
+    Raises ``RuntimeError`` if some block has no legal action (cannot happen on
+    the 8 x 8 grid for up to 7 blocks, kept as a guard).
+    """
+    width = WIDTHS[rng.integers(len(WIDTHS))]
+    geometry = Geometry((Block(width, 0.0, 0),))
+    for _ in range(n_blocks - 1):
+        width = WIDTHS[rng.integers(len(WIDTHS))]
+        actions = legal_actions(geometry, width, resolution)
+        if not actions:
+            raise RuntimeError(f"no legal action for a block of width {width} on {geometry.key}")
+        geometry = place(geometry, width, actions[rng.integers(len(actions))])
+    return geometry
+
+
+def random_towers(n: int, seed: int = 0, min_blocks: int = 2, max_blocks: int = 7,
+                  resolution: float = 0.05) -> list[Geometry]:
+    """``n`` random legal towers; block counts uniform in ``[min_blocks, max_blocks]``."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(min_blocks, max_blocks + 1, size=n)
+    return [random_tower(rng, int(k), resolution) for k in counts]
+
+
+def with_last_x(geometry: Geometry, x: float) -> Geometry:
+    """``geometry`` with its last block moved to ``x`` (same width and layer)."""
+    last = geometry.blocks[-1]
+    return Geometry(geometry.blocks[:-1] + (Block(last.width, float(x), last.layer),))
+
+
+def last_block_interval(geometry: Geometry, min_support: float = 0.01) -> tuple[float, float]:
+    """The x interval, containing the last block's current x, along which it stays legal.
+
+    Legal here means: inside the grid, no overlap with another block of its
+    layer, and at least ``min_support`` of contact with some block of the layer
+    below (or anywhere on the ground for layer 0).
+    """
+    last = geometry.blocks[-1]
+    w, x0, layer = last.width, last.x, last.layer
+    lo, hi = -GRID_HALF_WIDTH + w / 2, GRID_HALF_WIDTH - w / 2
+    others = geometry.blocks[:-1]
+    for b in others:
+        if b.layer == layer:
+            if b.x <= x0:
+                lo = max(lo, b.right + w / 2)
+            else:
+                hi = min(hi, b.left - w / 2)
+    if layer > 0:
+        supports = sorted((b.left - w / 2 + min_support, b.right + w / 2 - min_support)
+                          for b in others if b.layer == layer - 1)
+        merged: list[list[float]] = []
+        for a, c in supports:
+            if merged and a <= merged[-1][1] + EPS:
+                merged[-1][1] = max(merged[-1][1], c)
+            else:
+                merged.append([a, c])
+        for a, c in merged:
+            if a - EPS <= x0 <= c + EPS:
+                lo, hi = max(lo, a), min(hi, c)
+                break
+        else:
+            return (x0, x0)
+    return (min(lo, x0), max(hi, x0))
+
+
+@dataclass(frozen=True)
+class CriticalTower:
+    """A near-critical tower and how it was made.
+
+    ``flip_x`` is where the reference verdict changes (to within ``tolerance``
+    of the bisection), ``offset`` how far the last block was moved from it.
+    """
+
+    geometry: Geometry
+    base: Geometry
+    flip_x: float
+    offset: float
+
+
+def find_flips(towers: Sequence[Geometry], reference: Verdicts, tolerance: float = 0.002,
+               progress: Optional[Callable[[int], None]] = None) -> list[Optional[float]]:
+    """For each tower, an x of its last block where ``reference`` changes its verdict.
+
+    The bracket is the block's current x and whichever end of its legal
+    interval (:func:`last_block_interval`) has the other verdict (the farther
+    end when both do); it is then bisected until shorter than ``tolerance``.
+    ``None`` for towers whose verdict is the same at all three points.
+    ``progress`` is called with the number of reference checks done per round.
+    """
+    n = len(towers)
+    intervals = [last_block_interval(g) for g in towers]
+    x0 = np.array([g.blocks[-1].x for g in towers])
+    probe = []
+    for g, (lo, hi) in zip(towers, intervals):
+        probe.extend([g, with_last_x(g, lo), with_last_x(g, hi)])
+    v = np.asarray(reference(probe), dtype=bool).reshape(n, 3)
+    if progress:
+        progress(len(probe))
+    a = x0.copy()
+    b = np.full(n, np.nan)
+    va = v[:, 0]
+    for i, (lo, hi) in enumerate(intervals):
+        ends = [(abs(e - x0[i]), e) for e, ve in ((lo, v[i, 1]), (hi, v[i, 2])) if ve != v[i, 0]]
+        if ends:
+            b[i] = max(ends)[1]
+    active = np.flatnonzero(~np.isnan(b))
+    while active.size:
+        active = active[np.abs(b[active] - a[active]) > tolerance]
+        if not active.size:
+            break
+        mids = (a[active] + b[active]) / 2
+        vm = np.asarray(reference([with_last_x(towers[i], m) for i, m in zip(active, mids)]), dtype=bool)
+        if progress:
+            progress(len(active))
+        same = vm == va[active]
+        a[active[same]] = mids[same]
+        b[active[~same]] = mids[~same]
+    return [None if np.isnan(b[i]) else float((a[i] + b[i]) / 2) for i in range(n)]
+
+
+def near_critical_towers(n: int, reference: Verdicts, seed: int = 0, window: float = 0.05,
+                         min_blocks: int = 2, max_blocks: int = 7, resolution: float = 0.05,
+                         tolerance: float = 0.002, max_rounds: int = 10,
+                         progress: Optional[Callable[[int], None]] = None) -> list[CriticalTower]:
+    """``n`` towers whose last block is within ``window`` of a flip of ``reference``.
+
+    Random towers (:func:`random_towers`) are drawn in rounds; towers with no
+    flip along their last block's legal interval are skipped. The last block of
+    each kept tower is moved to ``flip_x + U(-window, window)``, clipped to its
+    legal interval. Fewer than ``n`` towers come back only if ``max_rounds``
+    rounds did not find enough flips.
+    """
+    rng = np.random.default_rng(seed)
+    found: list[CriticalTower] = []
+    for round_ in range(max_rounds):
+        if len(found) >= n:
+            break
+        want = max(8, int(1.5 * (n - len(found))))
+        batch = random_towers(want, seed=int(rng.integers(2**31)), min_blocks=min_blocks,
+                              max_blocks=max_blocks, resolution=resolution)
+        flips = find_flips(batch, reference, tolerance=tolerance, progress=progress)
+        for g, fx in zip(batch, flips):
+            if fx is None or len(found) >= n:
+                continue
+            lo, hi = last_block_interval(g)
+            offset = float(rng.uniform(-window, window))
+            x = float(np.clip(fx + offset, lo, hi))
+            found.append(CriticalTower(with_last_x(g, x), g, fx, x - fx))
+    return found

@@ -1,0 +1,35 @@
+"""The built-in worlds, predictors, planners and values of overhang-framework.
+
+They are an ordinary plugin, loaded through the ``overhang_framework`` entry-point
+group exactly as a third-party plugin is.
+"""
+
+from overhang_framework.hookspecs import hookimpl
+
+
+@hookimpl
+def register_worlds(register):
+    from overhang_builtins.world import OverhangWorld
+
+    register("overhang", OverhangWorld)
+
+
+@hookimpl
+def register_predictors(register):
+    from overhang_builtins.simulation import VeridicalPredictor
+
+    register("veridical", VeridicalPredictor)
+
+
+@hookimpl
+def register_planners(register):
+    from overhang_builtins.myopic import MyopicPlanner
+
+    register("myopic", MyopicPlanner)
+
+
+@hookimpl
+def register_values(register):
+    from overhang_builtins.values import OverhangValue
+
+    register("overhang", OverhangValue)
