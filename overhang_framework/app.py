@@ -12,13 +12,14 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
 from overhang_framework.episode import episode_rng, run_episode
 from overhang_framework.errors import OverhangError
 from overhang_framework.plugins import Registry
 from overhang_framework.results import EpisodeLog, atomic_write_json, summarize
 from overhang_framework.tasks import tasks_from_config
 
-CONFIG_MODULE = "pkg://overhang_framework.conf"
+enable_plugin_configs()
 
 
 def _params(cfg: DictConfig) -> dict[str, Any]:
@@ -87,7 +88,7 @@ def format_summary(summary: dict) -> str:
     return "\n".join(lines)
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_MODULE, config_name="config")
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
 def main(cfg: DictConfig) -> dict:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:

@@ -27,18 +27,6 @@ def list_plugins(as_json: bool = False) -> str:
     return "\n".join(lines)
 
 
-def available_options(group: str) -> list[str]:
-    """Config names of ``group`` on the full search path (the core's and every plugin's)."""
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra import initialize_config_module
-
-    gh = GlobalHydra.instance()
-    if gh.is_initialized():
-        return sorted(gh.config_loader().get_group_options(group))
-    with initialize_config_module("overhang_framework.conf", version_base="1.3"):
-        return sorted(GlobalHydra.instance().config_loader().get_group_options(group))
-
-
 def check_overrides(args: Sequence[str]) -> None:
     """Raise :class:`UnknownPluginError` for a config-group choice that is not installed."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -60,7 +48,9 @@ def check_overrides(args: Sequence[str]) -> None:
             if not isinstance(value, str):
                 continue
             if known is None:
-                known = available_options(group)
+                from overhang_framework.config import group_options
+
+                known = group_options(group)
             if value not in known:
                 raise UnknownPluginError(group, value, known)
 

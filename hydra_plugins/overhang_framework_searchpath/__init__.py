@@ -6,10 +6,10 @@ from hydra.plugins.search_path_plugin import SearchPathPlugin
 
 class OverhangFrameworkSearchPathPlugin(SearchPathPlugin):
     def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
-        from overhang_framework.app import CONFIG_MODULE
+        from overhang_framework.config import CONFIG_PATH
         from overhang_framework.plugins import config_search_paths
 
-        if not any(e.path == CONFIG_MODULE for e in search_path.get_path()):
+        if not any(e.path == CONFIG_PATH for e in search_path.get_path()):
             return  # another Hydra application
         for path in config_search_paths():
             search_path.append(provider="overhang_framework", path=path)
