@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import importlib.metadata
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Optional
 
@@ -124,10 +123,3 @@ def _impls_of(pm: pluggy.PluginManager, plugin: object):
 def _paths_of(plugin: object) -> list[str]:
     fn = getattr(plugin, "config_search_paths", None)
     return list(fn() or []) if fn else []
-
-
-def package_version(dist_name: str) -> str:
-    try:
-        return importlib.metadata.version(dist_name)
-    except importlib.metadata.PackageNotFoundError:
-        return ""
