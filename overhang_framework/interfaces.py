@@ -46,9 +46,7 @@ class Budget:
 
     seconds: Optional[float] = None
     predictor_calls: Optional[int] = None
-
-    def __post_init__(self):
-        self.started = time.perf_counter()
+    started: float = field(default_factory=time.perf_counter, repr=False)
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
