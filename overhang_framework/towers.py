@@ -29,8 +29,15 @@ Verdicts = Callable[[Sequence[Geometry]], np.ndarray]
 """A batched stability reference: geometries in, boolean array out."""
 
 
-def random_tower(rng: np.random.Generator, n_blocks: int, resolution: float = 0.05) -> Geometry:
+CONTINUOUS = 0.001
+"""The x step used for ``resolution=None`` (effectively continuous positions)."""
+
+
+def random_tower(rng: np.random.Generator, n_blocks: int, resolution: Optional[float] = 0.05) -> Geometry:
     """One random legal tower of ``n_blocks`` blocks drawn with ``rng``.
+
+    Actions are drawn uniformly from the legal actions on the x grid
+    ``k * resolution`` (``None``: a 0.001 grid, effectively continuous).
 
     Raises ``RuntimeError`` if some block has no legal action (cannot happen on
     the 8 x 8 grid for up to 7 blocks, kept as a guard).
@@ -39,7 +46,7 @@ def random_tower(rng: np.random.Generator, n_blocks: int, resolution: float = 0.
     geometry = Geometry((Block(width, 0.0, 0),))
     for _ in range(n_blocks - 1):
         width = WIDTHS[rng.integers(len(WIDTHS))]
-        actions = legal_actions(geometry, width, resolution)
+        actions = legal_actions(geometry, width, CONTINUOUS if resolution is None else resolution)
         if not actions:
             raise RuntimeError(f"no legal action for a block of width {width} on {geometry.key}")
         geometry = place(geometry, width, actions[rng.integers(len(actions))])
@@ -47,7 +54,7 @@ def random_tower(rng: np.random.Generator, n_blocks: int, resolution: float = 0.
 
 
 def random_towers(n: int, seed: int = 0, min_blocks: int = 2, max_blocks: int = 7,
-                  resolution: float = 0.05) -> list[Geometry]:
+                  resolution: Optional[float] = 0.05) -> list[Geometry]:
     """``n`` random legal towers; block counts uniform in ``[min_blocks, max_blocks]``."""
     rng = np.random.default_rng(seed)
     counts = rng.integers(min_blocks, max_blocks + 1, size=n)
@@ -151,8 +158,8 @@ def find_flips(towers: Sequence[Geometry], reference: Verdicts, tolerance: float
 
 
 def near_critical_towers(n: int, reference: Verdicts, seed: int = 0, window: float = 0.05,
-                         min_blocks: int = 2, max_blocks: int = 7, resolution: float = 0.05,
-                         tolerance: float = 0.002, max_rounds: int = 10,
+                         min_blocks: int = 2, max_blocks: int = 7, resolution: Optional[float] = 0.05,
+                         tolerance: float = 0.002, max_rounds: int = 20,
                          progress: Optional[Callable[[int], None]] = None) -> list[CriticalTower]:
     """``n`` towers whose last block is within ``window`` of a flip of ``reference``.
 
@@ -167,7 +174,7 @@ def near_critical_towers(n: int, reference: Verdicts, seed: int = 0, window: flo
     for round_ in range(max_rounds):
         if len(found) >= n:
             break
-        want = max(8, int(1.5 * (n - len(found))))
+        want = max(8, 3 * (n - len(found)))
         batch = random_towers(want, seed=int(rng.integers(2**31)), min_blocks=min_blocks,
                               max_blocks=max_blocks, resolution=resolution)
         flips = find_flips(batch, reference, tolerance=tolerance, progress=progress)

@@ -1,13 +1,55 @@
-"""Build a physics backend by name."""
+"""Build a physics backend by name: ``make_backend("static", margin=0.01)``."""
 
 from __future__ import annotations
 
-from overhang_framework.physics.pybullet_backend import PyBulletBackend, PyBulletParams
+from typing import Optional
 
-BACKENDS = ("pybullet",)
+from overhang_framework.physics.cache import CachedBackend, VerdictCache
+
+BACKENDS = ("pybullet", "static")
 
 
-def make_backend(name: str, **params):
+def make_backend(name: str, *, workers: Optional[int] = None, cache=None, **params):
+    """The backend called ``name`` with ``params`` overriding its parameter defaults.
+
+    ``pybullet`` takes :class:`PyBulletParams` fields and, with ``workers > 1``,
+    runs on a :class:`PyBulletPool`; ``static`` takes :class:`StaticParams`
+    fields. ``cache`` wraps the backend in a :class:`CachedBackend`: ``True``
+    for a fresh :class:`VerdictCache`, or a cache to share. Unknown names and
+    unknown parameters raise ``ValueError``.
+    """
     if name == "pybullet":
-        return PyBulletBackend(PyBulletParams(**params))
-    raise ValueError(f"unknown physics backend {name!r}; allowed: {', '.join(BACKENDS)}")
+        from overhang_framework.physics.pybullet_backend import (
+            PyBulletBackend,
+            PyBulletParams,
+        )
+
+        prm = _params(PyBulletParams, name, params)
+        if workers is not None and workers > 1:
+            from overhang_framework.physics.pool import PyBulletPool
+
+            backend = PyBulletPool(workers=workers, params=prm)
+        else:
+            backend = PyBulletBackend(prm)
+    elif name == "static":
+        from overhang_framework.physics.static_backend import (
+            StaticBackend,
+            StaticParams,
+        )
+
+        backend = StaticBackend(_params(StaticParams, name, params))
+    else:
+        raise ValueError(f"unknown physics backend {name!r}; allowed: {', '.join(BACKENDS)}")
+    if cache is None or cache is False:
+        return backend
+    return CachedBackend(backend, VerdictCache() if cache is True else cache)
+
+
+def _params(cls, name: str, params: dict):
+    fields = set(cls.__dataclass_fields__)
+    unknown = sorted(set(params) - fields)
+    if unknown:
+        raise ValueError(
+            f"unknown parameter(s) {', '.join(unknown)} for physics backend {name!r}; allowed: {', '.join(sorted(fields))}"
+        )
+    return cls(**params)

@@ -34,7 +34,7 @@ class PyBulletParams:
     solver_iterations: int = 50
     early_stop: bool = True
     check_every: int = 6
-    rest_speed: float = 0.005
+    rest_speed: float = 0.0003
     rest_time: float = 0.25
     min_time: float = 0.25
 

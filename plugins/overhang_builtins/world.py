@@ -16,11 +16,12 @@ class OverhangWorld(World):
     ``physics`` names the ground-truth backend (``pybullet`` or ``static``), whose
     parameters are the mapping of the same name; ``resolution`` is the x step of
     the candidate actions that :meth:`legal_actions` enumerates; ``cache``
-    memoises verdicts by the canonical geometry key.
+    memoises verdicts by the canonical geometry key; ``workers > 1`` runs
+    PyBullet batches on a process pool of that many workers.
     """
 
     def __init__(self, physics: str = "pybullet", resolution: float = 0.1, cache: bool = True,
-                 **backend_params: Mapping[str, Any]):
+                 workers: int = 1, **backend_params: Mapping[str, Any]):
         from overhang_framework.physics.factory import make_backend
 
         if resolution <= 0:
@@ -28,12 +29,8 @@ class OverhangWorld(World):
         self.resolution = float(resolution)
         self.physics_name = physics
         self.backend_params = {k: dict(v) for k, v in backend_params.items()}
-        backend = make_backend(physics, **self.backend_params.get(physics, {}))
-        if cache:
-            from overhang_framework.physics.cache import CachedBackend
-
-            backend = CachedBackend(backend)
-        self.backend = backend
+        self.backend = make_backend(physics, workers=workers, cache=bool(cache),
+                                    **self.backend_params.get(physics, {}))
 
     def initial_state(self, task: Task) -> State:
         widths = tuple(check_width(w) for w in task.sequence)

@@ -1,0 +1,331 @@
+"""Physics benchmark: ``python -m overhang_framework.bench``.
+
+Measures, in one run, on a seeded set of random legal towers and on a
+near-critical set (:mod:`overhang_framework.towers`):
+
+* the full PyBullet run (the reference: verdicts, final displacements, time),
+* the early-stopping PyBullet check (agreement with the full run, time),
+* the static backend, one geometry per call and batched (agreement, time,
+  throughput), also under IPE-like noise on gravity and friction,
+* the PyBullet process pool against a one-worker pool (throughput),
+* the verdict cache on an episode-like workload (hit rate),
+* how the reference verdicts move with the displacement threshold.
+
+It prints a table and, as its last line, one JSON object with the figures.
+``--out FILE`` also writes that object to FILE (atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from overhang_framework.geometry import Geometry
+from overhang_framework.physics.cache import CachedBackend, VerdictCache
+from overhang_framework.physics.pool import PyBulletPool
+from overhang_framework.physics.pybullet_backend import (
+    PyBulletParams,
+    PyBulletSimulator,
+)
+from overhang_framework.physics.static_backend import StaticBackend, StaticParams
+from overhang_framework.towers import near_critical_towers, random_towers
+
+THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2)
+
+
+def confusion(reference: np.ndarray, verdicts: np.ndarray) -> dict:
+    """Counts of (reference, verdict) pairs, keyed ``ref_stable_pred_fall`` and so on."""
+    name = {True: "stable", False: "fall"}
+    return {
+        f"ref_{name[r]}_pred_{name[v]}": int(np.sum((reference == r) & (verdicts == v)))
+        for r in (True, False)
+        for v in (True, False)
+    }
+
+
+def timed_checks(fn, items: Sequence, desc: str, quiet: bool) -> tuple[list, np.ndarray]:
+    """``fn(item)`` for every item with its wall time in seconds."""
+    results, times = [], []
+    for item in tqdm(items, desc=desc, disable=quiet, leave=False, file=sys.stderr):
+        t = time.perf_counter()
+        results.append(fn(item))
+        times.append(time.perf_counter() - t)
+    return results, np.asarray(times)
+
+
+def batched_rate(backend, geometries, gravity=None, friction=None, repeats: int = 3) -> float:
+    """Checks per second of ``backend.stable_batch`` over all ``geometries`` (best of ``repeats``)."""
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        backend.stable_batch(geometries, gravity, friction)
+        best = min(best, time.perf_counter() - t)
+    return len(geometries) / best
+
+
+def ipe_noise(geometries: Sequence[Geometry], rng: np.random.Generator, sigma: float = 0.03,
+              friction: float = 0.5, gravity: float = 9.81):
+    """IPE-style perturbations: x positions, gravity vector and per-block friction, Gaussian with ``sigma``."""
+    noisy = [Geometry.from_tuples((b.width, b.x + rng.normal(0, sigma), b.layer) for b in g.blocks)
+             for g in geometries]
+    grav = np.c_[rng.normal(0, sigma * gravity, len(geometries)), -gravity + rng.normal(0, sigma * gravity, len(geometries))]
+    fric = [np.clip(friction + rng.normal(0, sigma, len(g)), 0.0, None) for g in geometries]
+    return noisy, grav, fric
+
+
+def pool_rate(geometries, workers: int, params: PyBulletParams, early_stop: bool) -> tuple[float, np.ndarray]:
+    """PyBullet checks per second on a pool of ``workers`` (start-up excluded) and its verdicts."""
+    with PyBulletPool(workers, params=params, early_stop=early_stop) as pool:
+        pool.worker_pids()
+        t = time.perf_counter()
+        verdicts = pool.stable_batch(geometries)
+        return len(geometries) / (time.perf_counter() - t), verdicts
+
+
+def margin_sweep(geoms, ref, crit, crit_ref, margins: Sequence[float], base: StaticParams,
+                 offsets: int = 101, window: float = 0.05) -> dict:
+    """Static agreement for each margin: on the random set, and expected on the near-critical set.
+
+    The expected near-critical agreement of a tower is the fraction of
+    ``offsets`` evenly spaced offsets within ``window`` of its reference flip
+    at which the static verdict equals the reference's (stable on the side the
+    reference found stable), so it does not depend on where the one sampled
+    offset fell.
+    """
+    from dataclasses import replace
+
+    from overhang_framework.towers import with_last_x
+
+    us = np.linspace(-window, window, offsets)
+    out = {}
+    for m in margins:
+        backend = StaticBackend(replace(base, margin=float(m)))
+        random_agree = float(np.mean(backend.stable_batch(geoms) == ref))
+        scores = []
+        for c, r in zip(crit, crit_ref):
+            if c.offset == 0:
+                continue
+            side = np.sign(c.offset) if r else -np.sign(c.offset)
+            v = backend.stable_batch([with_last_x(c.base, c.flip_x + u) for u in us])
+            scores.append(np.mean(v == (us * side > 0)))
+        out[str(m)] = {"agreement_static": random_agree,
+                       "expected_agreement_static_critical": float(np.mean(scores)) if scores else None}
+    return out
+
+
+def write_atomic(path: str, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same directory and a rename."""
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".bench-", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def machine() -> str:
+    return f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_implementation()} {platform.python_version()}"
+
+
+def run(towers: int = 1000, seed: int = 0, critical: int = 200, workers: int = 2, pool_towers: int = 200,
+        quiet: bool = False, static_params: Optional[StaticParams] = None,
+        pybullet_params: Optional[PyBulletParams] = None, margins: Sequence[float] = ()) -> dict:
+    """Run every measurement and return the figures (the JSON object the CLI prints)."""
+    sp = static_params or StaticParams()
+    pp = pybullet_params or PyBulletParams()
+    say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr))
+    geoms = random_towers(towers, seed=seed)
+    sizes = np.array([len(g) for g in geoms])
+
+    say(f"{towers} random towers (seed {seed}), {int(sizes.min())}-{int(sizes.max())} blocks")
+    sim = PyBulletSimulator(pp)
+    full, t_full = timed_checks(lambda g: sim.check(g, early_stop=False), geoms, "pybullet full", quiet)
+    ref = np.array([o.stable for o in full])
+    disp = np.array([o.displacement for o in full])
+    early, t_early = timed_checks(lambda g: sim.check(g, early_stop=True), geoms, "pybullet early stop", quiet)
+    es = np.array([o.stable for o in early])
+    sim.close()
+
+    static = StaticBackend(sp)
+    static.stable_batch(geoms[:10])
+    st_single, t_static = timed_checks(static.stable, geoms, "static single", quiet)
+    st_single = np.array(st_single, dtype=bool)
+    st_batch = static.stable_batch(geoms)
+    rate = batched_rate(static, geoms)
+    noisy, grav, fric = ipe_noise(geoms, np.random.default_rng(seed + 1))
+    rate_noisy = batched_rate(static, noisy, grav, fric)
+    lp_before = static.lp_solved
+    static.stable_batch(noisy, grav, fric)
+    lp_share_noisy = (static.lp_solved - lp_before) / len(noisy)
+    lp_before = static.lp_solved
+    static.stable_batch(geoms)
+    lp_share = (static.lp_solved - lp_before) / len(geoms)
+
+    sub = geoms[: min(pool_towers, len(geoms))]
+    say(f"pool: {len(sub)} full PyBullet runs on 1 and on {workers} workers")
+    load_before_pool = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    rate1, v1 = pool_rate(sub, 1, pp, early_stop=False)
+    rate_n, vn = pool_rate(sub, workers, pp, early_stop=False)
+
+    cache = VerdictCache()
+    cached = CachedBackend(StaticBackend(sp), cache)
+    prefixes = [Geometry(g.blocks[:k]) for g in geoms for k in range(1, len(g) + 1)]
+    for g in prefixes:
+        cached.stable(g)
+    for g in geoms:
+        cached.stable(Geometry(tuple(reversed(g.blocks))))
+
+    thresholds = {}
+    for th in THRESHOLDS:
+        v = disp <= th
+        thresholds[str(th)] = {
+            "stable_fraction": float(v.mean()),
+            "changed_vs_reference": int(np.sum(v != ref)),
+            "agreement_static": float(np.mean(v == st_batch)),
+        }
+
+    crit_figures = {}
+    if critical > 0:
+        say(f"near-critical set: {critical} towers, flips found by bisection with full PyBullet runs on {workers} workers")
+        with PyBulletPool(workers, params=pp, early_stop=False) as pool:
+            bar = tqdm(desc="bisection checks", disable=quiet, leave=False, file=sys.stderr)
+            crit = near_critical_towers(critical, pool.stable_batch, seed=seed + 2, progress=bar.update)
+            bar.close()
+            cgeoms = [c.geometry for c in crit]
+            cref = pool.stable_batch(cgeoms)
+        with PyBulletPool(workers, params=pp, early_stop=True) as pool:
+            ces = pool.stable_batch(cgeoms)
+        cst = static.stable_batch(cgeoms)
+        crit_figures = {
+            "critical_towers": len(crit),
+            "critical_stable_fraction": float(np.mean(cref)),
+            "agreement_static_critical": float(np.mean(cst == cref)),
+            "agreement_early_stop_critical": float(np.mean(ces == cref)),
+            "confusion_static_critical": confusion(cref, cst),
+        }
+        if margins:
+            say(f"margin sweep: {', '.join(map(str, margins))}")
+            crit_figures["margin_sweep"] = margin_sweep(geoms, ref, crit, cref, margins, sp)
+
+    med_full, med_early, med_static = (float(np.median(t)) for t in (t_full, t_early, t_static))
+    figures = {
+        "towers": towers,
+        "seed": seed,
+        "agreement_early_stop": float(np.mean(es == ref)),
+        "agreement_static": float(np.mean(st_batch == ref)),
+        "agreement_static_critical": crit_figures.pop("agreement_static_critical", None),
+        "speedup_early_stop": med_full / med_early,
+        "speedup_static": med_full / med_static,
+        "static_checks_per_s": rate,
+        "pool_speedup": rate_n / rate1,
+        "stable_fraction": float(ref.mean()),
+        "median_ms": {"pybullet_full": 1e3 * med_full, "pybullet_early_stop": 1e3 * med_early,
+                      "static_single": 1e3 * med_static},
+        "static_checks_per_s_ipe_noise": rate_noisy,
+        "static_lp_share": lp_share,
+        "static_lp_share_ipe_noise": lp_share_noisy,
+        "static_single_equals_batched": bool(np.all(st_single == st_batch)),
+        "pool_checks_per_s": {"1": rate1, str(workers): rate_n},
+        "load_average_before_pool": load_before_pool,
+        "pool_equals_serial": bool(np.all(v1 == ref[: len(sub)]) and np.all(vn == ref[: len(sub)])),
+        "confusion_static": confusion(ref, st_batch),
+        "confusion_early_stop": confusion(ref, es),
+        "cache": cache.stats(),
+        "threshold_sensitivity": thresholds,
+        **crit_figures,
+        "workers": workers,
+        "static_params": {k: getattr(sp, k) for k in sp.__dataclass_fields__},
+        "pybullet_params": {k: getattr(pp, k) for k in pp.__dataclass_fields__},
+        "machine": machine(),
+    }
+    figures["disagreements_static"] = [
+        {"key": [list(b) for b in geoms[i].key], "reference_stable": bool(ref[i]),
+         "displacement": float(disp[i])}
+        for i in np.flatnonzero(st_batch != ref)[:20]
+    ]
+    return figures
+
+
+def table(f: dict) -> str:
+    """A readable summary of :func:`run`'s figures."""
+    ms = f["median_ms"]
+    rows = [
+        ("towers (random set)", f"{f['towers']}  ({100 * f['stable_fraction']:.1f}% stable by the full run)"),
+        ("pybullet full run, median", f"{ms['pybullet_full']:.1f} ms"),
+        ("pybullet early stop, median", f"{ms['pybullet_early_stop']:.2f} ms   speed-up {f['speedup_early_stop']:.1f}x"),
+        ("static single, median", f"{1e3 * ms['static_single']:.1f} us   speed-up {f['speedup_static']:.0f}x"),
+        ("static batched", f"{f['static_checks_per_s']:.0f} checks/s  (IPE noise: {f['static_checks_per_s_ipe_noise']:.0f}/s)"),
+        ("static LP share", f"{100 * f['static_lp_share']:.1f}%  (IPE noise: {100 * f['static_lp_share_ipe_noise']:.1f}%)"),
+        ("agreement early stop", f"{f['agreement_early_stop']:.4f}"),
+        ("agreement static", f"{f['agreement_static']:.4f}"),
+    ]
+    if f.get("agreement_static_critical") is not None:
+        rows += [
+            ("near-critical towers", f"{f['critical_towers']}  ({100 * f['critical_stable_fraction']:.1f}% stable)"),
+            ("agreement static, critical", f"{f['agreement_static_critical']:.4f}"),
+            ("agreement early stop, critical", f"{f['agreement_early_stop_critical']:.4f}"),
+        ]
+    pc = f["pool_checks_per_s"]
+    rows += [
+        ("pool (full runs)", ", ".join(f"{k} worker(s): {v:.2f}/s" for k, v in pc.items())
+         + f"   speed-up {f['pool_speedup']:.2f}x"),
+        ("cache hit rate (episode prefixes)", f"{f['cache']['hit_rate']:.3f}  ({f['cache']['hits']} hits, {f['cache']['misses']} misses)"),
+    ]
+    width = max(len(r[0]) for r in rows)
+    lines = [f"{a:<{width}}  {b}" for a, b in rows]
+    c = f["confusion_static"]
+    lines += ["", "static vs full run        pred stable  pred fall",
+              f"  ref stable             {c['ref_stable_pred_stable']:>11}  {c['ref_stable_pred_fall']:>9}",
+              f"  ref fall               {c['ref_fall_pred_stable']:>11}  {c['ref_fall_pred_fall']:>9}"]
+    lines += ["", "threshold  stable   changed  static agreement"]
+    for th, t in f["threshold_sensitivity"].items():
+        lines.append(f"{th:>9}  {t['stable_fraction']:.3f}  {t['changed_vs_reference']:>7}  {t['agreement_static']:.4f}")
+    if f.get("margin_sweep"):
+        lines += ["", "margin   agreement (random)  expected agreement (near-critical)"]
+        for m, t in f["margin_sweep"].items():
+            lines.append(f"{m:>6}   {t['agreement_static']:.4f}              {t['expected_agreement_static_critical']:.4f}")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--towers", type=int, default=1000, help="random towers (default 1000)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--critical", type=int, default=200, help="near-critical towers (default 200, 0 to skip)")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 2, help="pool workers (default: all cores)")
+    ap.add_argument("--pool-towers", type=int, default=200, help="towers for the pool measurement (default 200)")
+    ap.add_argument("--quick", action="store_true", help="tiny smoke run: 30 towers, 6 near-critical, 12 for the pool")
+    ap.add_argument("--margins", type=lambda t: [float(v) for v in t.split(",")], default=[],
+                    help="comma-separated static margins to compare (needs --critical > 0)")
+    ap.add_argument("--out", help="also write the JSON figures to this file")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars or table")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.towers, args.critical, args.pool_towers = min(args.towers, 30), min(args.critical, 6), 12
+    figures = run(args.towers, args.seed, args.critical, args.workers, args.pool_towers, quiet=args.quiet,
+                  margins=args.margins)
+    text = json.dumps(figures, sort_keys=False)
+    if args.out:
+        write_atomic(args.out, text + "\n")
+    if not args.quiet:
+        print(table(figures))
+    print(json.dumps({k: v for k, v in figures.items() if k != "disagreements_static"}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

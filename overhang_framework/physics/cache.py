@@ -1,0 +1,129 @@
+"""A cache of stability verdicts.
+
+Verdicts are keyed by the backend's name and parameters, the geometry's
+canonical order-independent key (:attr:`Geometry.key`), and the gravity vector
+and per-block friction when given (friction is reordered with the blocks, so a
+permuted geometry with its permuted friction hits the same entry). One
+:class:`VerdictCache` can be shared by several :class:`CachedBackend` wrappers
+so that everything asking within a run shares its verdicts.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Hashable, Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import KEY_DECIMALS, Geometry
+
+
+def verdict_key(geometry: Geometry, gravity=None, friction=None, context: Hashable = None) -> tuple:
+    """The cache key of one check; ``context`` identifies the backend and its parameters."""
+    rows = [(round(b.width, KEY_DECIMALS), round(b.x, KEY_DECIMALS) + 0.0, int(b.layer)) for b in geometry.blocks]
+    if friction is None:
+        body = tuple(sorted(rows))
+    else:
+        body = tuple(sorted(zip(rows, (round(float(f), KEY_DECIMALS) + 0.0 for f in friction))))
+    grav = None if gravity is None else tuple(round(float(v), KEY_DECIMALS) + 0.0 for v in gravity)
+    return (context, body, grav, friction is not None)
+
+
+class VerdictCache:
+    """Verdicts by key, least recently used evicted beyond ``maxsize`` (``None``: unbounded)."""
+
+    def __init__(self, maxsize: Optional[int] = 1_000_000):
+        self.maxsize = maxsize
+        self._data: OrderedDict = OrderedDict()
+        self.hits = 0
+        self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def get(self, key) -> Optional[bool]:
+        """The stored verdict (counted as a hit) or ``None`` (counted as a miss)."""
+        value = self._data.get(key)
+        if value is None:
+            self.misses += 1
+            return None
+        self.hits += 1
+        self._data.move_to_end(key)
+        return value
+
+    def put(self, key, verdict: bool) -> None:
+        self._data[key] = bool(verdict)
+        self._data.move_to_end(key)
+        if self.maxsize is not None and len(self._data) > self.maxsize:
+            self._data.popitem(last=False)
+
+    @property
+    def hit_rate(self) -> float:
+        asked = self.hits + self.misses
+        return self.hits / asked if asked else 0.0
+
+    def stats(self) -> dict:
+        return {"hits": self.hits, "misses": self.misses, "size": len(self), "hit_rate": self.hit_rate}
+
+    def clear(self) -> None:
+        self._data.clear()
+        self.hits = self.misses = 0
+
+
+def backend_context(backend) -> Hashable:
+    """What identifies a backend's verdicts: its name, parameters and early-stop override if any."""
+    return (getattr(backend, "name", type(backend).__name__), repr(getattr(backend, "params", None)),
+            getattr(backend, "early_stop", None))
+
+
+class CachedBackend:
+    """A :class:`~overhang_framework.physics.PhysicsBackend` answering from ``cache`` before asking ``backend``.
+
+    Misses of a batch are sent to ``backend.stable_batch`` together, each
+    distinct key once.
+    """
+
+    def __init__(self, backend, cache: Optional[VerdictCache] = None):
+        self.backend = backend
+        self.cache = cache if cache is not None else VerdictCache()
+        self.name = backend.name
+        self._context = backend_context(backend)
+
+    @property
+    def params(self):
+        return getattr(self.backend, "params", None)
+
+    def stable(self, geometry: Geometry, gravity=None, friction=None) -> bool:
+        key = verdict_key(geometry, gravity, friction, self._context)
+        verdict = self.cache.get(key)
+        if verdict is None:
+            verdict = bool(self.backend.stable(geometry, gravity, friction))
+            self.cache.put(key, verdict)
+        return verdict
+
+    def stable_batch(self, geometries: Sequence[Geometry], gravity=None, friction=None) -> np.ndarray:
+        geometries = list(geometries)
+        out = np.zeros(len(geometries), dtype=bool)
+        todo: dict = {}
+        for i, g in enumerate(geometries):
+            key = verdict_key(g, None if gravity is None else gravity[i],
+                              None if friction is None else friction[i], self._context)
+            verdict = self.cache.get(key)
+            if verdict is None:
+                todo.setdefault(key, []).append(i)
+            else:
+                out[i] = verdict
+        if todo:
+            first = [idx[0] for idx in todo.values()]
+            verdicts = self.backend.stable_batch(
+                [geometries[i] for i in first],
+                None if gravity is None else np.asarray(gravity, dtype=float)[first],
+                None if friction is None else [friction[i] for i in first],
+            )
+            for (key, idx), v in zip(todo.items(), verdicts):
+                self.cache.put(key, bool(v))
+                out[idx] = bool(v)
+        return out
+
+    def stats(self) -> dict:
+        return self.cache.stats()

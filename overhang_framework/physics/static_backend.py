@@ -1,0 +1,503 @@
+"""Static-equilibrium physics: a tower stands if its blocks can be in equilibrium.
+
+Every block is a rigid ``width x BLOCK_HEIGHT`` rectangle of uniform density
+(mass proportional to its width). Blocks touch through *contacts*:
+
+* bottom contacts: a block of layer ``L`` rests on every block of layer ``L-1``
+  whose x interval overlaps its own by more than ``min_contact``; blocks of
+  layer 0 rest on the ground. The contact is the overlap segment.
+* side contacts (``side_contacts=True``): two blocks of one layer whose facing
+  sides are less than ``side_gap`` apart, or overlap by at most
+  ``side_overlap`` (position noise), touch along their vertical faces.
+  Blocks of one layer overlapping by more than ``side_overlap`` are
+  interpenetrating: the tower is reported unstable, as the reference engine
+  pushes such blocks apart.
+
+The tower is stable when there are contact forces that are compressive, lie in
+the friction cone (coefficient ``mu_a * mu_b`` for blocks a, b by default, as
+Bullet combines frictions; ``mu_a * ground_friction`` on the ground) and
+balance every block's weight in force and torque. The *safety margin* shrinks
+every contact segment by ``margin`` at both ends (a segment shorter than
+``2 * margin`` becomes a point at its middle), so a block whose load passes
+within ``margin`` of an edge counts as tipping.
+
+Gravity is any vector ``(gx, gz)``; only its direction matters. Friction is
+optional per block.
+
+A batch is decided in stages, each exact for what it decides; only
+geometries that no cheaper stage settles reach the LP:
+
+1. *tree check* (vectorised over the batch): when every block has exactly one
+   bottom contact the contact forces are statically determinate. The force on
+   the contact under block ``i`` carries the weight of ``i`` and everything
+   resting on it, so the check is: the weight's line of action meets the
+   (shrunk) segment, and ``|gx| <= mu |gz|``. This decides such towers unless
+   the check fails and side contacts could help.
+2. *load paths* (sufficient): for towers where some block has several
+   supports, a few trees (each block on its support of largest overlap, its
+   leftmost, its rightmost) are checked the same way; an admissible one proves
+   stability, since unused contacts may carry no force.
+3. *cuts* (necessary): for every layer ``L``, each connected group of blocks
+   at or above ``L`` must have its weight's line of action cross the plane
+   ``z = L * BLOCK_HEIGHT`` within the hull of its contacts there (and within
+   their friction); a failed cut proves the tower falls.
+4. *LP*: the rest is one feasibility linear program per geometry, all stacked
+   block-diagonally into a single sparse problem solved by HiGHS. Each contact
+   gets two end points, each with a force in the friction cone spanned by two
+   rays (four non-negative unknowns per contact); each block gives three
+   equations (x force, z force, torque) balancing ``t`` times its weight, with
+   one load factor ``0 <= t <= 1`` per geometry. The sum of load factors is
+   maximised; since feasible loads form a cone, a geometry's ``t`` is 1 when it
+   can stand and 0 when it cannot (stable when ``t >= 1 - lp_tolerance``).
+
+:meth:`StaticBackend.stable` first tries a scalar version of the tree check,
+then falls back to the batched stages. Rigid-body equilibrium is optimistic for
+statically indeterminate towers (a block on several supports may "choose" its
+load path, while the compliant contacts of the reference engine do not); see
+docs/physics.md for how often that matters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import linprog
+
+from overhang_framework.geometry import BLOCK_HEIGHT, Geometry
+
+
+@dataclass(frozen=True)
+class StaticParams:
+    """Parameters of :class:`StaticBackend` (defaults calibrated against PyBullet, see docs/physics.md)."""
+
+    margin: float = 0.002
+    friction: float = 0.5
+    ground_friction: float = 0.5
+    friction_combine: str = "product"
+    gravity: float = 9.81
+    min_contact: float = 1e-6
+    side_contacts: bool = True
+    side_gap: float = 1e-3
+    side_overlap: float = 0.02
+    lp_tolerance: float = 1e-6
+    lp_method: str = "highs"
+
+    def __post_init__(self):
+        if self.friction_combine not in ("product", "min", "mean"):
+            raise ValueError(f"friction_combine must be product, min or mean, not {self.friction_combine!r}")
+        if self.margin < 0:
+            raise ValueError(f"margin must be >= 0, not {self.margin}")
+
+
+def _combine(a: np.ndarray, b: np.ndarray, how: str) -> np.ndarray:
+    if how == "product":
+        return a * b
+    if how == "min":
+        return np.minimum(a, b)
+    return (a + b) / 2
+
+
+class _Batch:
+    """Padded arrays for a batch of geometries: ``(B, N)`` with a validity mask."""
+
+    def __init__(self, geometries: Sequence[Geometry], gravity, friction, params: StaticParams):
+        B = len(geometries)
+        N = max((len(g) for g in geometries), default=0)
+        N = max(N, 1)
+        self.B, self.N = B, N
+        w = np.zeros((B, N))
+        x = np.zeros((B, N))
+        layer = np.full((B, N), -10, dtype=np.int64)
+        mu = np.full((B, N), float(params.friction))
+        valid = np.zeros((B, N), dtype=bool)
+        for b, g in enumerate(geometries):
+            k = len(g)
+            if k:
+                arr = g.as_array()
+                w[b, :k], x[b, :k], layer[b, :k] = arr[:, 0], arr[:, 1], arr[:, 2]
+                valid[b, :k] = True
+                if friction is not None and friction[b] is not None:
+                    mu[b, :k] = np.asarray(friction[b], dtype=float)[:k]
+        if gravity is None:
+            g = np.tile([0.0, -params.gravity], (B, 1))
+        else:
+            g = np.asarray(gravity, dtype=float).reshape(B, 2)
+        norm = np.hypot(g[:, 0], g[:, 1])
+        self.zero_g = norm < 1e-12
+        self.g = g / np.where(self.zero_g, 1.0, norm)[:, None]
+        self.w, self.x, self.layer, self.mu, self.valid = w, x, layer, mu, valid
+        self.m = np.where(valid, w, 0.0)
+        self.left, self.right = x - w / 2, x + w / 2
+        self.zc = (layer + 0.5) * BLOCK_HEIGHT
+        ov = np.minimum(self.right[:, :, None], self.right[:, None, :]) - np.maximum(
+            self.left[:, :, None], self.left[:, None, :]
+        )
+        pair = valid[:, :, None] & valid[:, None, :]
+        self.overlap = ov
+        self.below = pair & (layer[:, :, None] == layer[:, None, :] + 1) & (ov > params.min_contact)
+        same = pair & (layer[:, :, None] == layer[:, None, :]) & ~np.eye(N, dtype=bool)[None]
+        self.clash = (same & (ov > params.side_overlap)).any(axis=(1, 2))
+        if params.side_contacts:
+            self.side = same & (ov >= -params.side_gap) & (x[:, :, None] < x[:, None, :])
+        else:
+            self.side = np.zeros_like(same)
+        self.ground = valid & (layer == 0)
+
+    def subset(self, rows: np.ndarray) -> "_Batch":
+        """The geometries ``rows`` of this batch, as a new batch sharing no state."""
+        sub = object.__new__(_Batch)
+        sub.B, sub.N = int(rows.size), self.N
+        for k, v in vars(self).items():
+            if isinstance(v, np.ndarray):
+                setattr(sub, k, v[rows])
+        return sub
+
+
+def _choose_parent(bt: _Batch, score: np.ndarray) -> np.ndarray:
+    """For every block, the supporting block with the highest ``score`` (``-1`` on the ground)."""
+    parent = np.argmax(np.where(bt.below, score, -np.inf), axis=2)
+    return np.where(bt.ground | ~bt.valid, -1, parent)
+
+
+def _tree_check(bt: _Batch, parent: np.ndarray, params: StaticParams) -> np.ndarray:
+    """Whether the contact forces of the tree ``parent`` (each block's load on one support) are admissible.
+
+    Exact for a statically determinate tower; for others, passing is sufficient
+    for stability (unused contacts carry no force), failing proves nothing.
+    """
+    B, N = bt.B, bt.N
+    anc = np.zeros((B, N, N), dtype=bool)  # anc[b, i, j]: j is i or below i in the tree
+    idx = np.arange(N)
+    anc[:, idx, idx] = bt.valid
+    safe_parent = np.maximum(parent, 0)
+    cur = parent
+    for _ in range(N):
+        has = cur >= 0
+        if not has.any():
+            break
+        bb, ii = np.nonzero(has)
+        anc[bb, ii, cur[bb, ii]] = True
+        up = np.take_along_axis(parent, np.maximum(cur, 0), axis=1)
+        cur = np.where(has, up, -1)
+    m = bt.m
+    M = np.einsum("bi,bij->bj", m, anc)
+    Msafe = np.where(M > 0, M, 1.0)
+    X = np.einsum("bi,bij->bj", m * bt.x, anc) / Msafe
+    Z = np.einsum("bi,bij->bj", m * bt.zc, anc) / Msafe
+    pl = np.take_along_axis(bt.left, safe_parent, axis=1)
+    pr = np.take_along_axis(bt.right, safe_parent, axis=1)
+    a = np.where(bt.ground, bt.left, np.maximum(bt.left, pl))
+    c = np.where(bt.ground, bt.right, np.minimum(bt.right, pr))
+    a, c = _shrink(a, c, params.margin)
+    zcont = bt.layer * BLOCK_HEIGHT
+    gx, gz = bt.g[:, 0:1], bt.g[:, 1:2]
+    pmu = np.take_along_axis(bt.mu, safe_parent, axis=1)
+    mu = np.where(bt.ground, _combine(bt.mu, np.full_like(bt.mu, params.ground_friction), params.friction_combine),
+                  _combine(bt.mu, pmu, params.friction_combine))
+    down = gz < 0
+    gzs = np.where(down, gz, -1.0)
+    cop = X + (zcont - Z) * gx / gzs
+    ok = down & (np.abs(gx) <= mu * np.abs(gz) + 1e-12) & (cop >= a - 1e-12) & (cop <= c + 1e-12)
+    ok |= ~bt.valid
+    return ok.all(axis=1) | bt.zero_g
+
+
+def _tree_verdicts(bt: _Batch, params: StaticParams):
+    """``(determinate, stable)``: which geometries are trees, and the tree verdict.
+
+    For geometries that are not trees, ``stable`` is True when one of a few
+    load paths (each block's load on its support of largest overlap, on its
+    leftmost, on its rightmost support) is admissible, and False otherwise
+    (then only the LP can decide).
+    """
+    nsup = bt.below.sum(axis=2) + bt.ground
+    is_tree = ((nsup == 1) | ~bt.valid).all(axis=1)
+    supported = ((nsup >= 1) | ~bt.valid).all(axis=1)
+    stable = _tree_check(bt, _choose_parent(bt, bt.overlap), params) & supported
+    rest = np.flatnonzero(~is_tree & ~stable & supported)
+    if rest.size:
+        sub = bt.subset(rest)
+        ok = np.zeros(rest.size, dtype=bool)
+        for score in (-sub.x[:, None, :], sub.x[:, None, :]):
+            score = np.broadcast_to(score, sub.below.shape)
+            ok |= _tree_check(sub, _choose_parent(sub, score), params)
+        stable[rest] = ok
+    return is_tree, stable
+
+
+def _cuts_pass(bt: _Batch, params: StaticParams) -> np.ndarray:
+    """Necessary condition for stability, checked on horizontal cuts.
+
+    For every layer ``L`` the blocks of layers ``>= L`` split into connected
+    groups; each group is held only by its bottom contacts on the plane
+    ``z = L * BLOCK_HEIGHT``, so its weight's line of action must cross that
+    plane within the hull of those (shrunk) contact segments, and
+    ``|gx| <= mu |gz|`` for the largest friction among them. False proves the
+    geometry unstable; True proves nothing.
+    """
+    B, N = bt.B, bt.N
+    below, valid = bt.below, bt.valid
+    adj = below | below.transpose(0, 2, 1) | bt.side | bt.side.transpose(0, 2, 1)
+    a = np.maximum(bt.left[:, :, None], bt.left[:, None, :])
+    c = np.minimum(bt.right[:, :, None], bt.right[:, None, :])
+    a, c = _shrink(a, c, params.margin)
+    mu_pair = _combine(bt.mu[:, :, None], bt.mu[:, None, :], params.friction_combine)
+    ga, gc = _shrink(bt.left, bt.right, params.margin)
+    lo = np.where(bt.ground, ga, np.where(below, a, np.inf).min(axis=2))
+    hi = np.where(bt.ground, gc, np.where(below, c, -np.inf).max(axis=2))
+    mu_g = _combine(bt.mu, np.full_like(bt.mu, params.ground_friction), params.friction_combine)
+    mub = np.where(bt.ground, mu_g, np.where(below, mu_pair, 0.0).max(axis=2))
+    gx, gz = bt.g[:, 0:1], bt.g[:, 1:2]
+    down = gz[:, 0] < 0
+    ok = np.ones(B, dtype=bool)
+    eye = np.eye(N, dtype=bool)[None]
+    idx = np.arange(N, dtype=float)
+    top = int(bt.layer[valid].max()) if valid.any() else -1
+    for L in range(0, top + 1):
+        members = valid & (bt.layer >= L)
+        inner = adj & members[:, :, None] & members[:, None, :] | (eye & members[:, :, None])
+        label = np.where(members, idx[None, :], np.inf)
+        for _ in range(N):
+            new = np.where(inner, label[:, None, :], np.inf).min(axis=2)
+            new = np.where(members, new, np.inf)
+            if np.array_equal(new, label):
+                break
+            label = new
+        onehot = (label[:, :, None] == idx[None, None, :]) & members[:, :, None]
+        m = bt.m[:, :, None] * onehot
+        M = m.sum(axis=1)
+        X = (m * bt.x[:, :, None]).sum(axis=1) / np.where(M > 0, M, 1.0)
+        Z = (m * bt.zc[:, :, None]).sum(axis=1) / np.where(M > 0, M, 1.0)
+        base = onehot & (bt.layer == L)[:, :, None]
+        hlo = np.where(base, lo[:, :, None], np.inf).min(axis=1)
+        hhi = np.where(base, hi[:, :, None], -np.inf).max(axis=1)
+        hmu = np.where(base, mub[:, :, None], 0.0).max(axis=1)
+        gzs = np.where(gz < 0, gz, -1.0)
+        cop = X + (L * BLOCK_HEIGHT - Z) * gx / gzs
+        good = (cop >= hlo - 1e-12) & (cop <= hhi + 1e-12) & (np.abs(gx) <= hmu * np.abs(gz) + 1e-12)
+        ok &= (good | (M <= 0)).all(axis=1)
+    return (ok & down) | bt.zero_g
+
+
+def _shrink(a: np.ndarray, c: np.ndarray, margin: float):
+    if margin <= 0:
+        return a, c
+    mid = (a + c) / 2
+    return np.minimum(a + margin, mid), np.maximum(c - margin, mid)
+
+
+def _lp_verdicts(bt: _Batch, rows_b: np.ndarray, params: StaticParams) -> np.ndarray:
+    """LP verdicts for the geometries ``rows_b`` of the batch (one stacked HiGHS solve)."""
+    if rows_b.size == 0:
+        return np.zeros(0, dtype=bool)
+    h = BLOCK_HEIGHT
+    nb = rows_b.size
+    # per contact: geometry slot, body A (gets +f), body B (gets -f; -1 is the ground),
+    # and the row (nx, nz, tx, tz, p1x, p1z, p2x, p2z, mu)
+    s_list, A_list, Bd_list, geo = [], [], [], []
+    # bottom contacts between blocks
+    sb, i, j = np.nonzero(bt.below[rows_b])
+    gb = rows_b[sb]
+    a = np.maximum(bt.left[gb, i], bt.left[gb, j])
+    c = np.minimum(bt.right[gb, i], bt.right[gb, j])
+    a, c = _shrink(a, c, params.margin)
+    zc = bt.layer[gb, i] * h
+    mu = _combine(bt.mu[gb, i], bt.mu[gb, j], params.friction_combine)
+    one, zero = np.ones_like(a), np.zeros_like(a)
+    geo.append(np.stack([zero, one, one, zero, a, zc, c, zc, mu], axis=1))
+    s_list.append(sb), A_list.append(i), Bd_list.append(j)
+    # ground contacts
+    sg, i = np.nonzero(bt.ground[rows_b])
+    gg = rows_b[sg]
+    a, c = _shrink(bt.left[gg, i], bt.right[gg, i], params.margin)
+    mu = _combine(bt.mu[gg, i], np.full(i.shape, params.ground_friction), params.friction_combine)
+    one, zero = np.ones_like(a), np.zeros_like(a)
+    geo.append(np.stack([zero, one, one, zero, a, zero, c, zero, mu], axis=1))
+    s_list.append(sg), A_list.append(i), Bd_list.append(np.full(i.shape, -1))
+    # side contacts: A is the right block (normal +x), B the left one
+    ss, i, j = np.nonzero(bt.side[rows_b])
+    gs = rows_b[ss]
+    xs = (bt.right[gs, i] + bt.left[gs, j]) / 2
+    z0, z1 = _shrink(bt.layer[gs, i] * h, bt.layer[gs, i] * h + h, params.margin)
+    mu = _combine(bt.mu[gs, i], bt.mu[gs, j], params.friction_combine)
+    one, zero = np.ones_like(xs), np.zeros_like(xs)
+    geo.append(np.stack([one, zero, zero, one, xs, z0, xs, z1, mu], axis=1))
+    s_list.append(ss), A_list.append(j), Bd_list.append(i)
+
+    S = np.concatenate(s_list)
+    Abody = np.concatenate(A_list)
+    Bbody = np.concatenate(Bd_list)
+    G = np.concatenate(geo, axis=0)
+    K = S.size
+    nx, nz, tx, tz = G[:, 0], G[:, 1], G[:, 2], G[:, 3]
+    P = [(G[:, 4], G[:, 5]), (G[:, 6], G[:, 7])]
+    mu = G[:, 8]
+    gfull = rows_b[S]
+    vsub = bt.valid[rows_b]
+    block_row = np.cumsum(vsub.ravel()).reshape(vsub.shape) - 1
+    nrows = 3 * int(vsub.sum())
+    row_of = lambda body, comp: 3 * block_row[S, body] + comp
+    ri, ci, vals = [], [], []
+    col = 0
+    for e in range(2):
+        px, pz = P[e]
+        for sgn in (1.0, -1.0):
+            dx, dz = nx + sgn * mu * tx, nz + sgn * mu * tz
+            cols = col + np.arange(K)
+            col += K
+            for body, sign in ((Abody, 1.0), (Bbody, -1.0)):
+                real = body >= 0
+                bdy = np.maximum(body, 0)
+                cx, cz = bt.x[gfull, bdy], bt.zc[gfull, bdy]
+                tq = (px - cx) * dz - (pz - cz) * dx
+                for comp, v in ((0, dx), (1, dz), (2, tq)):
+                    ri.append(row_of(bdy, comp)[real])
+                    ci.append(cols[real])
+                    vals.append(sign * v[real])
+    # load scale t_s per geometry: contact forces must balance t_s times the weight m * g
+    # (total mass normalised to 1); the feasible loads form a cone, so max t_s is 1 or 0.
+    msub = bt.m[rows_b]
+    tot = msub.sum(axis=1, keepdims=True)
+    mn = (msub / np.where(tot > 0, tot, 1.0))[vsub]
+    slot = np.nonzero(vsub)[0]
+    g = bt.g[rows_b][slot]
+    brow = 3 * np.arange(slot.size)
+    ri += [brow, brow + 1]
+    ci += [col + slot, col + slot]
+    vals += [mn * g[:, 0], mn * g[:, 1]]
+    ncols = col + nb
+    A = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(ri), np.concatenate(ci))), shape=(nrows, ncols)
+    )
+    cost = np.zeros(ncols)
+    cost[col:] = -1.0
+    bounds = np.zeros((ncols, 2))
+    bounds[:, 1] = np.inf
+    bounds[col:, 1] = 1.0
+    res = linprog(cost, A_eq=A, b_eq=np.zeros(nrows), bounds=bounds, method=params.lp_method)
+    if res.x is None:
+        raise RuntimeError(f"HiGHS failed on the static-equilibrium LP: {res.message}")
+    return res.x[col:] >= 1.0 - params.lp_tolerance
+
+
+def _single_tree(geometry: Geometry, gravity, friction, params: StaticParams) -> Optional[bool]:
+    """Scalar fast path for one geometry: the verdict when it is decided by the tree check alone, else None.
+
+    Decides interpenetrating towers, zero gravity, and statically determinate
+    towers (exactly as :func:`_tree_check`); everything else goes to the
+    batched path.
+    """
+    blocks = geometry.blocks
+    n = len(blocks)
+    if gravity is None:
+        gx, gz = 0.0, -params.gravity
+    else:
+        gx, gz = float(gravity[0]), float(gravity[1])
+    mus = [params.friction] * n if friction is None else [float(f) for f in friction]
+    parent = [-1] * n
+    side = False
+    for i, bi in enumerate(blocks):
+        li, ri = bi.x - bi.width / 2, bi.x + bi.width / 2
+        nsup = 1 if bi.layer == 0 else 0
+        for j, bj in enumerate(blocks):
+            if j == i:
+                continue
+            ov = min(ri, bj.x + bj.width / 2) - max(li, bj.x - bj.width / 2)
+            if bj.layer == bi.layer:
+                if ov > params.side_overlap:
+                    return False
+                if params.side_contacts and ov >= -params.side_gap:
+                    side = True
+            elif bj.layer == bi.layer - 1 and ov > params.min_contact:
+                nsup += 1
+                parent[i] = j
+        if nsup != 1:
+            return None
+    if gx == 0.0 and gz == 0.0:
+        return True
+    if gz >= 0:
+        return False
+    combine = params.friction_combine
+    mass = [b.width for b in blocks]
+    sm = mass[:]
+    sx = [m * b.x for m, b in zip(mass, blocks)]
+    sz = [m * b.z for m, b in zip(mass, blocks)]
+    for i in sorted(range(n), key=lambda k: -blocks[k].layer):
+        p = parent[i]
+        if p >= 0:
+            sm[p] += sm[i]
+            sx[p] += sx[i]
+            sz[p] += sz[i]
+    ratio = gx / gz
+    margin = params.margin
+    for i, b in enumerate(blocks):
+        p = parent[i]
+        if p < 0:
+            a, c = b.x - b.width / 2, b.x + b.width / 2
+            mu_b = params.ground_friction
+        else:
+            q = blocks[p]
+            a, c = max(b.x - b.width / 2, q.x - q.width / 2), min(b.x + b.width / 2, q.x + q.width / 2)
+            mu_b = mus[p]
+        if combine == "product":
+            mu = mus[i] * mu_b
+        elif combine == "min":
+            mu = min(mus[i], mu_b)
+        else:
+            mu = (mus[i] + mu_b) / 2
+        if margin > 0:
+            mid = (a + c) / 2
+            a, c = min(a + margin, mid), max(c - margin, mid)
+        cop = sx[i] / sm[i] + (b.layer * BLOCK_HEIGHT - sz[i] / sm[i]) * ratio
+        if abs(gx) > mu * abs(gz) + 1e-12 or cop < a - 1e-12 or cop > c + 1e-12:
+            return None if side else False
+    return True
+
+
+class StaticBackend:
+    """:class:`~overhang_framework.physics.PhysicsBackend` deciding stability by static equilibrium."""
+
+    name = "static"
+
+    def __init__(self, params: Optional[StaticParams] = None, **overrides):
+        base = params or StaticParams()
+        self.params = StaticParams(**{**asdict(base), **overrides}) if overrides else base
+        self.lp_solved = 0
+        self.checked = 0
+
+    def stable(self, geometry: Geometry, gravity: Optional[Sequence[float]] = None,
+               friction: Optional[Sequence[float]] = None) -> bool:
+        verdict = _single_tree(geometry, gravity, friction, self.params)
+        if verdict is not None:
+            self.checked += 1
+            return verdict
+        return bool(self.stable_batch(
+            [geometry],
+            None if gravity is None else np.asarray(gravity, dtype=float).reshape(1, 2),
+            None if friction is None else [friction],
+        )[0])
+
+    def stable_batch(self, geometries: Sequence[Geometry], gravity: Optional[np.ndarray] = None,
+                     friction: Optional[Sequence[Sequence[float]]] = None) -> np.ndarray:
+        geometries = list(geometries)
+        if not geometries:
+            return np.zeros(0, dtype=bool)
+        bt = _Batch(geometries, gravity, friction, self.params)
+        is_tree, stable = _tree_verdicts(bt, self.params)
+        has_side = bt.side.any(axis=(1, 2))
+        supported = ((bt.below.sum(axis=2) + bt.ground >= 1) | ~bt.valid).all(axis=1)
+        need_lp = ~bt.zero_g & ~stable & supported & (~is_tree | has_side)
+        cand = np.flatnonzero(need_lp)
+        if cand.size:
+            need_lp[cand] = _cuts_pass(bt.subset(cand), self.params)
+        need_lp &= ~bt.clash
+        rows = np.flatnonzero(need_lp)
+        if rows.size:
+            stable[rows] = _lp_verdicts(bt, rows, self.params)
+        stable &= ~bt.clash
+        self.checked += len(geometries)
+        self.lp_solved += int(rows.size)
+        return stable
