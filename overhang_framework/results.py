@@ -2,32 +2,48 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
 TIMING_KEYS = ("decision_time", "seconds")
 
 
-def atomic_write_text(path: Path | str, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same directory and a rename."""
+@contextlib.contextmanager
+def atomic_output(path: Path | str) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; when the block succeeds, rename it onto ``path``.
+
+    Whatever writes to the temporary path (text, a figure, a binary file) lands
+    all at once or not at all. The file gets the usual permissions (0666 less the umask).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix or ".tmp")
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
+        yield Path(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def atomic_write_text(path: Path | str, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same directory and a rename."""
+    with atomic_output(path) as tmp:
+        with open(tmp, "w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
 
 
 def atomic_write_json(path: Path | str, data: Any) -> None:
@@ -70,7 +86,8 @@ def read_episodes(path: Path | str) -> list[dict]:
         return [json.loads(line) for line in fh if line.strip()]
 
 
-def _mean_sem(values: Iterable[float]) -> tuple[float, float]:
+def mean_sem(values: Iterable[float]) -> tuple[float, float]:
+    """Mean and standard error of the mean (NaN for no values, SEM 0 for one)."""
     arr = np.asarray(list(values), dtype=float)
     if arr.size == 0:
         return math.nan, math.nan
@@ -92,7 +109,7 @@ def summarize(episodes: list[dict]) -> dict:
         ("overhang_successful", succ_overhang),
         ("decision_time", times),
     ):
-        mean, sem = _mean_sem(values)
+        mean, sem = mean_sem(values)
         out[f"{key}_mean"], out[f"{key}_sem"] = mean, sem
     out["over_time_limit"] = int(sum(s["over_time_limit"] for e in episodes for s in e["steps"]))
     return out

@@ -16,9 +16,10 @@ def register_worlds(register):
 
 @hookimpl
 def register_predictors(register):
-    from overhang_builtins.simulation import VeridicalPredictor
+    from overhang_builtins.simulation import IPEPredictor, VeridicalPredictor
 
     register("veridical", VeridicalPredictor)
+    register("ipe", IPEPredictor)
 
 
 @hookimpl

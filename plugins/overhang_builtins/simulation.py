@@ -1,22 +1,331 @@
-"""Simulation-based predictors."""
+"""Simulation-based predictors: the Intuitive Physics Engine (IPE) and its noise-free case.
+
+The IPE (paper, Models) scores a candidate action by running ``K`` forward
+simulations of the tower after the action, each under a Gaussian perturbation
+of block positions, gravity and friction, and reporting the fraction of runs in
+which the tower stands:
+
+    p_IPE(stable | s, a) = (1 / K) * sum_i 1[Stable^(i)(G_{t+1})]
+
+The veridical predictor is the same code with no noise and one sample.
+
+Perturbations
+-------------
+Every perturbation is ``sigma * eps`` with ``eps ~ N(0, 1)``; each channel has its
+own ``sigma`` (the paper's single ``sigma = 0.03`` is the default for all three).
+Units are those of the task: metres, radians, and the dimensionless friction
+coefficient.
+
+``position`` (metres, per block, per sample)
+    The x of every block's centre, the ground block included, is offset by
+    ``sigma_position * eps``. The layer, and so z, is kept: blocks still rest on
+    one another, because a vertical offset would only open a gap the block drops
+    through or an interpenetration the solver ejects, not uncertainty about
+    support. Offsets that make two blocks of one layer overlap are removed by
+    the smallest equal-weight displacement that restores contact (the
+    least-squares projection onto non-penetration, computed by isotonic
+    regression); the scene a perceiver imagines still obeys the task's
+    non-penetration rule. A block whose support is lost falls, as it should.
+
+``gravity`` (radians and relative magnitude, per sample)
+    The gravity vector of one run is ``g * s * (sin(theta), -cos(theta))`` with
+    tilt ``theta = sigma_gravity * eps1`` radians and scale
+    ``s = 1 + sigma_gravity * eps2``, where ``g`` is the backend's gravity
+    (9.81 m/s^2). This is a Gaussian perturbation of gravity expressed in units
+    of ``g``: adding ``N(0, sigma^2) * g`` to each component of ``(0, -g)`` is the
+    same to first order. The alternative, ``N(0, sigma^2)`` in m/s^2, would be a
+    0.3% perturbation that no tower can feel, which cannot be what the paper
+    fitted. Gravity is a field, so one vector per run (the backends take one
+    per scene) rather than one per block. A tilt shifts the effective centre of
+    mass of a block at height h by about ``h * theta``, so its effect grows with
+    the tower's height; the scale changes only how fast an unstable tower falls.
+
+``friction`` (dimensionless coefficient, per block, per sample)
+    The lateral friction coefficient of every block is
+    ``mu + sigma_friction * eps``, clipped at 0, where ``mu`` is the backend's
+    friction (0.5 in the reference world).
+
+Common random numbers
+---------------------
+One call draws ``eps`` once, as standard normals of shape ``(K, n)`` for
+positions, ``(K, 2)`` for gravity and ``(K, n)`` for friction, in that order,
+``n`` being the number of blocks after the action; every candidate action of
+the call is simulated under the same ``K`` draws (the new block's offset is the
+last column). Differences between candidates are therefore not sampling noise,
+and scoring actions one at a time from the same seed gives the same numbers as
+scoring them together. The draws are made whatever the sigmas are (scaled by
+zero where a sigma is 0), so changing one channel's sigma leaves the other
+channels' draws unchanged; with every sigma 0 nothing is drawn and each
+successor is checked once, exactly as the veridical predictor checks it.
+"""
 
 from __future__ import annotations
 
-from typing import Sequence
+from dataclasses import dataclass
+from typing import Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
 from overhang_framework import rules
-from overhang_framework.geometry import Action
+from overhang_framework.geometry import Action, Block, Geometry
 from overhang_framework.interfaces import Predictor, State, World
+from overhang_framework.physics import PhysicsBackend
+
+BACKENDS = ("static", "pybullet", "world")
+DEFAULT_FRICTION = 0.5
+DEFAULT_GRAVITY = 9.81
 
 
-class VeridicalPredictor(Predictor):
-    """Noise-free physics: 1 where the world's physics says the tower stands, else 0."""
+@dataclass(frozen=True)
+class Noise:
+    """Standard deviations of the three perturbation channels (see the module docstring)."""
 
-    def __init__(self, world: World):
+    position: float = 0.03
+    gravity: float = 0.03
+    friction: float = 0.03
+
+    def __post_init__(self):
+        for channel in ("position", "gravity", "friction"):
+            value = getattr(self, channel)
+            if not np.isfinite(value) or value < 0:
+                raise ValueError(f"sigma for {channel} must be a finite number >= 0, got {value!r}")
+
+    @property
+    def zero(self) -> bool:
+        return self.position == 0 and self.gravity == 0 and self.friction == 0
+
+
+@dataclass(frozen=True)
+class Draws:
+    """Standard normal draws for one decision, shared by all its candidate actions."""
+
+    position: np.ndarray  # (K, n)
+    gravity: np.ndarray  # (K, 2): tilt, scale
+    friction: np.ndarray  # (K, n)
+
+    @classmethod
+    def sample(cls, rng: np.random.Generator, k: int, n_blocks: int) -> "Draws":
+        position = rng.standard_normal((k, n_blocks))
+        gravity = rng.standard_normal((k, 2))
+        friction = rng.standard_normal((k, n_blocks))
+        return cls(position, gravity, friction)
+
+
+def _isotonic(y: np.ndarray) -> np.ndarray:
+    """Row-wise least-squares non-decreasing fit of ``y`` (rows x m), by the max-min formula."""
+    rows, m = y.shape
+    csum = np.concatenate([np.zeros((rows, 1)), np.cumsum(y, axis=1)], axis=1)
+    idx = np.arange(m)
+    lo, hi = idx[:, None], idx[None, :]
+    length = np.where(hi >= lo, hi - lo + 1, 1)
+    means = (csum[:, None, 1:] - csum[:, :-1, None]) / length  # means[r, i, l] = mean(y[r, i..l])
+    fit = np.empty_like(y)
+    for j in range(m):
+        fit[:, j] = means[:, : j + 1, j:].min(axis=2).max(axis=1)
+    return fit
+
+
+def separate_overlaps(xs: np.ndarray, widths: np.ndarray, layers: np.ndarray,
+                      reference_x: np.ndarray) -> np.ndarray:
+    """Move perturbed block centres ``xs`` (rows x n) apart where blocks of one layer overlap.
+
+    ``widths``, ``layers`` and ``reference_x`` (the unperturbed centres) have
+    one entry per column. Within each layer the blocks keep the left-to-right
+    order of ``reference_x``. Rows without an overlap are returned unchanged,
+    bit for bit; a row with one gets the least-squares projection onto
+    non-penetration (blocks of a layer at least touching, none moved more than
+    needed).
+    """
+    out = xs
+    for layer in np.unique(layers):
+        cols = np.flatnonzero(layers == layer)
+        if cols.size < 2:
+            continue
+        cols = cols[np.argsort(reference_x[cols], kind="stable")]
+        gaps = (widths[cols[:-1]] + widths[cols[1:]]) / 2
+        offsets = np.concatenate([[0.0], np.cumsum(gaps)])
+        y = out[:, cols] - offsets
+        bad = (np.diff(y, axis=1) < 0).any(axis=1)
+        if not bad.any():
+            continue
+        if out is xs:
+            out = xs.copy()
+        out[np.ix_(np.flatnonzero(bad), cols)] = _isotonic(y[bad]) + offsets
+    return out
+
+
+@dataclass(frozen=True)
+class Scenes:
+    """What one decision asks the backend: the scenes, candidate-major, and how to read the verdicts.
+
+    ``repeat`` marks noise-free scenes, one per candidate, whose verdict
+    stands for all ``samples`` simulations.
+    """
+
+    geometries: list[Geometry]
+    gravity: Optional[np.ndarray]
+    friction: Optional[np.ndarray]
+    candidates: int
+    samples: int
+    repeat: bool
+
+
+def _stack(parts: list):
+    """Rows of ``parts`` as one array, or a list of rows when their lengths differ."""
+    if not parts or parts[0] is None:
+        return None
+    if len({p.shape[1:] for p in parts}) == 1:
+        return np.concatenate(parts, axis=0)
+    return [row for p in parts for row in p]
+
+
+class IPEPredictor(Predictor):
+    """The Intuitive Physics Engine: the fraction of ``K`` perturbed simulations that stand.
+
+    ``K`` is the number of simulations per candidate action. ``sigma`` is the
+    noise scale of every channel; ``sigma_position`` (metres),
+    ``sigma_gravity`` (radians of tilt and relative magnitude) and
+    ``sigma_friction`` (friction coefficient) override it per channel when not
+    ``None``. ``backend`` is ``static`` (fast static-equilibrium physics),
+    ``pybullet`` (the paper's simulator) or ``world`` (whatever physics the
+    world uses, through ``world.backend``), or a backend object to use as is
+    (a process pool, say). ``static`` and ``pybullet`` take the
+    world's parameters for that backend (``world.backend_params``), updated by
+    ``backend_params``. The module docstring defines each perturbation.
+    """
+
+    def __init__(self, world: World, K: int = 50, sigma: float = 0.03,
+                 sigma_position: Optional[float] = None, sigma_gravity: Optional[float] = None,
+                 sigma_friction: Optional[float] = None, backend: Union[str, PhysicsBackend] = "static",
+                 backend_params: Optional[Mapping[str, Any]] = None):
+        if int(K) != K or K < 1:
+            raise ValueError(f"K must be a positive integer, got {K!r}")
+        if isinstance(backend, str) and backend not in BACKENDS:
+            raise ValueError(f"unknown IPE backend {backend!r}; allowed: {', '.join(BACKENDS)}")
         self.world = world
+        self.K = int(K)
+        self.noise = Noise(
+            position=float(sigma if sigma_position is None else sigma_position),
+            gravity=float(sigma if sigma_gravity is None else sigma_gravity),
+            friction=float(sigma if sigma_friction is None else sigma_friction),
+        )
+        self.backend_name = backend if isinstance(backend, str) else getattr(backend, "name", "custom")
+        self.backend_params = dict(backend_params or {})
+        self._backend = None if isinstance(backend, str) else backend
+
+    @property
+    def backend(self):
+        """The physics backend the simulations run on (built on first use)."""
+        if self._backend is None:
+            self._backend = self._make_backend()
+        return self._backend
+
+    def _make_backend(self):
+        if self.backend_name == "world":
+            backend = getattr(self.world, "backend", None)
+            if backend is None:
+                raise ValueError(
+                    f"backend 'world' needs a world with a .backend; {type(self.world).__name__} has none"
+                )
+            return backend if self.noise.zero else getattr(backend, "backend", backend)
+        from overhang_framework.physics.factory import make_backend
+
+        params = dict(getattr(self.world, "backend_params", {}).get(self.backend_name, {}))
+        params.update(self.backend_params)
+        return make_backend(self.backend_name, **params)
+
+    def _constant(self, name: str, default: float) -> float:
+        backend = self.backend
+        for holder in (backend, getattr(backend, "backend", None)):
+            params = getattr(holder, "params", None)
+            if params is not None and getattr(params, name, None) is not None:
+                return float(getattr(params, name))
+        return default
+
+    def successors(self, state: State, actions: Sequence[Action]) -> list[Geometry]:
+        if state.next_width is None:
+            raise ValueError("the state has no block left to place")
+        return [rules.place(state.geometry, state.next_width, a) for a in actions]
+
+    def scenes(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> "Scenes":
+        """The scenes to simulate for ``actions``: ``len(actions) * K`` perturbed ones, or the
+        ``len(actions)`` successors themselves when every sigma is 0 (then ``rng`` is not used)."""
+        geometries = self.successors(state, actions)
+        if not geometries:
+            return Scenes([], None, None, 0, self.K, repeat=True)
+        if self.noise.zero:
+            return Scenes(geometries, None, None, len(geometries), self.K, repeat=True)
+        draws = Draws.sample(rng, self.K, len(geometries[0]))
+        batch, gravity, friction = self.perturb(geometries, draws)
+        return Scenes(batch, gravity, friction, len(geometries), self.K, repeat=False)
+
+    def run(self, scenes: Sequence["Scenes"]) -> list[np.ndarray]:
+        """Simulate several :class:`Scenes` in one backend call; one ``(candidates, K)`` boolean array each."""
+        geometries = [g for sc in scenes for g in sc.geometries]
+        if not geometries:
+            return [np.zeros((sc.candidates, sc.samples), dtype=bool) for sc in scenes]
+        gravity = _stack([sc.gravity for sc in scenes if sc.geometries])
+        friction = _stack([sc.friction for sc in scenes if sc.geometries])
+        verdicts = np.asarray(self.backend.stable_batch(geometries, gravity, friction), dtype=bool)
+        out, start = [], 0
+        for sc in scenes:
+            chunk = verdicts[start:start + len(sc.geometries)]
+            start += len(sc.geometries)
+            if sc.repeat:
+                out.append(np.repeat(chunk[:, None], sc.samples, axis=1))
+            else:
+                out.append(chunk.reshape(sc.candidates, sc.samples))
+        return out
+
+    def sample_verdicts(self, state: State, actions: Sequence[Action],
+                        rng: np.random.Generator) -> np.ndarray:
+        """Boolean ``(len(actions), K)`` verdicts of every simulation, under common random numbers."""
+        return self.run([self.scenes(state, actions, rng)])[0]
+
+    def perturb(self, geometries: Sequence[Geometry], draws: Draws):
+        """The ``len(geometries) * K`` perturbed scenes, candidate-major, with gravity and friction.
+
+        Returns ``(scenes, gravity, friction)``: ``gravity`` is ``(C*K, 2)`` or
+        ``None`` when its sigma is 0, ``friction`` ``(C*K, n)`` or ``None``
+        likewise.
+        """
+        arr = np.stack([g.as_array() for g in geometries])  # (C, n, 3)
+        c, n, _ = arr.shape
+        widths, layers = arr[:, :, 0], arr[:, :, 2].astype(int)
+        xs = arr[:, None, :, 1] + self.noise.position * draws.position[None]  # (C, K, n)
+        if self.noise.position > 0:
+            for i in range(c):
+                xs[i] = separate_overlaps(xs[i], widths[i], layers[i], arr[i, :, 1])
+        scenes = []
+        for i in range(c):
+            w_i, l_i = widths[i].tolist(), layers[i].tolist()
+            for row in xs[i].tolist():
+                scenes.append(Geometry(tuple(Block(w, x, l) for w, x, l in zip(w_i, row, l_i))))
+        gravity = None
+        if self.noise.gravity > 0:
+            g = self._constant("gravity", DEFAULT_GRAVITY)
+            theta = self.noise.gravity * draws.gravity[:, 0]
+            scale = np.maximum(1.0 + self.noise.gravity * draws.gravity[:, 1], 0.0)
+            vec = np.stack([g * scale * np.sin(theta), -g * scale * np.cos(theta)], axis=1)
+            gravity = np.tile(vec, (c, 1))
+        friction = None
+        if self.noise.friction > 0:
+            mu = self._constant("friction", DEFAULT_FRICTION)
+            rows = np.maximum(mu + self.noise.friction * draws.friction, 0.0)
+            friction = np.tile(rows, (c, 1))
+        return scenes, gravity, friction
 
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
-        successors = [rules.place(state.geometry, state.next_width, a) for a in actions]
-        return self.world.is_stable_batch(successors).astype(float)
+        return self.sample_verdicts(state, actions, rng).mean(axis=1)
+
+
+class VeridicalPredictor(IPEPredictor):
+    """Noise-free physics: 1 where the world's physics says the tower stands, else 0.
+
+    The IPE with every sigma 0 and one sample; ``backend`` defaults to the
+    world's own (cached) physics.
+    """
+
+    def __init__(self, world: World, backend: Union[str, PhysicsBackend] = "world",
+                 backend_params: Optional[Mapping[str, Any]] = None):
+        super().__init__(world, K=1, sigma=0.0, backend=backend, backend_params=backend_params)

@@ -1,0 +1,10 @@
+"""Analyses that reproduce the paper's claims on this framework's own physics.
+
+Each module is a command, ``python -m overhang_framework.analyses.<name> --help``:
+
+* :mod:`~overhang_framework.analyses.ipe_mechanism` -- how the IPE's predictive
+  entropy and accuracy change with the number of blocks (paper, Results:
+  "Physical Prediction Mechanism Switching").
+* :mod:`~overhang_framework.analyses.bench_ipe` -- the IPE's speed benchmark and
+  its sigma -> 0 agreement with the veridical predictor.
+"""

@@ -1,0 +1,292 @@
+"""How the IPE's predictive entropy and accuracy change with the number of blocks.
+
+The paper (Results, "Physical Prediction Mechanism Switching") argues that the
+IPE's position noise propagates up the stack, so its stability estimates grow
+more diffuse and less informative as the tower grows. This command measures
+that on our own physics.
+
+Questions are episode-like: a tower whose every prefix stands (by the
+reference physics) plus one more block of a random width at a uniformly random
+legal action (x on the world's 0.1 grid), as a planner would score it. For
+``n`` = 2 to 7 blocks after the action, ``--towers`` questions are drawn: the
+towers of ``n - 1`` blocks are grown level by level, each level extending
+randomly chosen standing towers of the level below. Each question gets the
+reference verdict and, for every sigma, the IPE's probability ``p`` (``K``
+simulations; one seeded generator per question, so every sigma sees the same
+standard-normal draws). Per number of blocks and sigma the CSV reports:
+
+* ``entropy``: mean binary entropy of ``p``, bits (0 = certain, 1 = p = 0.5);
+* ``accuracy``: fraction of questions where ``p > 0.5`` matches the reference
+  verdict (``p = 0.5`` counts one half);
+* ``p_correct``: mean probability the IPE gives to the reference verdict;
+* ``uncertain``: fraction of questions with ``0.1 < p < 0.9``;
+
+each with its standard error, and ``stable_rate``, the reference's base rate.
+
+    python -m overhang_framework.analyses.ipe_mechanism --out results/ipe_mechanism
+    python -m overhang_framework.analyses.ipe_mechanism --out /tmp/ipe_quick --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import WIDTHS, Action, Block, Geometry
+from overhang_framework.interfaces import State
+from overhang_framework.results import atomic_output, atomic_write_json, atomic_write_text, mean_sem
+from overhang_framework.rules import legal_actions, place
+
+Verdicts = Callable[[Sequence[Geometry]], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Question:
+    """One prediction to make: ``state`` (a standing tower and the next width), ``action``, verdict."""
+
+    n_blocks: int
+    index: int
+    state: State
+    action: Action
+    stable: bool
+
+    @property
+    def geometry(self) -> Geometry:
+        return place(self.state.geometry, self.state.next_width, self.action)
+
+
+def episode_questions(reference: Verdicts, per_height: int, seed: int = 0, min_blocks: int = 2,
+                      max_blocks: int = 7, resolution: float = 0.1, oversample: int = 2,
+                      progress: Optional[Callable[[int], None]] = None) -> list[Question]:
+    """``per_height`` questions for every number of blocks in ``[min_blocks, max_blocks]``.
+
+    Level ``n`` extends ``oversample * per_height`` towers drawn with
+    replacement from the standing towers of level ``n - 1`` (level 1: a ground
+    block of random width); the first ``per_height`` extensions are the
+    questions, and every standing extension joins the pool for level ``n + 1``.
+    """
+    rng = np.random.default_rng(seed)
+    pool = [Geometry((Block(WIDTHS[rng.integers(len(WIDTHS))], 0.0, 0),)) for _ in range(per_height)]
+    questions: list[Question] = []
+    for n in range(2, max_blocks + 1):
+        m = oversample * per_height
+        states, actions = [], []
+        for i in rng.integers(len(pool), size=m):
+            width = WIDTHS[rng.integers(len(WIDTHS))]
+            options = legal_actions(pool[i], width, resolution)
+            states.append(State(pool[i], (width,)))
+            actions.append(options[rng.integers(len(options))])
+        towers = [place(s.geometry, s.next_width, a) for s, a in zip(states, actions)]
+        verdicts = np.asarray(reference(towers), dtype=bool)
+        if progress:
+            progress(len(towers))
+        if n >= min_blocks:
+            questions.extend(Question(n, j, states[j], actions[j], bool(verdicts[j]))
+                             for j in range(per_height))
+        pool = [t for t, v in zip(towers, verdicts) if v]
+        if not pool:
+            raise RuntimeError(f"no tower of {n} blocks stands; cannot grow to {n + 1}")
+    return questions
+
+
+def binary_entropy(p: np.ndarray) -> np.ndarray:
+    """Entropy of Bernoulli(p) in bits, 0 at p = 0 and p = 1."""
+    p = np.asarray(p, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = -(p * np.log2(p) + (1 - p) * np.log2(1 - p))
+    return np.where((p <= 0) | (p >= 1), 0.0, h)
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """One summary row per (sigma, n_blocks) from the per-question rows."""
+    out = []
+    keys = sorted({(r["sigma"], r["n_blocks"]) for r in rows})
+    for sigma, n in keys:
+        sel = [r for r in rows if r["sigma"] == sigma and r["n_blocks"] == n]
+        p = np.array([r["p"] for r in sel])
+        ref = np.array([r["reference_stable"] for r in sel], dtype=bool)
+        correct = np.where(p == 0.5, 0.5, ((p > 0.5) == ref).astype(float))
+        row = {"sigma": sigma, "n_blocks": n, "towers": len(sel), "stable_rate": float(ref.mean())}
+        for name, values in (("entropy", binary_entropy(p)), ("accuracy", correct),
+                             ("p_correct", np.where(ref, p, 1 - p)),
+                             ("uncertain", ((p > 0.1) & (p < 0.9)).astype(float))):
+            row[name], row[f"{name}_sem"] = mean_sem(values)
+        out.append(row)
+    return out
+
+
+def to_csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    return buf.getvalue()
+
+
+def plot(summary: list[dict], path: Path, title: str) -> None:
+    """Entropy and accuracy against the number of blocks, one line per sigma, saved atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), constrained_layout=True)
+    sigmas = sorted({r["sigma"] for r in summary})
+    colors = plt.cm.viridis(np.linspace(0, 0.9, len(sigmas)))
+    for sigma, color in zip(sigmas, colors):
+        sel = sorted((r for r in summary if r["sigma"] == sigma), key=lambda r: r["n_blocks"])
+        n = [r["n_blocks"] for r in sel]
+        for ax, key in zip(axes, ("entropy", "accuracy")):
+            ax.errorbar(n, [r[key] for r in sel], yerr=[r[f"{key}_sem"] for r in sel], marker="o",
+                        ms=4, capsize=2, color=color, label=f"sigma = {sigma:g}")
+    axes[0].set_ylabel("mean predictive entropy (bits)")
+    axes[1].set_ylabel("accuracy vs reference verdict")
+    for ax in axes:
+        ax.set_xlabel("blocks in the tower after the action")
+        ax.set_xticks(sorted({r["n_blocks"] for r in summary}))
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=150, format="png")
+    finally:
+        plt.close(fig)
+
+
+def make_backend(name: str, workers: int = 1):
+    """A physics backend by name; ``pybullet`` with ``workers > 1`` runs on a process pool."""
+    from overhang_framework.physics.factory import make_backend as factory
+
+    return factory(name, workers=workers if name == "pybullet" else None)
+
+
+def chunked(fn: Verdicts, size: int, bar) -> Verdicts:
+    """``fn`` called on chunks of at most ``size`` geometries, advancing ``bar`` after each."""
+
+    def run(geometries):
+        geometries = list(geometries)
+        out = []
+        for i in range(0, len(geometries), size):
+            part = geometries[i:i + size]
+            out.append(np.asarray(fn(part), dtype=bool))
+            bar.update(len(part))
+        return np.concatenate(out) if out else np.zeros(0, dtype=bool)
+
+    return run
+
+
+def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(
+        prog="python -m overhang_framework.analyses.ipe_mechanism",
+        description="IPE predictive entropy and accuracy by number of blocks, for several sigmas.",
+    )
+    ap.add_argument("--out", required=True, type=Path, help="output directory")
+    ap.add_argument("--towers", type=int, default=200, help="questions per number of blocks (default 200)")
+    ap.add_argument("--sigmas", default="0,0.01,0.03,0.1",
+                    help="comma-separated sigmas (default 0,0.01,0.03,0.1)")
+    ap.add_argument("--channel", choices=("all", "position", "gravity", "friction"), default="all",
+                    help="perturb every channel with sigma (all, the paper's) or only this one")
+    ap.add_argument("--K", type=int, default=50, help="simulations per question (default 50)")
+    ap.add_argument("--backend", choices=("static", "pybullet"), default="static",
+                    help="physics the IPE simulates with (default static)")
+    ap.add_argument("--reference", choices=("static", "pybullet"), default="pybullet",
+                    help="physics giving the reference verdicts (default pybullet)")
+    ap.add_argument("--workers", type=int, default=2, help="PyBullet processes (default 2)")
+    ap.add_argument("--min-blocks", type=int, default=2)
+    ap.add_argument("--max-blocks", type=int, default=7)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke run: 20 towers, sigmas 0,0.03,0.1, K=20, static reference")
+    ap.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.towers, args.sigmas, args.K, args.reference = 20, "0,0.03,0.1", 20, "static"
+    args.sigma_list = [float(s) for s in args.sigmas.split(",") if s.strip()]
+    return args
+
+
+def predictor_params(sigma: float, channel: str, K: int, backend: str) -> dict:
+    params = {"name": "ipe", "K": K, "backend": backend, "sigma": sigma if channel == "all" else 0.0}
+    if channel != "all":
+        params[f"sigma_{channel}"] = sigma
+    return params
+
+
+def main(argv: Optional[Sequence[str]] = None) -> dict:
+    from tqdm import tqdm
+
+    from overhang_framework.plugins import Registry
+
+    args = parse_args(argv)
+    started = time.perf_counter()
+    registry = Registry()
+    world = registry.create("world", {"name": "overhang", "cache": False})
+    reference = make_backend(args.reference, args.workers)
+    levels = args.max_blocks - 1
+    with tqdm(total=2 * args.towers * levels, desc=f"reference ({args.reference})", unit="tower",
+              disable=args.no_progress, file=sys.stderr) as bar:
+        questions = episode_questions(chunked(reference.stable_batch, 100, bar), args.towers,
+                                      seed=args.seed, min_blocks=args.min_blocks,
+                                      max_blocks=args.max_blocks, resolution=world.resolution)
+    ipe_backend = reference if args.backend == args.reference else make_backend(args.backend, args.workers)
+    rows: list[dict] = []
+    chunk = 50
+    with tqdm(total=len(args.sigma_list) * len(questions), desc="IPE", unit="question",
+              disable=args.no_progress, file=sys.stderr) as bar:
+        for sigma in args.sigma_list:
+            params = predictor_params(sigma, args.channel, args.K, args.backend)
+            params["backend"] = ipe_backend
+            ipe = registry.create("predictor", params, world=world)
+            for start in range(0, len(questions), chunk):
+                part = questions[start:start + chunk]
+                scenes = [ipe.scenes(q.state, [q.action],
+                                     np.random.default_rng([args.seed, 1, q.n_blocks, q.index]))
+                          for q in part]
+                for q, verdicts in zip(part, ipe.run(scenes)):
+                    rows.append({"sigma": sigma, "n_blocks": q.n_blocks, "index": q.index,
+                                 "reference_stable": int(q.stable), "p": float(verdicts.mean()),
+                                 "tower": json.dumps([list(b) for b in q.geometry.key])})
+                bar.update(len(part))
+    close = getattr(reference, "close", None)
+    if close:
+        close()
+    summary = summarize(rows)
+    out = args.out
+    atomic_write_text(out / "ipe_mechanism.csv", to_csv(summary))
+    atomic_write_text(out / "ipe_mechanism_towers.csv", to_csv(rows))
+    title = (f"IPE ({args.backend}, K={args.K}, channel={args.channel}) vs {args.reference} reference; "
+             f"{args.towers} towers per point, seed {args.seed}")
+    plot(summary, out / "ipe_mechanism.png", title)
+    meta = {"argv": list(argv) if argv is not None else sys.argv[1:], "towers": args.towers,
+            "sigmas": args.sigma_list, "channel": args.channel, "K": args.K, "backend": args.backend,
+            "reference": args.reference, "seed": args.seed, "seconds": time.perf_counter() - started}
+    atomic_write_json(out / "ipe_mechanism.json", {"meta": meta, "summary": summary})
+    print(format_table(summary))
+    print(f"wrote {out / 'ipe_mechanism.csv'}, {out / 'ipe_mechanism_towers.csv'}, "
+          f"{out / 'ipe_mechanism.png'} in {meta['seconds']:.0f} s")
+    return {"meta": meta, "summary": summary}
+
+
+def format_table(summary: list[dict]) -> str:
+    lines = [f"{'sigma':>6} {'blocks':>6} {'n':>4} {'stable':>6} {'entropy':>14} {'accuracy':>14} "
+             f"{'p_correct':>9} {'uncertain':>9}"]
+    for r in summary:
+        lines.append(f"{r['sigma']:>6g} {r['n_blocks']:>6d} {r['towers']:>4d} {r['stable_rate']:>6.2f} "
+                     f"{r['entropy']:>7.3f}±{r['entropy_sem']:<6.3f} {r['accuracy']:>7.3f}±{r['accuracy_sem']:<6.3f} "
+                     f"{r['p_correct']:>9.3f} {r['uncertain']:>9.3f}")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
