@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
 from overhang_framework.episode import episode_rng, run_episode
-from overhang_framework.errors import OverhangError
+from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.plugins import Registry
 from overhang_framework.results import EpisodeLog, atomic_write_json, summarize
 from overhang_framework.tasks import tasks_from_config
@@ -38,14 +38,30 @@ def build_models(cfg: DictConfig, registry: Registry | None = None) -> dict[str,
     }
 
 
+def _whole(cfg: DictConfig, key: str, minimum: int) -> int:
+    value = cfg.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
+    return value
+
+
+def _time_limit(cfg: DictConfig) -> float | None:
+    value = cfg.condition.get("time_limit")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
+        raise ConfigError(f"condition.time_limit must be a number of seconds > 0 or null, got {value!r}")
+    return float(value)
+
+
 def run(cfg: DictConfig, out_dir: Path) -> dict:
-    """Run every (task, repeat) episode of ``cfg`` into ``out_dir``; return the summary."""
+    """Run every (task, repeat) episode of ``cfg`` into ``out_dir``; return the summary.
+
+    Everything the config says is checked before the first episode starts.
+    """
+    seed, repeats, time_limit = _whole(cfg, "seed", 0), _whole(cfg, "repeats", 1), _time_limit(cfg)
     tasks = tasks_from_config(cfg.tasks)
     models = build_models(cfg)
-    repeats = int(cfg.get("repeats", 1))
-    if repeats < 1:
-        raise OverhangError(f"repeats must be at least 1, got {repeats}")
-    time_limit = cfg.condition.get("time_limit")
     episodes = []
     started = time.perf_counter()
     jobs = [(i, task, rep) for i, task in enumerate(tasks) for rep in range(repeats)]
@@ -54,8 +70,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
                    file=sys.stderr, dynamic_ncols=True)
         for i, task, rep in bar:
             record = run_episode(task, models["world"], models["predictor"], models["planner"],
-                                 models["value"], episode_rng(cfg.seed, i, rep), time_limit)
-            record.update({"seed": int(cfg.seed), "repeat": rep, "task_index": i})
+                                 models["value"], episode_rng(seed, i, rep), time_limit)
+            record.update({"seed": seed, "repeat": rep, "task_index": i})
             log.write(record)
             episodes.append(record)
             bar.set_postfix(reward=f"{record['reward']:.2f}")
@@ -63,7 +79,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     summary.update({
         "wall_time": time.perf_counter() - started,
         "config": {g: cfg[g].get("name") for g in ("world", "predictor", "planner", "value", "condition", "tasks")},
-        "seed": int(cfg.seed),
+        "seed": seed,
+        "world_stats": models["world"].stats(),
     })
     atomic_write_json(out_dir / "metrics.json", summary)
     return summary
@@ -85,6 +102,10 @@ def format_summary(summary: dict) -> str:
     ]
     for label, key in rows:
         lines.append(f"{label:<24}{summary[key + '_mean']:>10.3f}{summary[key + '_sem']:>10.3f}")
+    cache = summary.get("world_stats", {}).get("cache")
+    if cache:
+        lines.append(f"physics cache: {cache['hits']} hits, {cache['misses']} misses "
+                     f"(hit rate {cache['hit_rate']:.2f})")
     return "\n".join(lines)
 
 

@@ -27,32 +27,55 @@ def list_plugins(as_json: bool = False) -> str:
     return "\n".join(lines)
 
 
+# Hydra's command-line flags that take the next word as their value.
+_VALUE_FLAGS = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
+                "--config-dir", "-cd", "--experimental-rerun", "--shell-completion", "-sc"}
+_INFO_TOPICS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
+
+
+def override_words(args: Sequence[str]) -> list[str]:
+    """The config overrides among Hydra's command-line words (flags and their values removed)."""
+    words, skip = [], False
+    for i, arg in enumerate(args):
+        if skip:
+            skip = False
+            continue
+        if arg.startswith("-"):
+            skip = arg in _VALUE_FLAGS or (
+                arg in ("--info", "-i") and i + 1 < len(args) and args[i + 1] in _INFO_TOPICS)
+            continue
+        words.append(arg)
+    return words
+
+
 def check_overrides(args: Sequence[str]) -> None:
-    """Raise :class:`UnknownPluginError` for a config-group choice that is not installed."""
+    """Raise :class:`UnknownPluginError` for a config-group choice that is not installed.
+
+    Overrides this cannot read (a glob sweep, a malformed word) are left for
+    Hydra to expand or report.
+    """
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    try:
-        overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
-    except Exception:
-        return  # malformed overrides are Hydra's to report
-    for ov in overrides:
-        group = ov.key_or_group
-        if group not in GROUPS or ov.is_delete() or ov.package:
+    parser = OverridesParser.create()
+    known: dict[str, list[str]] = {}
+    for word in override_words(args):
+        try:
+            (ov,) = parser.parse_overrides([word])
+            if ov.key_or_group not in GROUPS or ov.is_delete() or ov.package:
+                continue
+            values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.value()]
+        except Exception:
             continue
-        if ov.is_sweep_override():
-            values = list(ov.sweep_string_iterator())
-        else:
-            values = [ov.value()]
-        known = None
         for value in values:
             if not isinstance(value, str):
                 continue
-            if known is None:
+            group = ov.key_or_group
+            if group not in known:
                 from overhang_framework.config import group_options
 
-                known = group_options(group)
-            if value not in known:
-                raise UnknownPluginError(group, value, known)
+                known[group] = group_options(group)
+            if value not in known[group]:
+                raise UnknownPluginError(group, value, known[group])
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:

@@ -13,7 +13,12 @@ class UnknownPluginError(OverhangError, LookupError):
     def __init__(self, kind: str, name: str, installed: Sequence[str]):
         self.kind, self.name, self.installed = kind, name, list(installed)
         listing = ", ".join(self.installed) if self.installed else "(none)"
-        super().__init__(f"unknown {kind} {name!r}; installed {kind}s: {listing}")
+        plural = kind if kind.endswith("s") else f"{kind}s"
+        super().__init__(f"unknown {kind} {name!r}; installed {plural}: {listing}")
+
+
+class ConfigError(OverhangError, ValueError):
+    """A config value a model or the run refuses."""
 
 
 class TaskError(OverhangError, ValueError):

@@ -13,6 +13,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from overhang_framework.errors import IllegalActionError
 from overhang_framework.geometry import Action, Geometry
 
 
@@ -45,16 +46,13 @@ class Budget:
     """What a planner may spend on one decision; ``None`` means no limit."""
 
     seconds: Optional[float] = None
-    predictor_calls: Optional[int] = None
     started: float = field(default_factory=time.perf_counter, repr=False)
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
 
-    def exhausted(self, spent_calls: int = 0) -> bool:
-        if self.seconds is not None and self.elapsed() >= self.seconds:
-            return True
-        return self.predictor_calls is not None and spent_calls >= self.predictor_calls
+    def exhausted(self) -> bool:
+        return self.seconds is not None and self.elapsed() >= self.seconds
 
 
 @dataclass
@@ -96,15 +94,19 @@ class World(abc.ABC):
         return self.illegal_reason(state, action) is None
 
     @abc.abstractmethod
+    def successor(self, state: State, action: Action) -> State:
+        """The state after ``action``, without checking that it is legal (for search)."""
+
     def step(self, state: State, action: Action) -> State:
-        """The successor state; raises ``ValueError`` for an illegal action."""
+        """The successor state of a legal action; raises :class:`IllegalActionError` otherwise."""
+        reason = self.illegal_reason(state, action)
+        if reason is not None:
+            raise IllegalActionError(f"illegal action (x={action.x:g}, layer={action.layer}): {reason}")
+        return self.successor(state, action)
 
     @abc.abstractmethod
     def is_stable(self, geometry: Geometry) -> bool:
         """Ground-truth stability of ``geometry``."""
-
-    def is_stable_batch(self, geometries: Sequence[Geometry]) -> np.ndarray:
-        return np.array([self.is_stable(g) for g in geometries], dtype=bool)
 
     @abc.abstractmethod
     def overhang(self, geometry: Geometry) -> float:
@@ -113,6 +115,10 @@ class World(abc.ABC):
     def reward(self, geometry: Geometry, stable_throughout: bool) -> float:
         """The final overhang if the tower was stable after every placement, else 0."""
         return self.overhang(geometry) if stable_throughout else 0.0
+
+    def stats(self) -> dict:
+        """Counters worth reporting with a run's results (e.g. physics cache hits); empty by default."""
+        return {}
 
 
 class Predictor(abc.ABC):

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import functools
+import inspect
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Optional
 
 import pluggy
 
 from overhang_framework import hookspecs
-from overhang_framework.errors import UnknownPluginError
+from overhang_framework.errors import ConfigError, UnknownPluginError
 
 KINDS = ("world", "predictor", "planner", "value")
 _HOOKS = {
@@ -71,12 +72,44 @@ class Registry:
             raise UnknownPluginError(kind, name, self.names(kind)) from None
 
     def create(self, kind: str, config: Mapping[str, Any], **deps: Any) -> Any:
-        """Build the ``kind`` named by ``config['name']`` from the rest of ``config`` and ``deps``."""
+        """Build the ``kind`` named by ``config['name']`` from the rest of ``config`` and ``deps``.
+
+        A parameter the factory does not take, or a value it refuses with
+        ``ValueError`` or ``TypeError``, raises :class:`ConfigError` naming the
+        plugin and the parameter.
+        """
         params = dict(config)
         name = params.pop("name", None)
         if name is None:
             raise UnknownPluginError(kind, "<missing name>", self.names(kind))
-        return self.get(kind, name).factory(**deps, **params)
+        factory = self.get(kind, name).factory
+        allowed = accepted_parameters(factory)
+        if allowed is not None:
+            unknown = sorted(set(params) - allowed)
+            if unknown:
+                listing = ", ".join(sorted(allowed - set(deps))) or "(none)"
+                raise ConfigError(f"{kind} {name!r} has no parameter {', '.join(unknown)}; its parameters: {listing}")
+        try:
+            return factory(**deps, **params)
+        except (ValueError, TypeError) as err:
+            if isinstance(err, ConfigError):
+                raise
+            raise ConfigError(f"{kind} {name!r}: {err}") from err
+
+
+def accepted_parameters(factory: Callable) -> Optional[set[str]]:
+    """Keyword parameters ``factory`` takes, or ``None`` when it takes any (``**kwargs``)."""
+    try:
+        sig = inspect.signature(factory)
+    except (TypeError, ValueError):
+        return None
+    names = set()
+    for p in sig.parameters.values():
+        if p.kind is p.VAR_KEYWORD:
+            return None
+        if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
+            names.add(p.name)
+    return names
 
 
 def config_search_paths(pm: Optional[pluggy.PluginManager] = None) -> list[str]:

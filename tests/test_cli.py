@@ -68,3 +68,44 @@ def test_example_plugin_runs_through_the_cli(example_plugin, tmp_path, capsys):
     assert len(episodes) == 2
     assert all(s["predicted_stability"] >= 0.9 for e in episodes for s in e["steps"])
     assert "terminal reward" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("world.resolution=-1", "world 'overhang': resolution must be a positive number of metres, got -1"),
+    ("world.physics=nope", "unknown physics 'nope'; allowed: pybullet, static"),
+    ("+world.bogus=1", "world 'overhang' has no parameter bogus; its parameters: cache, physics,"),
+    ("+world.static.bogus=1", "unknown parameter(s) bogus for physics backend 'static'; allowed: friction,"),
+    ("world.pybullet.time_step=0", "PyBulletParams.time_step must be a number > 0, got 0"),
+    ("world.static.friction=-1", "StaticParams.friction must be a number >= 0, got -1"),
+    ("world.workers=0", "workers must be a whole number >= 1, got 0"),
+    ("world.cache=maybe", "cache must be true or false, got 'maybe'"),
+    ("+predictor.bogus=1", "predictor 'veridical' has no parameter bogus; its parameters: backend, backend_params"),
+    ("seed=-1", "seed must be a whole number >= 0, got -1"),
+    ("repeats=abc", "repeats must be a whole number >= 1, got 'abc'"),
+    ("condition.time_limit=-1", "condition.time_limit must be a number of seconds > 0 or null, got -1"),
+])
+def test_bad_config_values_stop_before_any_episode(tmp_path, capsys, override, expected):
+    from overhang_framework.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main([*QUICK, override, f"hydra.run.dir={tmp_path}"])
+    assert exit_info.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip() and "build time" not in line]
+    assert err == [f"error: {err[0][7:]}"] and expected in err[0]
+    assert not (tmp_path / "episodes.jsonl").exists() and not (tmp_path / "episodes.jsonl.partial").exists()
+
+
+@pytest.mark.parametrize("args", [["predictor=nope", "--cfg", "job"], ["--cfg", "job", "predictor=nope"]])
+def test_unknown_names_are_caught_around_hydra_flags(args, capsys):
+    from overhang_framework.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(args)
+    assert exit_info.value.code == 2
+    assert "unknown predictor 'nope'" in capsys.readouterr().err
+
+
+def test_glob_sweeps_are_left_to_hydra():
+    from overhang_framework.cli import check_overrides
+
+    check_overrides(["predictor=glob(*)", "-m"])  # does not raise

@@ -38,7 +38,8 @@ class Reckless(Planner):
     ([(0.6, 0, 0), (1.8, 0.2, 1)], True),                     # centre of mass over the base
     ([(0.6, 0, 0), (1.8, 0.8, 1)], False),                    # centre of mass past the base's edge
     ([(1.8, 0, 0), (1.8, 0.7, 1), (1.8, 1.4, 2)], False),     # staircase: top two past the edge
-    ([(1.8, 0, 0), (1.8, 0.8, 1), (1.8, 0.0, 2)], True),      # cantilever held by a block above
+    ([(0.6, 0, 0), (1.8, 0.45, 1)], False),                   # a cantilever alone falls ...
+    ([(0.6, 0, 0), (1.8, 0.45, 1), (1.2, -0.15, 2)], True),   # ... a counterweight above holds it
 ])
 def test_known_towers(models, rows, stable):
     assert models["world"].is_stable(Geometry.from_tuples(rows)) is stable

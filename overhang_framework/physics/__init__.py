@@ -27,3 +27,23 @@ class PhysicsBackend(Protocol):
     def stable_batch(self, geometries: Sequence[Geometry], gravity: Optional[np.ndarray] = None,
                      friction: Optional[Sequence[Sequence[float]]] = None) -> np.ndarray:
         """Boolean array, one verdict per geometry; ``gravity`` is ``(n, 2)``, ``friction`` one row per geometry."""
+
+
+def check_fields(params, positive: Sequence[str] = (), non_negative: Sequence[str] = (),
+                 whole: Sequence[str] = ()) -> None:
+    """Raise ``ValueError`` naming the first field of ``params`` outside its allowed range.
+
+    ``positive`` fields must be numbers > 0, ``non_negative`` numbers >= 0 and
+    ``whole`` whole numbers >= 1.
+    """
+    kind = type(params).__name__
+    for names, ok, allowed in (
+        (positive, lambda v: v > 0, "a number > 0"),
+        (non_negative, lambda v: v >= 0, "a number >= 0"),
+        (whole, lambda v: float(v).is_integer() and v >= 1, "a whole number >= 1"),
+    ):
+        for name in names:
+            value = getattr(params, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) \
+                    or not ok(value):
+                raise ValueError(f"{kind}.{name} must be {allowed}, got {value!r}")

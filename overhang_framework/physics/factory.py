@@ -9,6 +9,24 @@ from overhang_framework.physics.cache import CachedBackend, VerdictCache
 BACKENDS = ("pybullet", "static")
 
 
+def backend_params(name: str, **params):
+    """The parameter dataclass of backend ``name`` with ``params`` set; ``ValueError`` for unknown
+    names, unknown parameters or values out of range."""
+    if name == "pybullet":
+        from overhang_framework.physics.pybullet_backend import PyBulletParams as cls
+    elif name == "static":
+        from overhang_framework.physics.static_backend import StaticParams as cls
+    else:
+        raise ValueError(f"unknown physics backend {name!r}; allowed: {', '.join(BACKENDS)}")
+    fields = set(cls.__dataclass_fields__)
+    unknown = sorted(set(params) - fields)
+    if unknown:
+        raise ValueError(
+            f"unknown parameter(s) {', '.join(unknown)} for physics backend {name!r}; allowed: {', '.join(sorted(fields))}"
+        )
+    return cls(**params)
+
+
 def make_backend(name: str, *, workers: Optional[int] = None, cache=None, **params):
     """The backend called ``name`` with ``params`` overriding its parameter defaults.
 
@@ -18,38 +36,20 @@ def make_backend(name: str, *, workers: Optional[int] = None, cache=None, **para
     for a fresh :class:`VerdictCache`, or a cache to share. Unknown names and
     unknown parameters raise ``ValueError``.
     """
+    prm = backend_params(name, **params)
     if name == "pybullet":
-        from overhang_framework.physics.pybullet_backend import (
-            PyBulletBackend,
-            PyBulletParams,
-        )
-
-        prm = _params(PyBulletParams, name, params)
         if workers is not None and workers > 1:
             from overhang_framework.physics.pool import PyBulletPool
 
             backend = PyBulletPool(workers=workers, params=prm)
         else:
-            backend = PyBulletBackend(prm)
-    elif name == "static":
-        from overhang_framework.physics.static_backend import (
-            StaticBackend,
-            StaticParams,
-        )
+            from overhang_framework.physics.pybullet_backend import PyBulletBackend
 
-        backend = StaticBackend(_params(StaticParams, name, params))
+            backend = PyBulletBackend(prm)
     else:
-        raise ValueError(f"unknown physics backend {name!r}; allowed: {', '.join(BACKENDS)}")
+        from overhang_framework.physics.static_backend import StaticBackend
+
+        backend = StaticBackend(prm)
     if cache is None or cache is False:
         return backend
     return CachedBackend(backend, VerdictCache() if cache is True else cache)
-
-
-def _params(cls, name: str, params: dict):
-    fields = set(cls.__dataclass_fields__)
-    unknown = sorted(set(params) - fields)
-    if unknown:
-        raise ValueError(
-            f"unknown parameter(s) {', '.join(unknown)} for physics backend {name!r}; allowed: {', '.join(sorted(fields))}"
-        )
-    return cls(**params)

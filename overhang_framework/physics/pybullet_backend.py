@@ -19,6 +19,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from overhang_framework.geometry import BLOCK_HEIGHT, Geometry
+from overhang_framework.physics import check_fields
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,11 @@ class PyBulletParams:
     rest_speed: float = 0.0003
     rest_time: float = 0.25
     min_time: float = 0.25
+
+    def __post_init__(self):
+        check_fields(self, positive=("time_step", "duration", "threshold", "density", "depth", "rest_speed"),
+                     non_negative=("friction", "restitution", "gravity", "rest_time", "min_time"),
+                     whole=("solver_iterations", "check_every"))
 
 
 @dataclass(frozen=True)

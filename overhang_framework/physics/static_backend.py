@@ -67,6 +67,7 @@ import scipy.sparse as sp
 from scipy.optimize import linprog
 
 from overhang_framework.geometry import BLOCK_HEIGHT, Geometry
+from overhang_framework.physics import check_fields
 
 
 @dataclass(frozen=True)
@@ -88,8 +89,8 @@ class StaticParams:
     def __post_init__(self):
         if self.friction_combine not in ("product", "min", "mean"):
             raise ValueError(f"friction_combine must be product, min or mean, not {self.friction_combine!r}")
-        if self.margin < 0:
-            raise ValueError(f"margin must be >= 0, not {self.margin}")
+        check_fields(self, non_negative=("margin", "friction", "ground_friction", "gravity", "min_contact",
+                                         "side_gap", "side_overlap", "lp_tolerance"))
 
 
 def _combine(a: np.ndarray, b: np.ndarray, how: str) -> np.ndarray:

@@ -6,8 +6,6 @@ import time
 
 import numpy as np
 
-from overhang_framework import rules
-from overhang_framework.geometry import overhang
 from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, Spend, State, Value, World
 
 
@@ -28,7 +26,7 @@ class MyopicPlanner(Planner):
         if not actions:
             raise RuntimeError("no legal action in this state")
         p = np.asarray(predictor.predict(state, actions, rng), dtype=float)
-        r = np.array([overhang(rules.place(state.geometry, state.next_width, a)) for a in actions])
+        r = np.array([self.world.overhang(self.world.successor(state, a).geometry) for a in actions])
         score = p * r
         best = np.flatnonzero(np.isclose(score, score.max(), rtol=0, atol=1e-12))
         i = int(best[rng.integers(len(best))]) if len(best) > 1 else int(best[0])

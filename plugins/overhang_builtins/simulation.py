@@ -66,7 +66,6 @@ from typing import Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from overhang_framework import rules
 from overhang_framework.geometry import Action, Block, Geometry
 from overhang_framework.interfaces import Predictor, State, World
 from overhang_framework.physics import PhysicsBackend
@@ -172,8 +171,10 @@ class Scenes:
 
 def _stack(parts: list):
     """Rows of ``parts`` as one array, or a list of rows when their lengths differ."""
-    if not parts or parts[0] is None:
+    if not parts or all(p is None for p in parts):
         return None
+    if any(p is None for p in parts):
+        raise ValueError("scenes with and without gravity or friction noise cannot share one backend call")
     if len({p.shape[1:] for p in parts}) == 1:
         return np.concatenate(parts, axis=0)
     return [row for p in parts for row in p]
@@ -243,9 +244,7 @@ class IPEPredictor(Predictor):
         return default
 
     def successors(self, state: State, actions: Sequence[Action]) -> list[Geometry]:
-        if state.next_width is None:
-            raise ValueError("the state has no block left to place")
-        return [rules.place(state.geometry, state.next_width, a) for a in actions]
+        return [self.world.successor(state, a).geometry for a in actions]
 
     def scenes(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> "Scenes":
         """The scenes to simulate for ``actions``: ``len(actions) * K`` perturbed ones, or the

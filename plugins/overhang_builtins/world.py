@@ -4,33 +4,41 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Optional
 
-from overhang_framework.errors import IllegalActionError
+from overhang_framework import rules
 from overhang_framework.geometry import Action, Block, Geometry, check_width, overhang
 from overhang_framework.interfaces import State, Task, World
-from overhang_framework import rules
 
 
 class OverhangWorld(World):
     """Blocks of height 0.6 on an 8 x 8 grid; the first block stands at the ground centre.
 
-    ``physics`` names the ground-truth backend (``pybullet`` or ``static``), whose
-    parameters are the mapping of the same name; ``resolution`` is the x step of
-    the candidate actions that :meth:`legal_actions` enumerates; ``cache``
-    memoises verdicts by the canonical geometry key; ``workers > 1`` runs
-    PyBullet batches on a process pool of that many workers.
+    ``physics`` names the ground-truth backend (``pybullet`` or ``static``);
+    ``pybullet`` and ``static`` are the parameters of each backend (see
+    ``conf/world/overhang.yaml``). ``resolution`` is the x step of the candidate
+    actions that :meth:`legal_actions` enumerates; ``cache`` memoises verdicts by
+    the canonical geometry key; ``workers > 1`` runs PyBullet batches on a
+    process pool of that many workers.
     """
 
     def __init__(self, physics: str = "pybullet", resolution: float = 0.1, cache: bool = True,
-                 workers: int = 1, **backend_params: Mapping[str, Any]):
-        from overhang_framework.physics.factory import make_backend
+                 workers: int = 1, pybullet: Optional[Mapping[str, Any]] = None,
+                 static: Optional[Mapping[str, Any]] = None):
+        from overhang_framework.physics.factory import backend_params, make_backend
 
-        if resolution <= 0:
-            raise ValueError(f"world.resolution must be positive, got {resolution}")
+        if not isinstance(resolution, (int, float)) or isinstance(resolution, bool) or resolution <= 0:
+            raise ValueError(f"resolution must be a positive number of metres, got {resolution!r}")
+        if not isinstance(cache, bool):
+            raise ValueError(f"cache must be true or false, got {cache!r}")
+        if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+            raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
         self.resolution = float(resolution)
         self.physics_name = physics
-        self.backend_params = {k: dict(v) for k, v in backend_params.items()}
-        self.backend = make_backend(physics, workers=workers, cache=bool(cache),
-                                    **self.backend_params.get(physics, {}))
+        self.backend_params = {"pybullet": dict(pybullet or {}), "static": dict(static or {})}
+        if physics not in self.backend_params:
+            raise ValueError(f"unknown physics {physics!r}; allowed: {', '.join(self.backend_params)}")
+        for name, params in self.backend_params.items():
+            backend_params(name, **params)
+        self.backend = make_backend(physics, workers=workers, cache=cache, **self.backend_params[physics])
 
     def initial_state(self, task: Task) -> State:
         widths = tuple(check_width(w) for w in task.sequence)
@@ -48,17 +56,17 @@ class OverhangWorld(World):
             return "no block is left to place"
         return rules.illegal_reason(state.geometry, state.next_width, action)
 
-    def step(self, state: State, action: Action) -> State:
-        reason = self.illegal_reason(state, action)
-        if reason is not None:
-            raise IllegalActionError(f"illegal action (x={action.x:g}, layer={action.layer}): {reason}")
+    def successor(self, state: State, action: Action) -> State:
+        if state.done:
+            raise ValueError("no block is left to place")
         return State(rules.place(state.geometry, state.next_width, action), state.remaining[1:])
 
     def is_stable(self, geometry: Geometry) -> bool:
         return bool(self.backend.stable(geometry))
 
-    def is_stable_batch(self, geometries):
-        return self.backend.stable_batch(list(geometries))
-
     def overhang(self, geometry: Geometry) -> float:
         return overhang(geometry)
+
+    def stats(self) -> dict:
+        stats = getattr(self.backend, "stats", None)
+        return {"physics": self.physics_name, "cache": stats()} if stats else {"physics": self.physics_name}
