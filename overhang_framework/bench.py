@@ -6,10 +6,21 @@ near-critical set (:mod:`overhang_framework.towers`):
 * the full PyBullet run (the reference: verdicts, final displacements, time),
 * the early-stopping PyBullet check (agreement with the full run, time),
 * the static backend, one geometry per call and batched (agreement, time,
-  throughput), also under IPE-like noise on gravity and friction,
+  throughput), also on scenes perturbed by the IPE predictor's own code
+  (``IPEPredictor.perturb``, sigma 0.03, one draw per tower),
 * the PyBullet process pool against a one-worker pool (throughput),
-* the verdict cache on an episode-like workload (hit rate),
-* how the reference verdicts move with the displacement threshold.
+* the verdict cache of a static world while a myopic planner with the
+  veridical predictor plays ``--episodes`` paper20-like tasks (hit rate),
+* how the reference verdicts move with the displacement threshold,
+
+and, when asked:
+
+* ``--margins``: static agreement for several margins (needs ``--critical``),
+* ``--rest-speeds``: early stopping with several ``rest_speed`` values against
+  the full runs (agreement, and how many stable towers ran the whole window),
+* ``--friction-combine N``: the static backend with each friction-combine rule
+  against full PyBullet runs on N IPE-perturbed random towers, a third of them
+  with gravity tilted by up to 0.4 rad.
 
 It prints a table and, as its last line, one JSON object with the figures.
 ``--out FILE`` also writes that object to FILE (atomically).
@@ -22,24 +33,25 @@ import json
 import os
 import platform
 import sys
-import tempfile
 import time
+from dataclasses import replace
 from typing import Optional, Sequence
 
 import numpy as np
 from tqdm import tqdm
 
 from overhang_framework.geometry import Geometry
-from overhang_framework.physics.cache import CachedBackend, VerdictCache
 from overhang_framework.physics.pool import PyBulletPool
 from overhang_framework.physics.pybullet_backend import (
     PyBulletParams,
     PyBulletSimulator,
 )
 from overhang_framework.physics.static_backend import StaticBackend, StaticParams
-from overhang_framework.towers import near_critical_towers, random_towers
+from overhang_framework.results import atomic_write_json
+from overhang_framework.towers import near_critical_towers, random_towers, with_last_x
 
 THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2)
+COMBINE_RULES = ("product", "min", "mean")
 
 
 def confusion(reference: np.ndarray, verdicts: np.ndarray) -> dict:
@@ -72,14 +84,27 @@ def batched_rate(backend, geometries, gravity=None, friction=None, repeats: int 
     return len(geometries) / best
 
 
-def ipe_noise(geometries: Sequence[Geometry], rng: np.random.Generator, sigma: float = 0.03,
-              friction: float = 0.5, gravity: float = 9.81):
-    """IPE-style perturbations: x positions, gravity vector and per-block friction, Gaussian with ``sigma``."""
-    noisy = [Geometry.from_tuples((b.width, b.x + rng.normal(0, sigma), b.layer) for b in g.blocks)
-             for g in geometries]
-    grav = np.c_[rng.normal(0, sigma * gravity, len(geometries)), -gravity + rng.normal(0, sigma * gravity, len(geometries))]
-    fric = [np.clip(friction + rng.normal(0, sigma, len(g)), 0.0, None) for g in geometries]
-    return noisy, grav, fric
+def ipe_scenes(geometries: Sequence[Geometry], rng: np.random.Generator, sigma: float = 0.03,
+               backend=None) -> tuple[list[Geometry], np.ndarray, list[np.ndarray]]:
+    """One IPE-perturbed scene per geometry, made by the IPE predictor's own code.
+
+    Each geometry goes through ``IPEPredictor.perturb`` with one
+    ``Draws.sample`` draw (K = 1) and ``sigma`` on every channel: x offsets
+    with overlaps separated, a tilted and scaled gravity vector, per-block
+    friction. ``backend`` (default: a default :class:`StaticBackend`) only
+    supplies the gravity and friction the noise is centred on. Returns
+    ``(scenes, gravity (n, 2), friction [one array per scene])``.
+    """
+    from overhang_builtins.simulation import Draws, IPEPredictor
+
+    ipe = IPEPredictor(None, K=1, sigma=sigma, backend=backend if backend is not None else StaticBackend())
+    scenes, gravity, friction = [], [], []
+    for g in geometries:
+        s, grav, fric = ipe.perturb([g], Draws.sample(rng, 1, len(g)))
+        scenes.extend(s)
+        gravity.append(grav)
+        friction.extend(fric)
+    return scenes, np.concatenate(gravity), friction
 
 
 def pool_rate(geometries, workers: int, params: PyBulletParams, early_stop: bool) -> tuple[float, np.ndarray]:
@@ -101,10 +126,6 @@ def margin_sweep(geoms, ref, crit, crit_ref, margins: Sequence[float], base: Sta
     reference found stable), so it does not depend on where the one sampled
     offset fell.
     """
-    from dataclasses import replace
-
-    from overhang_framework.towers import with_last_x
-
     us = np.linspace(-window, window, offsets)
     out = {}
     for m in margins:
@@ -122,28 +143,89 @@ def margin_sweep(geoms, ref, crit, crit_ref, margins: Sequence[float], base: Sta
     return out
 
 
-def write_atomic(path: str, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same directory and a rename."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".bench-", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+def rest_speed_sweep(geoms: Sequence[Geometry], reference: np.ndarray, rest_speeds: Sequence[float],
+                     params: PyBulletParams, quiet: bool) -> dict:
+    """Early stopping with each ``rest_speed`` against the full runs' ``reference`` verdicts.
+
+    Per value: agreement, the towers it calls stable that the full run calls
+    fallen and the reverse, how many of the reference's stable towers ran the
+    whole window (no early stop), and the median time per check.
+    """
+    out = {}
+    for rs in rest_speeds:
+        prm = replace(params, rest_speed=float(rs))
+        total = int(round(prm.duration / prm.time_step))
+        sim = PyBulletSimulator(prm)
+        outcomes, times = timed_checks(lambda g: sim.check(g, early_stop=True), geoms, f"rest_speed {rs:g}", quiet)
+        sim.close()
+        v = np.array([o.stable for o in outcomes])
+        full_window = np.array([o.steps >= total for o in outcomes])
+        out[str(rs)] = {
+            "agreement": float(np.mean(v == reference)),
+            "stable_but_full_run_fell": int(np.sum(v & ~reference)),
+            "fell_but_full_run_stood": int(np.sum(~v & reference)),
+            "reference_stable": int(reference.sum()),
+            "stable_ran_full_window": int(np.sum(full_window & reference)),
+            "median_ms": 1e3 * float(np.median(times)),
+        }
+    return out
+
+
+def friction_combine_check(n: int, seed: int, sp: StaticParams, pp: PyBulletParams, workers: int,
+                           sigma: float = 0.03, max_tilt: float = 0.4, quiet: bool = False) -> dict:
+    """Each friction-combine rule of the static backend against full PyBullet runs on noisy, tilted towers.
+
+    ``n`` random towers (``seed``) are perturbed by :func:`ipe_scenes`; every
+    third one also has its gravity turned by ``U(-max_tilt, max_tilt)`` rad.
+    """
+    rng = np.random.default_rng([seed, 3])
+    scenes, gravity, friction = ipe_scenes(random_towers(n, seed=seed), rng, sigma, StaticBackend(sp))
+    tilt = np.where(np.arange(n) % 3 == 0, rng.uniform(-max_tilt, max_tilt, n), 0.0)
+    c, s = np.cos(tilt), np.sin(tilt)
+    gravity = np.c_[c * gravity[:, 0] - s * gravity[:, 1], s * gravity[:, 0] + c * gravity[:, 1]]
+    with PyBulletPool(workers, params=pp, early_stop=False) as pool:
+        if not quiet:
+            print(f"friction combine: {n} full PyBullet runs on {workers} workers", file=sys.stderr)
+        ref = pool.stable_batch(scenes, gravity, friction)
+    out = {"towers": n, "sigma": sigma, "max_tilt": max_tilt, "tilted": int(np.sum(tilt != 0)),
+           "reference_stable": int(ref.sum())}
+    for rule in COMBINE_RULES:
+        v = StaticBackend(replace(sp, friction_combine=rule)).stable_batch(scenes, gravity, friction)
+        out[rule] = {"agreement": float(np.mean(v == ref)), **confusion(ref, v)}
+    return out
+
+
+def episode_cache_workload(episodes: int, seed: int = 2025, length: int = 6) -> dict:
+    """The static world's verdict cache after a myopic planner with the veridical predictor plays ``episodes`` tasks.
+
+    The tasks are ``generate_sequences(episodes, length, seed)`` (with the
+    defaults, the first 20 are the paper20 set), one episode each, as
+    ``python -m overhang_framework world.physics=static`` would run them.
+    """
+    from overhang_framework.episode import episode_rng, run_episode
+    from overhang_framework.plugins import Registry
+    from overhang_framework.tasks import generate_sequences, parse_tasks
+
+    registry = Registry()
+    world = registry.create("world", {"name": "overhang", "physics": "static"})
+    predictor = registry.create("predictor", {"name": "veridical"}, world=world)
+    planner = registry.create("planner", {"name": "myopic"}, world=world)
+    value = registry.create("value", {"name": "overhang"}, world=world)
+    placements = 0
+    for i, task in enumerate(parse_tasks(generate_sequences(episodes, length, seed), prefix="bench")):
+        placements += len(run_episode(task, world, predictor, planner, value, episode_rng(0, i, 0))["steps"])
+    return {"episodes": episodes, "sequence_seed": seed, "placements": placements, **world.backend.stats()}
 
 
 def machine() -> str:
+    """The machine a figure was measured on: architecture, cores, Python."""
     return f"{platform.machine()}, {os.cpu_count()} cores, {platform.python_implementation()} {platform.python_version()}"
 
 
 def run(towers: int = 1000, seed: int = 0, critical: int = 200, workers: int = 2, pool_towers: int = 200,
         quiet: bool = False, static_params: Optional[StaticParams] = None,
-        pybullet_params: Optional[PyBulletParams] = None, margins: Sequence[float] = ()) -> dict:
+        pybullet_params: Optional[PyBulletParams] = None, margins: Sequence[float] = (),
+        rest_speeds: Sequence[float] = (), friction_towers: int = 0, episodes: int = 20) -> dict:
     """Run every measurement and return the figures (the JSON object the CLI prints)."""
     sp = static_params or StaticParams()
     pp = pybullet_params or PyBulletParams()
@@ -166,7 +248,7 @@ def run(towers: int = 1000, seed: int = 0, critical: int = 200, workers: int = 2
     st_single = np.array(st_single, dtype=bool)
     st_batch = static.stable_batch(geoms)
     rate = batched_rate(static, geoms)
-    noisy, grav, fric = ipe_noise(geoms, np.random.default_rng(seed + 1))
+    noisy, grav, fric = ipe_scenes(geoms, np.random.default_rng(seed + 1), backend=static)
     rate_noisy = batched_rate(static, noisy, grav, fric)
     lp_before = static.lp_solved
     static.stable_batch(noisy, grav, fric)
@@ -181,13 +263,8 @@ def run(towers: int = 1000, seed: int = 0, critical: int = 200, workers: int = 2
     rate1, v1 = pool_rate(sub, 1, pp, early_stop=False)
     rate_n, vn = pool_rate(sub, workers, pp, early_stop=False)
 
-    cache = VerdictCache()
-    cached = CachedBackend(StaticBackend(sp), cache)
-    prefixes = [Geometry(g.blocks[:k]) for g in geoms for k in range(1, len(g) + 1)]
-    for g in prefixes:
-        cached.stable(g)
-    for g in geoms:
-        cached.stable(Geometry(tuple(reversed(g.blocks))))
+    say(f"cache: {episodes} episodes of the myopic planner with the veridical predictor, static world")
+    cache = episode_cache_workload(episodes)
 
     thresholds = {}
     for th in THRESHOLDS:
@@ -221,6 +298,13 @@ def run(towers: int = 1000, seed: int = 0, critical: int = 200, workers: int = 2
             say(f"margin sweep: {', '.join(map(str, margins))}")
             crit_figures["margin_sweep"] = margin_sweep(geoms, ref, crit, cref, margins, sp)
 
+    extra = {}
+    if rest_speeds:
+        say(f"rest_speed sweep: {', '.join(map(str, rest_speeds))}")
+        extra["rest_speed_sweep"] = rest_speed_sweep(geoms, ref, rest_speeds, pp, quiet)
+    if friction_towers > 0:
+        extra["friction_combine"] = friction_combine_check(friction_towers, seed, sp, pp, workers, quiet=quiet)
+
     med_full, med_early, med_static = (float(np.median(t)) for t in (t_full, t_early, t_static))
     figures = {
         "towers": towers,
@@ -244,9 +328,10 @@ def run(towers: int = 1000, seed: int = 0, critical: int = 200, workers: int = 2
         "pool_equals_serial": bool(np.all(v1 == ref[: len(sub)]) and np.all(vn == ref[: len(sub)])),
         "confusion_static": confusion(ref, st_batch),
         "confusion_early_stop": confusion(ref, es),
-        "cache": cache.stats(),
+        "cache": cache,
         "threshold_sensitivity": thresholds,
         **crit_figures,
+        **extra,
         "workers": workers,
         "static_params": {k: getattr(sp, k) for k in sp.__dataclass_fields__},
         "pybullet_params": {k: getattr(pp, k) for k in pp.__dataclass_fields__},
@@ -283,7 +368,8 @@ def table(f: dict) -> str:
     rows += [
         ("pool (full runs)", ", ".join(f"{k} worker(s): {v:.2f}/s" for k, v in pc.items())
          + f"   speed-up {f['pool_speedup']:.2f}x"),
-        ("cache hit rate (episode prefixes)", f"{f['cache']['hit_rate']:.3f}  ({f['cache']['hits']} hits, {f['cache']['misses']} misses)"),
+        (f"cache hit rate ({f['cache']['episodes']} myopic episodes)",
+         f"{f['cache']['hit_rate']:.3f}  ({f['cache']['hits']} hits, {f['cache']['misses']} misses)"),
     ]
     width = max(len(r[0]) for r in rows)
     lines = [f"{a:<{width}}  {b}" for a, b in rows]
@@ -298,6 +384,20 @@ def table(f: dict) -> str:
         lines += ["", "margin   agreement (random)  expected agreement (near-critical)"]
         for m, t in f["margin_sweep"].items():
             lines.append(f"{m:>6}   {t['agreement_static']:.4f}              {t['expected_agreement_static_critical']:.4f}")
+    if f.get("rest_speed_sweep"):
+        lines += ["", "rest_speed  agreement  stable, full run fell  fell, full run stood  stable that ran 5 s  median ms"]
+        for rs, t in f["rest_speed_sweep"].items():
+            lines.append(f"{rs:>10}  {t['agreement']:.4f}     {t['stable_but_full_run_fell']:>21}  "
+                         f"{t['fell_but_full_run_stood']:>20}  {t['stable_ran_full_window']:>11} of {t['reference_stable']:<5}"
+                         f"  {t['median_ms']:>9.2f}")
+    if f.get("friction_combine"):
+        fc = f["friction_combine"]
+        lines += ["", f"friction combine: {fc['towers']} IPE-perturbed towers (sigma {fc['sigma']}), "
+                      f"{fc['tilted']} tilted by up to {fc['max_tilt']} rad, {fc['reference_stable']} stable by full runs",
+                  "rule     agreement  stable, PyBullet fell  fell, PyBullet stood"]
+        for rule in COMBINE_RULES:
+            t = fc[rule]
+            lines.append(f"{rule:<8} {t['agreement']:.4f}     {t['ref_fall_pred_stable']:>21}  {t['ref_stable_pred_fall']:>20}")
     return "\n".join(lines)
 
 
@@ -308,19 +408,27 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--critical", type=int, default=200, help="near-critical towers (default 200, 0 to skip)")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 2, help="pool workers (default: all cores)")
     ap.add_argument("--pool-towers", type=int, default=200, help="towers for the pool measurement (default 200)")
-    ap.add_argument("--quick", action="store_true", help="tiny smoke run: 30 towers, 6 near-critical, 12 for the pool")
+    ap.add_argument("--quick", action="store_true",
+                    help="tiny smoke run: 30 towers, 6 near-critical, 12 for the pool, 3 episodes")
     ap.add_argument("--margins", type=lambda t: [float(v) for v in t.split(",")], default=[],
                     help="comma-separated static margins to compare (needs --critical > 0)")
+    ap.add_argument("--rest-speeds", type=lambda t: [float(v) for v in t.split(",")], default=[],
+                    help="comma-separated early-stop rest speeds to compare with the full runs")
+    ap.add_argument("--friction-combine", type=int, default=0, metavar="N",
+                    help="check each static friction-combine rule against full PyBullet runs on N noisy towers")
+    ap.add_argument("--episodes", type=int, default=20,
+                    help="myopic episodes for the cache measurement (default 20, the paper20 tasks)")
     ap.add_argument("--out", help="also write the JSON figures to this file")
     ap.add_argument("--quiet", action="store_true", help="no progress bars or table")
     args = ap.parse_args(argv)
     if args.quick:
         args.towers, args.critical, args.pool_towers = min(args.towers, 30), min(args.critical, 6), 12
+        args.episodes = min(args.episodes, 3)
     figures = run(args.towers, args.seed, args.critical, args.workers, args.pool_towers, quiet=args.quiet,
-                  margins=args.margins)
-    text = json.dumps(figures, sort_keys=False)
+                  margins=args.margins, rest_speeds=args.rest_speeds, friction_towers=args.friction_combine,
+                  episodes=args.episodes)
     if args.out:
-        write_atomic(args.out, text + "\n")
+        atomic_write_json(args.out, figures)
     if not args.quiet:
         print(table(figures))
     print(json.dumps({k: v for k, v in figures.items() if k != "disagreements_static"}))

@@ -12,6 +12,12 @@ Two sets are generated here:
   bisection with the reference, batched over all towers so that a process pool
   can serve the reference.
 
+and one set of questions:
+
+* :func:`episode_questions` -- episode-like prediction questions: a tower whose
+  every prefix stands (by a reference) and one more block at a random legal
+  action, as a planner would score it.
+
 Everything is deterministic for a given seed.
 """
 
@@ -22,7 +28,8 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import EPS, GRID_HALF_WIDTH, WIDTHS, Block, Geometry
+from overhang_framework.geometry import EPS, GRID_HALF_WIDTH, WIDTHS, Action, Block, Geometry
+from overhang_framework.interfaces import State
 from overhang_framework.rules import legal_actions, place
 
 Verdicts = Callable[[Sequence[Geometry]], np.ndarray]
@@ -186,3 +193,62 @@ def near_critical_towers(n: int, reference: Verdicts, seed: int = 0, window: flo
             x = float(np.clip(fx + offset, lo, hi))
             found.append(CriticalTower(with_last_x(g, x), g, fx, x - fx))
     return found
+
+
+@dataclass(frozen=True)
+class Question:
+    """One prediction to make: ``state`` (a standing tower and the next width), ``action``, verdict.
+
+    ``n_blocks`` is the number of blocks after the action, ``index`` the
+    question's number among those of its ``n_blocks``, ``stable`` the
+    reference verdict of the tower after the action.
+    """
+
+    n_blocks: int
+    index: int
+    state: State
+    action: Action
+    stable: bool
+
+    @property
+    def geometry(self) -> Geometry:
+        return place(self.state.geometry, self.state.next_width, self.action)
+
+
+def episode_questions(reference: Verdicts, per_height: int, seed: int = 0, min_blocks: int = 2,
+                      max_blocks: int = 7, resolution: float = 0.1, oversample: int = 2,
+                      progress: Optional[Callable[[int], None]] = None) -> list[Question]:
+    """``per_height`` questions for every number of blocks in ``[min_blocks, max_blocks]``.
+
+    Level ``n`` extends ``oversample * per_height`` towers drawn with
+    replacement from the standing towers of level ``n - 1`` (level 1: a ground
+    block of random width at ``x = 0``), each by a block of random width at a
+    uniformly random legal action on the ``resolution`` grid; the first
+    ``per_height`` extensions are the questions, and every standing extension
+    joins the pool for level ``n + 1``. ``progress`` is called with the number
+    of reference checks of each level.
+
+    Raises ``RuntimeError`` when no tower of a level below ``max_blocks`` stands.
+    """
+    rng = np.random.default_rng(seed)
+    pool = [Geometry((Block(WIDTHS[rng.integers(len(WIDTHS))], 0.0, 0),)) for _ in range(per_height)]
+    questions: list[Question] = []
+    for n in range(2, max_blocks + 1):
+        m = oversample * per_height
+        states, actions = [], []
+        for i in rng.integers(len(pool), size=m):
+            width = WIDTHS[rng.integers(len(WIDTHS))]
+            options = legal_actions(pool[i], width, resolution)
+            states.append(State(pool[i], (width,)))
+            actions.append(options[rng.integers(len(options))])
+        towers = [place(s.geometry, s.next_width, a) for s, a in zip(states, actions)]
+        verdicts = np.asarray(reference(towers), dtype=bool)
+        if progress:
+            progress(len(towers))
+        if n >= min_blocks:
+            questions.extend(Question(n, j, states[j], actions[j], bool(verdicts[j]))
+                             for j in range(per_height))
+        pool = [t for t, v in zip(towers, verdicts) if v]
+        if not pool and n < max_blocks:
+            raise RuntimeError(f"no tower of {n} blocks stands; cannot grow to {n + 1}")
+    return questions

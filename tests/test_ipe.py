@@ -244,12 +244,16 @@ def test_noisy_world_backend_leaves_the_world_cache_alone():
     assert len(w.backend.cache) == len(actions)
 
 
-def test_the_mechanism_analysis_writes_its_figure_and_tables(tmp_path):
+def test_the_mechanism_analysis_writes_its_figure_and_tables(tmp_path, capsys):
     import csv
 
     from overhang_framework.analyses.ipe_mechanism import main
 
     main(["--out", str(tmp_path), "--quick", "--no-progress"])
+    wrote = capsys.readouterr().out.strip().splitlines()[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "ipe_mechanism.csv", "ipe_mechanism.json", "ipe_mechanism.png", "ipe_mechanism_towers.csv"]
+    assert all(str(p) in wrote for p in tmp_path.iterdir())
     assert (tmp_path / "ipe_mechanism.png").read_bytes()[:4] == b"\x89PNG"
     rows = list(csv.DictReader(open(tmp_path / "ipe_mechanism.csv")))
     assert {(float(r["sigma"]), int(r["n_blocks"])) for r in rows} == {

@@ -38,6 +38,18 @@ def test_keys_are_order_independent():
     assert verdict_key(TOWER, friction=fr) != verdict_key(PERMUTED, friction=fr)
 
 
+def test_keys_round_as_the_canonical_geometry_key():
+    assert verdict_key(TOWER)[1] == TOWER.key
+    nudged = Geometry.from_tuples([(b.width, b.x + 1e-9, b.layer) for b in TOWER.blocks])
+    fr = [0.1, 0.2, 0.3, 0.4]
+    assert verdict_key(nudged, friction=fr) == verdict_key(TOWER, friction=[f + 1e-9 for f in fr])
+    signed = Geometry.from_tuples([(0.6, -0.0, 0)])
+    assert verdict_key(signed, gravity=(-0.0, -9.81)) == verdict_key(Geometry.from_tuples([(0.6, 0.0, 0)]),
+                                                                     gravity=(0.0, -9.81))
+    with pytest.raises(ValueError):
+        verdict_key(TOWER, friction=fr[:3])
+
+
 def test_keys_tell_apart_what_changes_the_verdict():
     moved = Geometry(TOWER.blocks[:-1] + (TOWER.blocks[-1].__class__(0.6, 0.25, 2),))
     assert verdict_key(TOWER) != verdict_key(moved)

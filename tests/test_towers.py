@@ -1,12 +1,14 @@
 """Random and near-critical tower generators."""
 
 import numpy as np
+import pytest
 
 from overhang_framework.geometry import WIDTHS
 from overhang_framework.physics.static_backend import StaticBackend
 from overhang_framework.rules import is_legal
 from overhang_framework.towers import (
     Geometry,
+    episode_questions,
     find_flips,
     last_block_interval,
     near_critical_towers,
@@ -66,3 +68,26 @@ def test_continuous_resolution_gives_off_grid_legal_towers():
     for g in towers:
         for k in range(1, len(g)):
             assert is_legal(Geometry(g.blocks[:k]), g.blocks[k].width, g.blocks[k])
+
+
+def test_episode_questions_ask_about_one_block_on_a_standing_tower():
+    static = StaticBackend()
+    questions = episode_questions(static.stable_batch, per_height=12, seed=3, min_blocks=3, max_blocks=6)
+    assert [q.n_blocks for q in questions] == [n for n in range(3, 7) for _ in range(12)]
+    again = episode_questions(static.stable_batch, per_height=12, seed=3, min_blocks=3, max_blocks=6)
+    assert [q.geometry.key for q in questions] == [q.geometry.key for q in again]
+    for q in questions:
+        below = q.state.geometry
+        assert len(q.geometry) == q.n_blocks == len(below) + 1
+        assert all(static.stable(Geometry(below.blocks[:k])) for k in range(1, len(below) + 1))
+        assert is_legal(below, q.state.next_width, q.action)
+        assert abs(q.action.x / 0.1 - round(q.action.x / 0.1)) < 1e-9
+        assert q.stable == static.stable(q.geometry)
+    assert 0 < np.mean([q.stable for q in questions]) < 1
+
+
+def test_episode_questions_need_a_standing_tower_to_grow():
+    with pytest.raises(RuntimeError, match="no tower of 2 blocks stands"):
+        episode_questions(lambda towers: np.zeros(len(towers), dtype=bool), per_height=4, max_blocks=4)
+    assert len(episode_questions(lambda towers: np.zeros(len(towers), dtype=bool), per_height=4,
+                                 max_blocks=2)) == 4

@@ -35,67 +35,14 @@ import io
 import json
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import WIDTHS, Action, Block, Geometry
-from overhang_framework.interfaces import State
+from overhang_framework.physics.factory import make_backend
 from overhang_framework.results import atomic_output, atomic_write_json, atomic_write_text, mean_sem
-from overhang_framework.rules import legal_actions, place
-
-Verdicts = Callable[[Sequence[Geometry]], np.ndarray]
-
-
-@dataclass(frozen=True)
-class Question:
-    """One prediction to make: ``state`` (a standing tower and the next width), ``action``, verdict."""
-
-    n_blocks: int
-    index: int
-    state: State
-    action: Action
-    stable: bool
-
-    @property
-    def geometry(self) -> Geometry:
-        return place(self.state.geometry, self.state.next_width, self.action)
-
-
-def episode_questions(reference: Verdicts, per_height: int, seed: int = 0, min_blocks: int = 2,
-                      max_blocks: int = 7, resolution: float = 0.1, oversample: int = 2,
-                      progress: Optional[Callable[[int], None]] = None) -> list[Question]:
-    """``per_height`` questions for every number of blocks in ``[min_blocks, max_blocks]``.
-
-    Level ``n`` extends ``oversample * per_height`` towers drawn with
-    replacement from the standing towers of level ``n - 1`` (level 1: a ground
-    block of random width); the first ``per_height`` extensions are the
-    questions, and every standing extension joins the pool for level ``n + 1``.
-    """
-    rng = np.random.default_rng(seed)
-    pool = [Geometry((Block(WIDTHS[rng.integers(len(WIDTHS))], 0.0, 0),)) for _ in range(per_height)]
-    questions: list[Question] = []
-    for n in range(2, max_blocks + 1):
-        m = oversample * per_height
-        states, actions = [], []
-        for i in rng.integers(len(pool), size=m):
-            width = WIDTHS[rng.integers(len(WIDTHS))]
-            options = legal_actions(pool[i], width, resolution)
-            states.append(State(pool[i], (width,)))
-            actions.append(options[rng.integers(len(options))])
-        towers = [place(s.geometry, s.next_width, a) for s, a in zip(states, actions)]
-        verdicts = np.asarray(reference(towers), dtype=bool)
-        if progress:
-            progress(len(towers))
-        if n >= min_blocks:
-            questions.extend(Question(n, j, states[j], actions[j], bool(verdicts[j]))
-                             for j in range(per_height))
-        pool = [t for t, v in zip(towers, verdicts) if v]
-        if not pool:
-            raise RuntimeError(f"no tower of {n} blocks stands; cannot grow to {n + 1}")
-    return questions
+from overhang_framework.towers import Verdicts, episode_questions
 
 
 def binary_entropy(p: np.ndarray) -> np.ndarray:
@@ -164,13 +111,6 @@ def plot(summary: list[dict], path: Path, title: str) -> None:
         plt.close(fig)
 
 
-def make_backend(name: str, workers: int = 1):
-    """A physics backend by name; ``pybullet`` with ``workers > 1`` runs on a process pool."""
-    from overhang_framework.physics.factory import make_backend as factory
-
-    return factory(name, workers=workers if name == "pybullet" else None)
-
-
 def chunked(fn: Verdicts, size: int, bar) -> Verdicts:
     """``fn`` called on chunks of at most ``size`` geometries, advancing ``bar`` after each."""
 
@@ -232,14 +172,14 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     started = time.perf_counter()
     registry = Registry()
     world = registry.create("world", {"name": "overhang", "cache": False})
-    reference = make_backend(args.reference, args.workers)
+    reference = make_backend(args.reference, workers=args.workers)
     levels = args.max_blocks - 1
     with tqdm(total=2 * args.towers * levels, desc=f"reference ({args.reference})", unit="tower",
               disable=args.no_progress, file=sys.stderr) as bar:
         questions = episode_questions(chunked(reference.stable_batch, 100, bar), args.towers,
                                       seed=args.seed, min_blocks=args.min_blocks,
                                       max_blocks=args.max_blocks, resolution=world.resolution)
-    ipe_backend = reference if args.backend == args.reference else make_backend(args.backend, args.workers)
+    ipe_backend = reference if args.backend == args.reference else make_backend(args.backend, workers=args.workers)
     rows: list[dict] = []
     chunk = 50
     with tqdm(total=len(args.sigma_list) * len(questions), desc="IPE", unit="question",
@@ -258,23 +198,25 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
                                  "reference_stable": int(q.stable), "p": float(verdicts.mean()),
                                  "tower": json.dumps([list(b) for b in q.geometry.key])})
                 bar.update(len(part))
-    close = getattr(reference, "close", None)
-    if close:
-        close()
+    for physics in {id(reference): reference, id(ipe_backend): ipe_backend}.values():
+        close = getattr(physics, "close", None)
+        if close:
+            close()
     summary = summarize(rows)
     out = args.out
-    atomic_write_text(out / "ipe_mechanism.csv", to_csv(summary))
-    atomic_write_text(out / "ipe_mechanism_towers.csv", to_csv(rows))
+    written = [out / "ipe_mechanism.csv", out / "ipe_mechanism_towers.csv", out / "ipe_mechanism.png",
+               out / "ipe_mechanism.json"]
+    atomic_write_text(written[0], to_csv(summary))
+    atomic_write_text(written[1], to_csv(rows))
     title = (f"IPE ({args.backend}, K={args.K}, channel={args.channel}) vs {args.reference} reference; "
              f"{args.towers} towers per point, seed {args.seed}")
-    plot(summary, out / "ipe_mechanism.png", title)
+    plot(summary, written[2], title)
     meta = {"argv": list(argv) if argv is not None else sys.argv[1:], "towers": args.towers,
             "sigmas": args.sigma_list, "channel": args.channel, "K": args.K, "backend": args.backend,
             "reference": args.reference, "seed": args.seed, "seconds": time.perf_counter() - started}
-    atomic_write_json(out / "ipe_mechanism.json", {"meta": meta, "summary": summary})
+    atomic_write_json(written[3], {"meta": meta, "summary": summary})
     print(format_table(summary))
-    print(f"wrote {out / 'ipe_mechanism.csv'}, {out / 'ipe_mechanism_towers.csv'}, "
-          f"{out / 'ipe_mechanism.png'} in {meta['seconds']:.0f} s")
+    print(f"wrote {', '.join(map(str, written))} in {meta['seconds']:.0f} s")
     return {"meta": meta, "summary": summary}
 
 

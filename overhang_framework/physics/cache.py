@@ -15,18 +15,27 @@ from typing import Hashable, Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import KEY_DECIMALS, Geometry
+from overhang_framework.geometry import KEY_DECIMALS, Geometry, canonical_key
 
 
 def verdict_key(geometry: Geometry, gravity=None, friction=None, context: Hashable = None) -> tuple:
-    """The cache key of one check; ``context`` identifies the backend and its parameters."""
-    rows = [(round(b.width, KEY_DECIMALS), round(b.x, KEY_DECIMALS) + 0.0, int(b.layer)) for b in geometry.blocks]
+    """The cache key of one check; ``context`` identifies the backend and its parameters.
+
+    The geometry part is :func:`~overhang_framework.geometry.canonical_key`;
+    with ``friction``, each block's friction travels with its block through the
+    sort, so a permuted geometry with its friction permuted alike has the same key.
+    """
     if friction is None:
-        body = tuple(sorted(rows))
+        body = canonical_key(geometry.blocks)
     else:
-        body = tuple(sorted(zip(rows, (round(float(f), KEY_DECIMALS) + 0.0 for f in friction))))
-    grav = None if gravity is None else tuple(round(float(v), KEY_DECIMALS) + 0.0 for v in gravity)
+        body = tuple(sorted((canonical_key((b,))[0], _rounded(f)) for b, f in zip(geometry.blocks, friction, strict=True)))
+    grav = None if gravity is None else tuple(_rounded(v) for v in gravity)
     return (context, body, grav, friction is not None)
+
+
+def _rounded(value) -> float:
+    """``value`` rounded as :func:`canonical_key` rounds coordinates (``-0.0`` made ``0.0``)."""
+    return round(float(value), KEY_DECIMALS) + 0.0
 
 
 class VerdictCache:
