@@ -15,6 +15,7 @@ from tqdm import tqdm
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
 from overhang_framework.episode import episode_rng, run_episode
 from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework.plugins import Registry
 from overhang_framework.results import EpisodeLog, atomic_write_json, summarize
 from overhang_framework.tasks import tasks_from_config
@@ -117,6 +118,10 @@ def main(cfg: DictConfig) -> dict:
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
+    except PoolCrashed as err:
+        kept = out_dir / "episodes.jsonl.partial"
+        print(f"error: {err}; the episodes finished before it are in {kept}", file=sys.stderr)
+        sys.exit(1)
     print(format_summary(summary))
     print(f"results: {out_dir}")
     return summary

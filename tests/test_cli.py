@@ -109,3 +109,27 @@ def test_glob_sweeps_are_left_to_hydra():
     from overhang_framework.cli import check_overrides
 
     check_overrides(["predictor=glob(*)", "-m"])  # does not raise
+
+
+def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, capsys, monkeypatch):
+    import overhang_framework.app as app
+    from overhang_framework.cli import main
+    from overhang_framework.physics.pool import PoolCrashed
+
+    real, calls = app.run_episode, []
+
+    def crash_on_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise PoolCrashed("a PyBullet pool worker died while checking a batch of 9 geometries")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(app, "run_episode", crash_on_second)
+    with pytest.raises(SystemExit) as exit_info:
+        main([*QUICK, f"hydra.run.dir={tmp_path}"])
+    assert exit_info.value.code == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip() and "build time" not in line]
+    assert len(err) == 1 and "pool worker died" in err[0] and "episodes.jsonl.partial" in err[0]
+    kept = read_episodes(tmp_path / "episodes.jsonl.partial")
+    assert [e["task_id"] for e in kept] == ["custom00"]
+    assert not (tmp_path / "episodes.jsonl").exists() and not (tmp_path / "metrics.json").exists()
