@@ -39,21 +39,19 @@ def world():
     return static_world()
 
 
-class TestIPEContract(PredictorContract):
+class _OnStaticWorld(PredictorContract):
     @pytest.fixture
     def world(self):
         return static_world()
 
+
+class TestIPEContract(_OnStaticWorld):
     @pytest.fixture
     def predictor(self, world):
         return ipe(world)
 
 
-class TestVeridicalContract(PredictorContract):
-    @pytest.fixture
-    def world(self):
-        return static_world()
-
+class TestVeridicalContract(_OnStaticWorld):
     @pytest.fixture
     def predictor(self, world):
         return Registry().create("predictor", {"name": "veridical"}, world=world)
