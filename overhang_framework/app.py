@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 import time
 from pathlib import Path
@@ -17,10 +18,12 @@ from overhang_framework.episode import episode_rng, run_episode
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework.plugins import Registry
-from overhang_framework.results import EpisodeLog, atomic_write_json, summarize
+from overhang_framework.results import EpisodeLog, atomic_write_json, readable, summarize
+from overhang_framework.rundir import RunDir, finished_jobs, result_config
 from overhang_framework.tasks import tasks_from_config
 
 enable_plugin_configs()
+log = logging.getLogger("overhang_framework")
 
 
 def _params(cfg: DictConfig) -> dict[str, Any]:
@@ -55,35 +58,115 @@ def _time_limit(cfg: DictConfig) -> float | None:
     return float(value)
 
 
+def _flag(cfg: DictConfig, key: str, default: bool) -> bool:
+    value = cfg.get(key, default)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key} must be true or false, got {value!r}")
+    return value
+
+
+def tasks_label(cfg: DictConfig, tasks: list) -> str:
+    """The task set's name, with the ids picked when ``tasks.only`` narrowed it."""
+    name = str(cfg.tasks.get("name"))
+    return f"{name}[{','.join(t.id for t in tasks)}]" if cfg.tasks.get("only") else name
+
+
+class Interrupted(Exception):
+    """The run stopped (Ctrl-C) after ``finished`` of ``expected`` episodes."""
+
+    def __init__(self, finished: int, expected: int, kept: Path):
+        self.finished, self.expected, self.kept = finished, expected, kept
+        super().__init__(f"{finished} of {expected} episodes finished")
+
+
+class Stopped(Exception):
+    """The run stopped on ``error`` after ``finished`` of ``expected`` episodes."""
+
+    def __init__(self, error: BaseException, finished: int, expected: int, kept: Path):
+        self.error, self.finished, self.expected, self.kept = error, finished, expected, kept
+        super().__init__(str(error))
+
+
 def run(cfg: DictConfig, out_dir: Path) -> dict:
+    """Run every (task, repeat) episode of ``cfg`` into ``out_dir``; return the summary (see :func:`run_unlocked`).
+
+    A second run into the same directory at the same time is refused.
+    """
+    with RunDir(out_dir).lock():
+        return run_unlocked(cfg, out_dir)
+
+
+def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     """Run every (task, repeat) episode of ``cfg`` into ``out_dir``; return the summary.
 
     Everything the config says is checked before the first episode starts.
+    Episodes already finished in ``out_dir`` for the same config are kept and
+    not run again (see :mod:`overhang_framework.rundir`). If the run stops
+    early (Ctrl-C, a crashed worker), ``metrics.json`` is written for the
+    finished episodes, marked ``complete: false``, and :class:`Interrupted` or
+    :class:`Stopped` is raised.
     """
     seed, repeats, time_limit = _whole(cfg, "seed", 0), _whole(cfg, "repeats", 1), _time_limit(cfg)
+    show_progress, overwrite = _flag(cfg, "progress", True), _flag(cfg, "overwrite", False)
     tasks = tasks_from_config(cfg.tasks)
     models = build_models(cfg)
-    episodes = []
-    started = time.perf_counter()
+    rundir = RunDir(out_dir)
+    done = finished_jobs(rundir.prepare(result_config(_params(cfg)), overwrite=overwrite))
+    resumed = len(done)
     jobs = [(i, task, rep) for i, task in enumerate(tasks) for rep in range(repeats)]
-    with EpisodeLog(out_dir / "episodes.jsonl") as log:
-        bar = tqdm(jobs, desc="episodes", unit="ep", disable=not cfg.get("progress", True),
-                   file=sys.stderr, dynamic_ncols=True)
-        for i, task, rep in bar:
-            record = run_episode(task, models["world"], models["predictor"], models["planner"],
-                                 models["value"], episode_rng(seed, i, rep), time_limit)
-            record.update({"seed": seed, "repeat": rep, "task_index": i})
-            log.write(record)
-            episodes.append(record)
-            bar.set_postfix(reward=f"{record['reward']:.2f}")
-    summary = summarize(episodes)
-    summary.update({
-        "wall_time": time.perf_counter() - started,
-        "config": {g: cfg[g].get("name") for g in ("world", "predictor", "planner", "value", "condition", "tasks")},
-        "seed": seed,
-        "world_stats": models["world"].stats(),
-    })
-    atomic_write_json(out_dir / "metrics.json", summary)
+    header = {g: cfg[g].get("name") for g in ("world", "predictor", "planner", "value", "condition")}
+    header["tasks"] = tasks_label(cfg, tasks)
+    started = time.perf_counter()
+    log.info("run %s: %d episodes, %d already finished", out_dir, len(jobs), len(done))
+    rundir.reopen()
+
+    def summary_of(complete: bool) -> dict:
+        episodes = [done[(i, rep)] for i, _, rep in jobs if (i, rep) in done]
+        summary = summarize(episodes)
+        summary.update({
+            "complete": complete,
+            "episodes_expected": len(jobs),
+            "episodes_resumed": resumed,
+            "wall_time": time.perf_counter() - started,
+            "config": header,
+            "seed": seed,
+            "world_stats": models["world"].stats(),
+        })
+        atomic_write_json(out_dir / "metrics.json", summary)
+        return summary
+
+    placements = [len(task.sequence) - 1 for _, task, _ in jobs]
+    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not show_progress,
+               file=sys.stderr, dynamic_ncols=True,
+               initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
+    try:
+        with EpisodeLog(rundir.episodes, append=True) as episode_log:
+            for (i, task, rep), n_placements in zip(jobs, placements):
+                if (i, rep) in done:
+                    continue
+                bar.set_postfix_str(f"episode {len(done) + 1}/{len(jobs)} {task.id}")
+                record = run_episode(task, models["world"], models["predictor"], models["planner"],
+                                     models["value"], episode_rng(seed, i, rep), time_limit,
+                                     on_step=lambda step: bar.update(1))
+                bar.update(n_placements - len(record["steps"]))
+                record.update({"seed": seed, "repeat": rep, "task_index": i})
+                episode_log.write(record)
+                done[(i, rep)] = readable(record)
+                log.info("episode %s repeat %d: reward %.3f, %d placements, %s", task.id, rep,
+                         record["reward"], len(record["steps"]),
+                         "stood throughout" if record["stable_throughout"] else "collapsed")
+    except KeyboardInterrupt:
+        bar.close()
+        summary_of(complete=False)
+        raise Interrupted(len(done), len(jobs), rundir.partial) from None
+    except PoolCrashed as err:
+        bar.close()
+        summary_of(complete=False)
+        raise Stopped(err, len(done), len(jobs), rundir.partial) from None
+    bar.close()
+    summary = summary_of(complete=True)
+    log.info("finished: reward %.3f +- %.3f over %d episodes", summary["reward_mean"],
+             summary["reward_sem"], summary["episodes"])
     return summary
 
 
@@ -98,7 +181,9 @@ def format_summary(summary: dict) -> str:
     cfg = summary.get("config", {})
     lines = [
         " ".join(f"{k}={v}" for k, v in cfg.items()),
-        f"{summary['episodes']} episodes, {summary['placements']} placements, {summary.get('wall_time', 0):.1f} s",
+        f"{summary['episodes']} episodes, {summary['placements']} placements, {summary.get('wall_time', 0):.1f} s"
+        + (f" ({summary['episodes_resumed']} finished earlier in this directory)"
+           if summary.get("episodes_resumed") else ""),
         f"{'metric':<24}{'mean':>10}{'sem':>10}",
     ]
     for label, key in rows:
@@ -116,12 +201,25 @@ def main(cfg: DictConfig) -> dict:
     try:
         summary = run(cfg, out_dir)
     except OverhangError as err:
+        log.error("%s", err)
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
-    except PoolCrashed as err:
-        kept = out_dir / "episodes.jsonl.partial"
-        print(f"error: {err}; the episodes finished before it are in {kept}", file=sys.stderr)
+    except Interrupted as stop:
+        message = (f"interrupted: {stop.finished} of {stop.expected} episodes finished, kept in {stop.kept} "
+                   f"(metrics.json covers them, marked incomplete); to resume, rerun the same command "
+                   f"with hydra.run.dir={out_dir}")
+        log.warning("%s", message)
+        print(message, file=sys.stderr)
+        sys.exit(130)
+    except Stopped as stop:
+        message = (f"error: {stop.error}; {stop.finished} of {stop.expected} episodes finished, kept in "
+                   f"{stop.kept}; to resume, rerun the same command with hydra.run.dir={out_dir}")
+        log.error("%s", message)
+        print(message, file=sys.stderr)
         sys.exit(1)
+    except KeyboardInterrupt:
+        print("interrupted before the first episode; no episode was written", file=sys.stderr)
+        sys.exit(130)
     print(format_summary(summary))
     print(f"results: {out_dir}")
     return summary

@@ -1,4 +1,4 @@
-"""Command-line entry: the ``plugins`` listing, override checks, then the Hydra app."""
+"""Command-line entry: the help page, the ``plugins`` listing, the pre-run checks, then the Hydra app."""
 
 from __future__ import annotations
 
@@ -6,9 +6,12 @@ import json
 import sys
 from typing import Optional, Sequence
 
-from overhang_framework.errors import OverhangError, UnknownPluginError
+from overhang_framework.errors import OverhangError
+from overhang_framework.preflight import GROUPS, check_command_line, check_group_choices, override_words
 
-GROUPS = ("world", "predictor", "planner", "value", "condition", "tasks")
+__all__ = ["GROUPS", "check_overrides", "help_text", "list_plugins", "main", "override_words"]
+
+PROG = "python -m overhang_framework"
 
 
 def list_plugins(as_json: bool = False) -> str:
@@ -27,64 +30,72 @@ def list_plugins(as_json: bool = False) -> str:
     return "\n".join(lines)
 
 
-# Hydra's command-line flags that take the next word as their value.
-_VALUE_FLAGS = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
-                "--config-dir", "-cd", "--experimental-rerun", "--shell-completion", "-sc"}
-_INFO_TOPICS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
-
-
-def override_words(args: Sequence[str]) -> list[str]:
-    """The config overrides among Hydra's command-line words (flags and their values removed)."""
-    words, skip = [], False
-    for i, arg in enumerate(args):
-        if skip:
-            skip = False
-            continue
-        if arg.startswith("-"):
-            skip = arg in _VALUE_FLAGS or (
-                arg in ("--info", "-i") and i + 1 < len(args) and args[i + 1] in _INFO_TOPICS)
-            continue
-        words.append(arg)
-    return words
-
-
 def check_overrides(args: Sequence[str]) -> None:
-    """Raise :class:`UnknownPluginError` for a config-group choice that is not installed.
+    """Raise for config-group choices that are not installed (all of them in one error)."""
+    check_group_choices(args)
 
-    Overrides this cannot read (a glob sweep, a malformed word) are left for
-    Hydra to expand or report.
-    """
-    from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    parser = OverridesParser.create()
-    known: dict[str, list[str]] = {}
-    for word in override_words(args):
-        try:
-            (ov,) = parser.parse_overrides([word])
-            if ov.key_or_group not in GROUPS or ov.is_delete() or ov.package:
-                continue
-            values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.value()]
-        except Exception:
-            continue
-        for value in values:
-            if not isinstance(value, str):
-                continue
-            group = ov.key_or_group
-            if group not in known:
-                from overhang_framework.config import group_options
+def help_text() -> str:
+    """The ``--help`` page: what the program does, the groups with their installed names, examples, outputs."""
+    from overhang_framework.config import compose_config, group_options
 
-                known[group] = group_options(group)
-            if value not in known[group]:
-                raise UnknownPluginError(group, value, known[group])
+    defaults = compose_config()
+    width = max(len(g) for g in GROUPS) + 2
+    groups = []
+    for group in GROUPS:
+        names = group_options(group)
+        default = defaults[group].get("name")
+        listed = ", ".join(f"{n} (default)" if n == default else n for n in names)
+        groups.append(f"  {group:<{width}}{listed}")
+    settings = ", ".join(f"{k}={json.dumps(defaults[k])}" for k in defaults if k not in GROUPS)
+    return f"""\
+overhang-framework: run the Overhang Tower task with pluggable physics predictors and planners.
+
+An agent places a known sequence of blocks to maximise the tower's overhang while
+it stays stable after every placement. Each run plays every task of a task set,
+with the world, predictor, planner and value chosen by name, and writes one
+record per episode plus a summary.
+
+usage:
+  {PROG} [key=value ...]          run once (console script: overhang-framework)
+  {PROG} -m key=a,b ...           sweep: one run per combination (Hydra multirun)
+  {PROG} plugins [--json]         list installed plugins and what they register
+  {PROG} --cfg job [key=value]    print the composed config without running
+
+config groups (group=name; installed names):
+{chr(10).join(groups)}
+
+other settings: {settings}
+  any key can be set: world.resolution=0.05, predictor.K=100, world.pybullet.threshold=0.1
+
+examples:
+  {PROG} tasks=example seed=1 hydra.run.dir=runs/example
+  {PROG} predictor=ipe 'tasks.only=[paper00,paper07]' repeats=5
+  {PROG} tasks=custom 'tasks.sequences=[[0.6,1.8,1.2],[1.2,1.2,0.6,1.8]]'
+  {PROG} -m predictor=veridical,ipe condition=unconstrained,time_limited hydra/launcher=joblib
+
+outputs (in hydra.run.dir, by default outputs/<date>/<time>):
+  episodes.jsonl   one JSON object per episode, every placement with its timing and spend
+  metrics.json     mean and SEM of reward, stability, overhang and decision time
+  run.json         the config the episodes belong to (rerunning into the directory resumes)
+  run.log          one line per episode, and how the run ended
+  .hydra/          the composed config and the overrides
+
+An interrupted run keeps every finished episode: rerun the same command with the
+same hydra.run.dir to continue; overwrite=true starts the directory afresh.
+Hydra's own flags: --hydra-help."""
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
-    if args and args[0] == "plugins":
-        print(list_plugins(as_json="--json" in args[1:]))
-        return
     try:
-        check_overrides(args)
+        if args and args[0] == "plugins":
+            print(list_plugins(as_json="--json" in args[1:]))
+            return
+        if "--help" in args or "-h" in args:
+            print(help_text())
+            return
+        check_command_line(args)
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

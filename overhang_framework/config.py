@@ -23,15 +23,17 @@ def enable_plugin_configs() -> None:
     Plugins.instance().register(OverhangFrameworkSearchPathPlugin)
 
 
-def compose_config(overrides: Sequence[str] = (), config_name: str = "config") -> DictConfig:
-    """The composed run config for ``overrides``, as ``python -m overhang_framework`` would see it."""
+def compose_config(overrides: Sequence[str] = (), config_name: str = "config",
+                   return_hydra_config: bool = False) -> DictConfig:
+    """The composed run config for ``overrides``, as ``python -m overhang_framework`` would see it
+    (with Hydra's own node when ``return_hydra_config``)."""
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
     enable_plugin_configs()
     GlobalHydra.instance().clear()
     with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
-        return compose(config_name, overrides=list(overrides))
+        return compose(config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
 
 
 def group_options(group: str) -> list[str]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -17,11 +17,13 @@ def episode_rng(seed: int, task_index: int, repeat: int) -> np.random.Generator:
 
 
 def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner, value: Value,
-                rng: np.random.Generator, time_limit: Optional[float] = None) -> dict:
+                rng: np.random.Generator, time_limit: Optional[float] = None,
+                on_step: Optional[Callable[[dict], None]] = None) -> dict:
     """Play ``task`` to its end and return the episode record (plain JSON-able data).
 
     The episode ends at the first collapse; the reward is the final overhang if
-    the tower was stable after every placement and 0 otherwise.
+    the tower was stable after every placement and 0 otherwise. ``on_step`` is
+    called with each placement's record as soon as it is made.
     """
     state = world.initial_state(task)
     steps = []
@@ -46,6 +48,8 @@ def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner
                 "spend": dataclasses.asdict(decision.spend),
             }
         )
+        if on_step is not None:
+            on_step(steps[-1])
         if not stable:
             stable_throughout = False
             break

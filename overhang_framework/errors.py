@@ -17,6 +17,21 @@ class UnknownPluginError(OverhangError, LookupError):
         super().__init__(f"unknown {kind} {name!r}; installed {plural}: {listing}")
 
 
+class UnknownPluginsError(OverhangError, LookupError):
+    """Several unknown names at once, reported together: ``unknown predictor 'a' and planner 'b'; ...``."""
+
+    def __init__(self, errors: Sequence[UnknownPluginError]):
+        self.errors = list(errors)
+        names = " and ".join(f"{e.kind} {e.name!r}" for e in self.errors)
+        listings = []
+        for e in self.errors:
+            plural = e.kind if e.kind.endswith("s") else f"{e.kind}s"
+            listing = f"installed {plural}: {', '.join(e.installed) if e.installed else '(none)'}"
+            if listing not in listings:
+                listings.append(listing)
+        super().__init__(f"unknown {names}; {'; '.join(listings)}")
+
+
 class ConfigError(OverhangError, ValueError):
     """A config value a model or the run refuses."""
 

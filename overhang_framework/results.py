@@ -13,6 +13,26 @@ from typing import Any, Iterable, Iterator, Mapping
 import numpy as np
 
 TIMING_KEYS = ("decision_time", "seconds")
+#: Significant digits of the floats written to results: enough for every value a run computes,
+#: few enough that 1.1 + 0.6 is written 1.7, not 1.7000000000000002.
+SIGNIFICANT_DIGITS = 12
+
+
+def readable(data: Any) -> Any:
+    """``data`` with every float rounded to :data:`SIGNIFICANT_DIGITS` significant digits, for writing.
+
+    The values computed are unchanged; only their last-bit noise is dropped
+    from the files (a relative change below 1e-12).
+    """
+    if isinstance(data, float):
+        return float(f"{data:.{SIGNIFICANT_DIGITS}g}") if math.isfinite(data) else data
+    if isinstance(data, Mapping):
+        return {k: readable(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [readable(v) for v in data]
+    if isinstance(data, np.generic):
+        return readable(data.item())
+    return data
 
 
 @contextlib.contextmanager
@@ -47,7 +67,8 @@ def atomic_write_text(path: Path | str, text: str) -> None:
 
 
 def atomic_write_json(path: Path | str, data: Any) -> None:
-    atomic_write_text(path, json.dumps(data, indent=2, sort_keys=True) + "\n")
+    """Write ``data`` as indented JSON (floats :func:`readable`), atomically."""
+    atomic_write_text(path, json.dumps(readable(data), indent=2, sort_keys=True) + "\n")
 
 
 class EpisodeLog:
@@ -55,16 +76,18 @@ class EpisodeLog:
 
     Lines go to ``episodes.jsonl.partial`` as episodes finish (flushed, so a
     crash loses nothing already computed); :meth:`close` renames it into place.
+    With ``append`` the lines already in ``episodes.jsonl.partial`` are kept
+    and new ones follow them.
     """
 
-    def __init__(self, path: Path | str):
+    def __init__(self, path: Path | str, append: bool = False):
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = open(self.partial, "w")
+        self._fh = open(self.partial, "a" if append else "w")
 
     def write(self, record: Mapping[str, Any]) -> None:
-        self._fh.write(json.dumps(record, sort_keys=True) + "\n")
+        self._fh.write(json.dumps(readable(record), sort_keys=True) + "\n")
         self._fh.flush()
 
     def close(self) -> None:

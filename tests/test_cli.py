@@ -132,4 +132,7 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     assert len(err) == 1 and "pool worker died" in err[0] and "episodes.jsonl.partial" in err[0]
     kept = read_episodes(tmp_path / "episodes.jsonl.partial")
     assert [e["task_id"] for e in kept] == ["custom00"]
-    assert not (tmp_path / "episodes.jsonl").exists() and not (tmp_path / "metrics.json").exists()
+    assert not (tmp_path / "episodes.jsonl").exists()
+    assert "to resume, rerun the same command" in err[0]
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert (metrics["complete"], metrics["episodes"], metrics["episodes_expected"]) == (False, 1, 2)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Optional, Sequence
@@ -33,6 +34,7 @@ class PoolCrashed(RuntimeError):
 
 def _init_worker(params: PyBulletParams) -> None:
     global _SIM
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     _SIM = PyBulletSimulator(params)
 
 

@@ -13,6 +13,9 @@ has been at rest (speed below ``rest_speed``) for ``rest_time`` seconds after
 
 from __future__ import annotations
 
+import ctypes
+import os
+import sys
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -20,6 +23,31 @@ import numpy as np
 
 from overhang_framework.geometry import BLOCK_HEIGHT, Geometry
 from overhang_framework.physics import check_fields
+
+
+def import_pybullet():
+    """The ``pybullet`` module, imported without the build-time banner its C code prints.
+
+    The banner would land in the middle of a progress bar or of a command's
+    output; standard output and error point at the null device for the import.
+    """
+    if "pybullet" in sys.modules:
+        return sys.modules["pybullet"]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    try:
+        with open(os.devnull, "w") as null:
+            for fd in saved:
+                os.dup2(null.fileno(), fd)
+            import pybullet
+
+            ctypes.CDLL(None).fflush(None)  # C's buffers, while they still point at the null device
+    finally:
+        for fd, copy in saved.items():
+            os.dup2(copy, fd)
+            os.close(copy)
+    return pybullet
 
 
 @dataclass(frozen=True)
@@ -58,8 +86,7 @@ class PyBulletSimulator:
     """One DIRECT-mode PyBullet client, reused for many checks."""
 
     def __init__(self, params: PyBulletParams = PyBulletParams()):
-        import pybullet
-
+        pybullet = import_pybullet()
         self.params = params
         self._p = pybullet
         self._client = pybullet.connect(pybullet.DIRECT)

@@ -199,8 +199,12 @@ class IPEPredictor(Predictor):
                  sigma_position: Optional[float] = None, sigma_gravity: Optional[float] = None,
                  sigma_friction: Optional[float] = None, backend: Union[str, PhysicsBackend] = "static",
                  backend_params: Optional[Mapping[str, Any]] = None):
-        if int(K) != K or K < 1:
-            raise ValueError(f"K must be a positive integer, got {K!r}")
+        if isinstance(K, bool) or not isinstance(K, (int, float)) or int(K) != K or K < 1:
+            raise ValueError(f"K must be a whole number >= 1, got {K!r}")
+        for name, value in (("sigma", sigma), ("sigma_position", sigma_position),
+                            ("sigma_gravity", sigma_gravity), ("sigma_friction", sigma_friction)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                raise ValueError(f"{name} must be a number >= 0, got {value!r}")
         if isinstance(backend, str) and backend not in BACKENDS:
             raise ValueError(f"unknown IPE backend {backend!r}; allowed: {', '.join(BACKENDS)}")
         self.world = world

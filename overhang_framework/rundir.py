@@ -1,0 +1,167 @@
+"""The run directory: which config its episodes belong to, resuming into it, starting it afresh.
+
+A run writes ``run.json`` (the config that decides its results) before its first
+episode. Running again into a directory that already holds episodes:
+
+* of the same config, continues: finished episodes are kept as they are and
+  only the missing ones run;
+* of another config, is refused with one line naming the differences, unless
+  ``overwrite=true``, which removes the earlier results first.
+
+Settings that do not change results (``progress``, ``overwrite``) are not part
+of the config compared.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping, Optional
+
+from overhang_framework.errors import OverhangError
+from overhang_framework.results import atomic_write_json, readable
+
+RUN_FILE = "run.json"
+LOCK_FILE = ".run.lock"
+EPISODES = "episodes.jsonl"
+RESULT_FILES = (EPISODES, EPISODES + ".partial", "metrics.json", RUN_FILE)
+#: Top-level settings that change how a run looks, not what it computes.
+PRESENTATION_KEYS = ("progress", "overwrite")
+
+
+class RunDirError(OverhangError):
+    """A run directory that holds results this run may not continue or replace."""
+
+
+def result_config(cfg: Mapping[str, Any]) -> dict:
+    """The part of a resolved run config that decides its results."""
+    return {k: v for k, v in cfg.items() if k not in PRESENTATION_KEYS}
+
+
+def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(data, Mapping):
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(_flatten(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: data}
+
+
+def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """``key: old -> new`` for every leaf that differs (added and removed keys included)."""
+    a, b = _flatten(old), _flatten(new)
+    missing = object()
+    diffs = []
+    for key in sorted(set(a) | set(b)):
+        va, vb = a.get(key, missing), b.get(key, missing)
+        if va != vb:
+            show = lambda v: "(unset)" if v is missing else json.dumps(v)  # noqa: E731
+            diffs.append(f"{key}: {show(va)} -> {show(vb)}")
+    return diffs
+
+
+def _read_records(path: Path) -> list[dict]:
+    """Complete JSON lines of ``path``; an incomplete last line (a write cut short) is cut off the file."""
+    records, good_end = [], 0
+    with open(path, "rb") as fh:
+        data = fh.read()
+    for raw in data.splitlines(keepends=True):
+        try:
+            if not raw.endswith(b"\n"):
+                raise ValueError("unterminated line")
+            if raw.strip():
+                records.append(json.loads(raw))
+        except ValueError:
+            if good_end + len(raw) == len(data):
+                with open(path, "r+b") as fh:
+                    fh.truncate(good_end)
+                break
+            raise RunDirError(f"{path} line {len(records) + 1} is not a JSON episode record; "
+                              "move the file away or rerun with overwrite=true") from None
+        good_end += len(raw)
+    return records
+
+
+class RunDir:
+    """The results of one run in ``path``: what is already finished and what config it belongs to."""
+
+    def __init__(self, path: Path | str):
+        self.path = Path(path)
+
+    @property
+    def episodes(self) -> Path:
+        return self.path / EPISODES
+
+    @property
+    def partial(self) -> Path:
+        return self.path / (EPISODES + ".partial")
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the directory for this run; a second run into it at the same time is refused."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        with open(self.path / LOCK_FILE, "a") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise RunDirError(f"another run is writing to {self.path}; wait for it to end, "
+                                  "or use another hydra.run.dir") from None
+            try:
+                yield
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+
+    def existing_file(self) -> Optional[Path]:
+        """The episode file already there (``episodes.jsonl`` or its ``.partial``), if any."""
+        present = [p for p in (self.episodes, self.partial) if p.exists()]
+        if len(present) == 2:
+            raise RunDirError(f"{self.path} holds both {EPISODES} and {EPISODES}.partial; "
+                              "keep one of them, or rerun with overwrite=true")
+        return present[0] if present else None
+
+    def prepare(self, config: Mapping[str, Any], overwrite: bool = False) -> list[dict]:
+        """Make the directory ready for ``config``; return the episodes already finished for it.
+
+        Raises :class:`RunDirError` when the directory holds results of another
+        config (or of an unknown one) and ``overwrite`` is false.
+        """
+        config = readable(config)  # as run.json holds it
+        self.path.mkdir(parents=True, exist_ok=True)
+        if overwrite:
+            for name in RESULT_FILES:
+                (self.path / name).unlink(missing_ok=True)
+        existing = self.existing_file()
+        run_file = self.path / RUN_FILE
+        if run_file.exists():
+            try:
+                previous = json.loads(run_file.read_text())["config"]
+            except (ValueError, KeyError, TypeError):
+                raise RunDirError(f"{run_file} is not a run description; move it away, "
+                                  "or rerun with overwrite=true") from None
+            diffs = config_differences(previous, config)
+            if diffs:
+                shown = "; ".join(diffs[:4]) + (f"; and {len(diffs) - 4} more" if len(diffs) > 4 else "")
+                raise RunDirError(f"{self.path} holds results of a different config ({shown}); "
+                                  "use another hydra.run.dir, or overwrite=true to replace them")
+        elif existing is not None:
+            raise RunDirError(f"{self.path} holds episodes of an unknown config (no {RUN_FILE}); "
+                              "use another hydra.run.dir, or overwrite=true to replace them")
+        else:
+            for stale in ("metrics.json",):
+                (self.path / stale).unlink(missing_ok=True)
+            atomic_write_json(run_file, {"config": dict(config)})
+        return _read_records(existing) if existing is not None else []
+
+    def reopen(self) -> None:
+        """Continue an earlier run's episode file: a finished ``episodes.jsonl`` becomes the
+        ``.partial`` file again (renamed, not rewritten) until this run ends."""
+        if self.episodes.exists() and not self.partial.exists():
+            os.replace(self.episodes, self.partial)
+
+
+def finished_jobs(records: Iterable[Mapping[str, Any]]) -> dict[tuple[int, int], dict]:
+    """Finished episodes by ``(task_index, repeat)``."""
+    return {(int(r["task_index"]), int(r["repeat"])): dict(r) for r in records}
