@@ -47,7 +47,7 @@ def tasks_from_config(cfg: Mapping[str, Any]) -> list[Task]:
     tasks = parse_tasks(cfg.get("sequences"), cfg.get("ids"), prefix=str(cfg.get("prefix", "task")))
     only = cfg.get("only")
     if only:
-        wanted = [str(x) for x in only]
+        wanted = [only] if isinstance(only, str) else [str(x) for x in only]
         known = {t.id for t in tasks}
         missing = [x for x in wanted if x not in known]
         if missing:

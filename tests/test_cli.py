@@ -136,3 +136,109 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     assert "to resume, rerun the same command" in err[0]
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert (metrics["complete"], metrics["episodes"], metrics["episodes_expected"]) == (False, 1, 2)
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["planer=myopic"],
+     "error: unknown config key 'planer' (did you mean 'planner'?); top-level keys: condition, overwrite, planner,"),
+    (["+planer=myopic"],
+     "error: nothing reads the added config key 'planer' (did you mean 'planner'?); top-level keys: condition,"),
+    (["+tasks.bogus=1"], "error: nothing reads the added config key 'tasks.bogus'; keys of tasks 'custom': ids,"),
+    (["world.resoluton=0.05"],
+     "error: unknown config key 'world.resoluton' (did you mean 'world.resolution'?); keys of world 'overhang':"),
+    (["planner.depth=3"], "error: unknown config key 'planner.depth'; keys of planner 'myopic': name"),
+    (["progress=maybe"], "error: progress must be true or false, got 'maybe'"),
+    (["overwrite=yes please"], "error: overwrite must be true or false, got 'yes please'"),
+    (["predictor=ipe", "predictor.K=abc"], "error: predictor 'ipe': K must be a whole number >= 1, got 'abc'"),
+    (["predictor=ipe", "predictor.sigma=abc"], "error: predictor 'ipe': sigma must be a number >= 0, got 'abc'"),
+    (["seed=[1"], "error: cannot read the override 'seed=[1': no viable alternative at input '[1'; overrides are"),
+    (["seed=1,2"], "error: 'seed=1,2' gives several values: add -m (--multirun) to sweep over them, or write "
+                   "seed=[...] for a list"),
+    (["predictor=hybrid", "planner=lookahead", "planner.depth=3"],
+     "error: unknown predictor 'hybrid' and planner 'lookahead'; installed predictors: ipe, veridical; "
+     "installed planners: myopic"),
+    (["-m", "predictor=veridical,nope", "value=nada"],
+     "error: unknown predictor 'nope' and value 'nada'; installed predictors: ipe, veridical; installed values:"),
+    (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),
+])
+def test_command_line_mistakes_end_with_one_line_and_status_2(tmp_path, capsys, args, expected):
+    from overhang_framework.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main([*QUICK, *args, f"hydra.run.dir={tmp_path}", f"hydra.sweep.dir={tmp_path / 'm'}"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(expected), err
+    assert not (tmp_path / "episodes.jsonl.partial").exists() and not (tmp_path / "m").exists()
+
+
+@pytest.mark.parametrize("directory", ["/proc/overhang-run", "/dev/null/run"])
+def test_an_unwritable_run_directory_is_one_line_as_typed(directory):
+    proc = run_cli(*QUICK, f"hydra.run.dir={directory}")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        f"error: cannot write the output directory '{directory}' "
+        f"({'/dev/null is not a directory' if directory.startswith('/dev/null') else 'No such file or directory'}); "
+        "choose another with hydra.run.dir=DIR (hydra.sweep.dir=DIR with -m)"]
+
+
+def test_a_typo_is_one_line_as_typed_from_the_repository_root():
+    from pathlib import Path
+
+    proc = run_cli("planer=myopic", cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.startswith("error: unknown config key 'planer' (did you mean 'planner'?)")
+    assert proc.stderr.count("\n") == 1
+
+
+def test_help_is_the_projects_own_page(capsys):
+    from overhang_framework.cli import main
+    from overhang_framework.config import group_options
+
+    main(["--help"])
+    page = capsys.readouterr().out
+    assert "powered by Hydra" not in page
+    for group in ("world", "predictor", "planner", "value", "condition", "tasks"):
+        line = next(line for line in page.splitlines() if line.strip().startswith(group + " "))
+        assert all(name in line for name in group_options(group))
+    for needed in ("plugins", "overhang-framework", "episodes.jsonl", "metrics.json", "run.log", "-m ",
+                   "hydra.run.dir", "--hydra-help"):
+        assert needed in page
+
+
+def test_progress_moves_per_placement_and_output_is_clean(tmp_path):
+    proc = run_cli("tasks=custom", "tasks.sequences=[[1.2,0.6,1.8,0.6]]", "progress=true",
+                   f"hydra.run.dir={tmp_path}")
+    assert proc.returncode == 0, proc.stderr
+    frames = proc.stderr.replace("\r", "\n")
+    assert "placements:" in frames and "1/3 [" in frames and "3/3 [" in frames
+    assert "build time" not in proc.stderr + proc.stdout
+
+
+def test_results_hold_readable_numbers_and_the_log_is_written(tmp_path):
+    import re
+
+    proc = run_cli("tasks=example", "world.physics=static", "progress=false", f"hydra.run.dir={tmp_path}")
+    assert proc.returncode == 0, proc.stderr
+    for name in ("episodes.jsonl", "metrics.json", "run.json"):
+        text = (tmp_path / name).read_text()
+        assert not re.search(r"\d\.\d*(0000000000|9999999999)\d", text), name
+    episodes = read_episodes(tmp_path / "episodes.jsonl")
+    assert all(round(s["overhang"], 9) == s["overhang"] for e in episodes for s in e["steps"])
+    log = (tmp_path / "run.log").read_text()
+    assert "episode example00 repeat 0: reward" in log and "finished: reward" in log
+
+
+def test_the_summary_names_the_tasks_picked(tmp_path):
+    proc = run_cli("tasks.only=[paper00,paper07]", "world.physics=static", "progress=false",
+                   f"hydra.run.dir={tmp_path}")
+    assert proc.returncode == 0, proc.stderr
+    assert "tasks=paper20[paper00,paper07]" in proc.stdout.splitlines()[0]
+    assert json.loads((tmp_path / "metrics.json").read_text())["config"]["tasks"] == "paper20[paper00,paper07]"
+
+
+def test_run_outputs_are_ignored_by_git():
+    from pathlib import Path
+
+    ignored = (Path(__file__).resolve().parents[1] / ".gitignore").read_text().split()
+    assert {"runs/", "outputs/", "multirun/"} <= set(ignored)

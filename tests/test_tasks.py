@@ -43,3 +43,8 @@ def test_bad_sequences_give_one_line_errors(sequences, match):
     with pytest.raises(TaskError, match=match) as err:
         parse_tasks(sequences)
     assert "\n" not in str(err.value)
+
+
+def test_only_accepts_a_single_id_as_written_on_the_command_line():
+    cfg = compose_config(["tasks.only=paper07"])
+    assert [t.id for t in tasks_from_config(cfg.tasks)] == ["paper07"]

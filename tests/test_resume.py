@@ -1,0 +1,129 @@
+"""A run never loses finished work: interrupt, resume, refusal of another config's directory."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from overhang_framework.results import read_episodes, without_timing
+from overhang_framework.rundir import RunDir, RunDirError
+
+ROOT = Path(__file__).resolve().parents[1]
+# Three short tasks on the PyBullet reference: slow enough (about a second an episode) to interrupt.
+SLOW = ["tasks=custom", "tasks.sequences=[[1.2,0.6,1.8],[0.6,1.2,1.2],[1.8,0.6,0.6]]"]
+FAST = ["tasks=custom", "tasks.sequences=[[1.2,0.6,1.8],[0.6,1.2,1.2]]", "world.physics=static",
+        "progress=false"]
+
+
+def command(*args):
+    return [sys.executable, "-m", "overhang_framework", *args]
+
+
+def run(*args):
+    return subprocess.run(command(*args), capture_output=True, text=True, cwd=ROOT)
+
+
+def interrupt_after_first_episode(args, partial: Path) -> subprocess.CompletedProcess:
+    proc = subprocess.Popen(command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if partial.exists() and partial.read_text().count("\n") >= 1:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def test_an_interrupted_run_resumes_and_keeps_every_finished_episode_once(tmp_path):
+    out = tmp_path / "run"
+    args = [*SLOW, f"hydra.run.dir={out}"]
+    stopped = interrupt_after_first_episode(args, out / "episodes.jsonl.partial")
+    assert stopped.returncode == 130, stopped.stderr
+    last = stopped.stderr.strip().splitlines()[-1]
+    assert last.startswith("interrupted: ") and f"hydra.run.dir={out}" in last
+    assert "Traceback" not in stopped.stderr
+    finished = (out / "episodes.jsonl.partial").read_bytes()
+    n_finished = finished.count(b"\n")
+    assert 1 <= n_finished < 3 and f"{n_finished} of 3 episodes finished" in last
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["complete"], metrics["episodes"], metrics["episodes_expected"]) == (False, n_finished, 3)
+
+    resumed = run(*args, "progress=false")
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"({n_finished} finished earlier in this directory)" in resumed.stdout
+    final = (out / "episodes.jsonl").read_bytes()
+    assert final.startswith(finished), "the finished episodes are kept byte for byte"
+    episodes = read_episodes(out / "episodes.jsonl")
+    assert [(e["task_index"], e["repeat"]) for e in episodes] == [(0, 0), (1, 0), (2, 0)]
+    assert json.loads((out / "metrics.json").read_text())["complete"] is True
+
+    fresh = run(*SLOW, "progress=false", f"hydra.run.dir={tmp_path / 'fresh'}")
+    assert fresh.returncode == 0, fresh.stderr
+    assert without_timing(episodes) == without_timing(read_episodes(tmp_path / "fresh" / "episodes.jsonl"))
+
+
+def test_rerunning_a_finished_run_changes_nothing(tmp_path):
+    args = [*FAST, f"hydra.run.dir={tmp_path}"]
+    assert run(*args).returncode == 0
+    before = (tmp_path / "episodes.jsonl").read_bytes()
+    again = run(*args)
+    assert again.returncode == 0, again.stderr
+    assert "(2 finished earlier in this directory)" in again.stdout
+    assert (tmp_path / "episodes.jsonl").read_bytes() == before
+    assert json.loads((tmp_path / "metrics.json").read_text())["episodes"] == 2
+
+
+def test_a_directory_of_another_config_is_refused_unless_overwrite(tmp_path):
+    assert run(*FAST, "seed=1", f"hydra.run.dir={tmp_path}").returncode == 0
+    before = (tmp_path / "episodes.jsonl").read_bytes()
+    refused = run(*FAST, "seed=2", "world.resolution=0.2", f"hydra.run.dir={tmp_path}")
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines() == [
+        f"error: {tmp_path} holds results of a different config (seed: 1 -> 2; world.resolution: 0.1 -> 0.2); "
+        "use another hydra.run.dir, or overwrite=true to replace them"]
+    assert (tmp_path / "episodes.jsonl").read_bytes() == before
+    replaced = run(*FAST, "seed=2", "world.resolution=0.2", "overwrite=true", f"hydra.run.dir={tmp_path}")
+    assert replaced.returncode == 0, replaced.stderr
+    assert {e["seed"] for e in read_episodes(tmp_path / "episodes.jsonl")} == {2}
+
+
+def test_presentation_settings_do_not_count_as_another_config(tmp_path):
+    assert run(*FAST, f"hydra.run.dir={tmp_path}").returncode == 0
+    assert run(*FAST, "progress=true", f"hydra.run.dir={tmp_path}").returncode == 0
+
+
+def test_episodes_without_a_run_description_are_refused(tmp_path):
+    (tmp_path / "episodes.jsonl").write_text('{"task_index": 0, "repeat": 0}\n')
+    with pytest.raises(RunDirError, match="episodes of an unknown config"):
+        RunDir(tmp_path).prepare({"seed": 0})
+
+
+def test_a_line_cut_short_by_a_crash_is_dropped_and_the_rest_kept(tmp_path):
+    rundir = RunDir(tmp_path)
+    assert rundir.prepare({"seed": 0}) == []
+    good = json.dumps({"task_index": 0, "repeat": 0, "reward": 1.5}) + "\n"
+    (tmp_path / "episodes.jsonl.partial").write_text(good + '{"task_index": 1, "rep')
+    assert rundir.prepare({"seed": 0}) == [json.loads(good)]
+    assert (tmp_path / "episodes.jsonl.partial").read_text() == good
+
+
+def test_a_corrupt_line_in_the_middle_is_reported_with_its_number(tmp_path):
+    rundir = RunDir(tmp_path)
+    rundir.prepare({"seed": 0})
+    (tmp_path / "episodes.jsonl").write_text('{"task_index": 0, "repeat": 0}\nnot json\n{"task_index": 1}\n')
+    with pytest.raises(RunDirError, match=r"episodes.jsonl line 2 is not a JSON episode record"):
+        rundir.prepare({"seed": 0})
+
+
+def test_two_runs_cannot_write_one_directory_at_once(tmp_path):
+    with RunDir(tmp_path).lock():
+        with pytest.raises(RunDirError, match="another run is writing to"):
+            with RunDir(tmp_path).lock():
+                pass
+    with RunDir(tmp_path).lock():  # released
+        pass
