@@ -171,7 +171,12 @@ def _one_line(text: str) -> str:
 
 def _compose(words: Sequence[str]):
     """Compose ``words`` and translate Hydra's errors into :class:`OverhangError`."""
-    from hydra.errors import ConfigCompositionException, HydraException, OverrideParseException
+    from hydra.errors import (
+        ConfigCompositionException,
+        HydraException,
+        MissingConfigException,
+        OverrideParseException,
+    )
     from omegaconf.errors import OmegaConfBaseException
 
     from overhang_framework.config import compose_config
@@ -183,6 +188,12 @@ def _compose(words: Sequence[str]):
         what = f"cannot read the override '{bad}'" if bad else "cannot read an override"
         raise OverhangError(f"{what}: {_one_line(err)}; overrides are key=value, "
                             "+key=value (add), ~key (remove); see --help") from None
+    except MissingConfigException as err:
+        missing = err.missing_cfg_file or ""
+        group, _, name = missing.rpartition("/")
+        if group and err.options is not None:
+            raise OverhangError(f"unknown {group} {name!r}; available: {', '.join(err.options) or '(none)'}") from None
+        raise OverhangError(_one_line(err).split("; Config search path:")[0]) from None
     except ConfigCompositionException as err:
         cause = err.__cause__
         if isinstance(cause, OmegaConfBaseException) and getattr(cause, "full_key", None):
@@ -261,8 +272,19 @@ def check_command_line(args: Sequence[str]) -> None:
     for variant in _variants(words, multirun):
         cfg = _compose(variant)
     _check_appended(words)
+    if cfg is not None:
+        _check_groups_present(cfg)
     if cfg is not None and runs_job(args):
         _check_output_dir(cfg, multirun)
+
+
+def _check_groups_present(cfg) -> None:
+    from overhang_framework.config import group_options
+
+    for group in GROUPS:
+        if cfg.get(group) is None:
+            raise OverhangError(f"the run needs a {group}; choose one with {group}=NAME "
+                                f"(installed: {', '.join(group_options(group)) or '(none)'})")
 
 
 def _check_output_dir(cfg, multirun: bool) -> None:

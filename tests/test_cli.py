@@ -160,6 +160,8 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     (["-m", "predictor=veridical,nope", "value=nada"],
      "error: unknown predictor 'nope' and value 'nada'; installed predictors: ipe, veridical; installed values:"),
     (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),
+    (["hydra/launcher=nope"], "error: unknown hydra/launcher 'nope'; available: basic, joblib"),
+    (["~world"], "error: the run needs a world; choose one with world=NAME (installed: overhang)"),
 ])
 def test_command_line_mistakes_end_with_one_line_and_status_2(tmp_path, capsys, args, expected):
     from overhang_framework.cli import main
