@@ -96,6 +96,16 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
         return run_unlocked(cfg, out_dir)
 
 
+def _call_limit(cfg: DictConfig) -> int | None:
+    value = cfg.condition.get("call_limit")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"condition.call_limit must be a whole number of predictor calls >= 1 or null, "
+                          f"got {value!r}")
+    return value
+
+
 def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     """Run every (task, repeat) episode of ``cfg`` into ``out_dir``; return the summary.
 
@@ -107,6 +117,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     :class:`Stopped` is raised.
     """
     seed, repeats, time_limit = _whole(cfg, "seed", 0), _whole(cfg, "repeats", 1), _time_limit(cfg)
+    call_limit = _call_limit(cfg)
     show_progress, overwrite = _flag(cfg, "progress", True), _flag(cfg, "overwrite", False)
     tasks = tasks_from_config(cfg.tasks)
     models = build_models(cfg)
@@ -136,7 +147,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
         return summary
 
     placements = [len(task.sequence) - 1 for _, task, _ in jobs]
-    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not show_progress,
+    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not show_progress, miniters=1,
                file=sys.stderr, dynamic_ncols=True,
                initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
     try:
@@ -147,7 +158,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
                 bar.set_postfix_str(f"episode {len(done) + 1}/{len(jobs)} {task.id}")
                 record = run_episode(task, models["world"], models["predictor"], models["planner"],
                                      models["value"], episode_rng(seed, i, rep), time_limit,
-                                     on_step=lambda step: bar.update(1))
+                                     on_step=lambda step: bar.update(1), call_limit=call_limit)
                 bar.update(n_placements - len(record["steps"]))
                 record.update({"seed": seed, "repeat": rep, "task_index": i})
                 episode_log.write(record)

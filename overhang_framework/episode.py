@@ -18,18 +18,20 @@ def episode_rng(seed: int, task_index: int, repeat: int) -> np.random.Generator:
 
 def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner, value: Value,
                 rng: np.random.Generator, time_limit: Optional[float] = None,
-                on_step: Optional[Callable[[dict], None]] = None) -> dict:
+                on_step: Optional[Callable[[dict], None]] = None, call_limit: Optional[int] = None) -> dict:
     """Play ``task`` to its end and return the episode record (plain JSON-able data).
 
     The episode ends at the first collapse; the reward is the final overhang if
     the tower was stable after every placement and 0 otherwise. ``on_step`` is
-    called with each placement's record as soon as it is made.
+    called with each placement's record as soon as it is made. Each decision
+    gets a fresh :class:`Budget` of ``time_limit`` seconds and ``call_limit``
+    predictor calls (``None``: no limit).
     """
     state = world.initial_state(task)
     steps = []
     stable_throughout = True
     while not state.done:
-        budget = Budget(seconds=time_limit)
+        budget = Budget(seconds=time_limit, predictor_calls=call_limit)
         started = time.perf_counter()
         decision = planner.plan(state, predictor, value, budget, rng)
         decision_time = time.perf_counter() - started
@@ -41,6 +43,8 @@ def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner
                 "x": decision.action.x,
                 "layer": decision.action.layer,
                 "predicted_stability": decision.predicted_stability,
+                "choice_probability": decision.choice_probability,
+                "choice_rank": decision.choice_rank,
                 "stable": stable,
                 "overhang": world.overhang(state.geometry),
                 "decision_time": decision_time,

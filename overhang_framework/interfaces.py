@@ -43,36 +43,70 @@ class State:
 
 @dataclass
 class Budget:
-    """What a planner may spend on one decision; ``None`` means no limit."""
+    """What a planner may spend on one decision; ``None`` means no limit.
+
+    ``seconds`` is wall-clock time; ``predictor_calls`` is a machine-independent
+    budget of batched predictor calls (one call scores all the children of one
+    state), which keeps budgeted runs reproducible by seed. A planner records
+    each call with :meth:`charge`.
+    """
 
     seconds: Optional[float] = None
+    predictor_calls: Optional[int] = None
     started: float = field(default_factory=time.perf_counter, repr=False)
+    calls_used: int = 0
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
 
+    def charge(self, calls: int = 1) -> None:
+        """Record ``calls`` predictor calls."""
+        self.calls_used += calls
+
     def exhausted(self) -> bool:
-        return self.seconds is not None and self.elapsed() >= self.seconds
+        return (self.seconds is not None and self.elapsed() >= self.seconds) or (
+            self.predictor_calls is not None and self.calls_used >= self.predictor_calls)
+
+    @property
+    def limited(self) -> bool:
+        return self.seconds is not None or self.predictor_calls is not None
 
 
 @dataclass
 class Spend:
-    """What a decision cost."""
+    """What a decision cost.
+
+    ``nodes_expanded`` counts states whose children were scored;
+    ``leaves_pruned`` counts children a search skipped because a bound proved
+    they could not change its answer; ``depth_completed`` is the deepest
+    search horizon finished (``None`` for planners without one); ``iterations``
+    counts simulations of sampling planners.
+    """
 
     predictor_calls: int = 0
     actions_scored: int = 0
     nodes_expanded: int = 0
     seconds: float = 0.0
     budget_exhausted: bool = False
+    leaves_pruned: int = 0
+    depth_completed: Optional[int] = None
+    iterations: int = 0
 
 
 @dataclass
 class Decision:
-    """A planner's choice, the predicted stability of the resulting tower, and what it cost."""
+    """A planner's choice, the predicted stability of the resulting tower, and what it cost.
+
+    ``choice_probability`` is the probability the planner's choice rule gave
+    the chosen action, and ``choice_rank`` its rank by the planner's score (1
+    is best; tied actions share a rank): what a likelihood analysis needs.
+    """
 
     action: Action
     predicted_stability: float
     spend: Spend = field(default_factory=Spend)
+    choice_probability: float = 1.0
+    choice_rank: int = 1
 
 
 class World(abc.ABC):
@@ -130,11 +164,20 @@ class Predictor(abc.ABC):
 
 
 class Value(abc.ABC):
-    """Scores a search leaf."""
+    """Scores a search leaf. Values are >= 0 (a collapse is worth 0)."""
 
     @abc.abstractmethod
     def __call__(self, state: State) -> float:
         """The value of ``state``."""
+
+    def bound(self, state: State, depth: int) -> Optional[float]:
+        """An upper bound on the value of every state reachable from ``state`` in ``depth``
+        placements (``depth = 0``: ``state`` itself), or ``None`` when there is none.
+
+        Searches prune with it, so it must never be below a reachable value;
+        a loose bound only costs speed.
+        """
+        return None
 
 
 class Planner(abc.ABC):

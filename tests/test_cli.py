@@ -146,7 +146,7 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     (["+tasks.bogus=1"], "error: nothing reads the added config key 'tasks.bogus'; keys of tasks 'custom': ids,"),
     (["world.resoluton=0.05"],
      "error: unknown config key 'world.resoluton' (did you mean 'world.resolution'?); keys of world 'overhang':"),
-    (["planner.depth=3"], "error: unknown config key 'planner.depth'; keys of planner 'myopic': name"),
+    (["planner.depth=3"], "error: unknown config key 'planner.depth'; keys of planner 'myopic': beta, choice, name"),
     (["progress=maybe"], "error: progress must be true or false, got 'maybe'"),
     (["overwrite=yes please"], "error: overwrite must be true or false, got 'yes please'"),
     (["predictor=ipe", "predictor.K=abc"], "error: predictor 'ipe': K must be a whole number >= 1, got 'abc'"),
@@ -154,9 +154,9 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     (["seed=[1"], "error: cannot read the override 'seed=[1': no viable alternative at input '[1'; overrides are"),
     (["seed=1,2"], "error: 'seed=1,2' gives several values: add -m (--multirun) to sweep over them, or write "
                    "seed=[...] for a list"),
-    (["predictor=hybrid", "planner=lookahead", "planner.depth=3"],
-     "error: unknown predictor 'hybrid' and planner 'lookahead'; installed predictors: ipe, veridical; "
-     "installed planners: myopic"),
+    (["predictor=hybird", "planner=lookahaed", "planner.depth=3"],
+     "error: unknown predictor 'hybird' and planner 'lookahaed'; installed predictors: ipe, veridical; "
+     "installed planners: lookahead, myopic"),
     (["-m", "predictor=veridical,nope", "value=nada"],
      "error: unknown predictor 'nope' and value 'nada'; installed predictors: ipe, veridical; installed values:"),
     (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),

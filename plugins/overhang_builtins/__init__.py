@@ -24,13 +24,16 @@ def register_predictors(register):
 
 @hookimpl
 def register_planners(register):
+    from overhang_builtins.lookahead import LookaheadPlanner
     from overhang_builtins.myopic import MyopicPlanner
 
     register("myopic", MyopicPlanner)
+    register("lookahead", LookaheadPlanner)
 
 
 @hookimpl
 def register_values(register):
-    from overhang_builtins.values import OverhangValue
+    from overhang_builtins.values import OverhangValue, RolloutValue
 
     register("overhang", OverhangValue)
+    register("rollout", RolloutValue)

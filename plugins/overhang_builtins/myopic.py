@@ -1,4 +1,4 @@
-"""The myopic planner: argmax over legal actions of predicted stability times immediate overhang."""
+"""The myopic planner: the paper's ``argmax_a p(s, a) * r(s, a)``, with ``r`` the overhang after the action."""
 
 from __future__ import annotations
 
@@ -6,31 +6,31 @@ import time
 
 import numpy as np
 
-from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, Spend, State, Value, World
+from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
+from overhang_framework.search import ChoiceRule, Expander
 
 
 class MyopicPlanner(Planner):
-    """``argmax_a p(s, a) * r(s, a)`` with ``r`` the overhang after the action.
+    """Scores every legal action by ``p(s, a) * r(s, a)`` in one batched predictor call.
 
-    Ties are broken uniformly at random with the decision's generator, so a
-    seed fixes the choice.
+    ``choice`` is ``argmax`` (ties broken uniformly at random with the
+    episode's generator, so a seed fixes the choice) or ``softmax`` with
+    inverse temperature ``beta``. The value plugin is not used: the immediate
+    reward is the overhang after the action, as in the paper.
     """
 
-    def __init__(self, world: World):
+    def __init__(self, world: World, choice: str = "argmax", beta: float = 10.0):
         self.world = world
+        self.rule = ChoiceRule(choice, beta)
 
     def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
              rng: np.random.Generator) -> Decision:
         start = time.perf_counter()
-        actions = self.world.legal_actions(state)
-        if not actions:
+        expander = Expander(self.world, predictor, budget, seed=int(rng.integers(2**63)))
+        expansion = expander.expand(state, force=True)
+        if not expansion.actions:
             raise RuntimeError("no legal action in this state")
-        p = np.asarray(predictor.predict(state, actions, rng), dtype=float)
-        r = np.array([self.world.overhang(self.world.successor(state, a).geometry) for a in actions])
-        score = p * r
-        best = np.flatnonzero(np.isclose(score, score.max(), rtol=0, atol=1e-12))
-        i = int(best[rng.integers(len(best))]) if len(best) > 1 else int(best[0])
-        spend = Spend(predictor_calls=1, actions_scored=len(actions), nodes_expanded=len(actions),
-                      seconds=time.perf_counter() - start,
-                      budget_exhausted=budget.exhausted())
-        return Decision(actions[i], float(p[i]), spend)
+        choice = self.rule.choose(expansion.p * expansion.overhang, rng)
+        spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=1)
+        return Decision(expansion.actions[choice.index], float(expansion.p[choice.index]), spend,
+                        choice.probability, choice.rank)

@@ -1,0 +1,329 @@
+"""Search machinery shared by planners: batched expansion, bounds, budgets and choice rules.
+
+A third-party planner builds on these rather than copying them:
+
+* :class:`Expander` scores all the children of a state with one batched
+  predictor call, memoised per decision, charged to the decision's
+  :class:`~overhang_framework.interfaces.Budget`. The predictor is asked about
+  the state's canonical form, with random draws from :func:`node_rng`, a
+  generator derived from the decision's seed and the state itself, so a
+  search's numbers do not depend on the order in which it visits states or
+  on what it prunes.
+* :func:`reach_bound` bounds the overhang reachable from a state in a number
+  of placements, from geometry alone; values use it for their
+  :meth:`~overhang_framework.interfaces.Value.bound`.
+* :func:`lookahead_value` is the depth-limited max-product search of the
+  paper's lookahead, ``max_pi prod_k p(s_k, a_k) * V(s_{t+D})``, with
+  branch-and-bound pruning that never changes its value.
+* :class:`ChoiceRule` turns the scores of the root actions into a choice:
+  ``argmax`` (ties broken uniformly with the episode's generator) or
+  ``softmax`` with an inverse temperature; both report the chosen action's
+  probability and rank.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import GRID_HALF_WIDTH, Action, Geometry, overhang
+from overhang_framework.interfaces import Budget, Predictor, Spend, State, Value, World
+
+#: Relative tolerance under which two scores count as tied (and a bound as not below a score).
+TIE = 1e-12
+
+
+class BudgetExhausted(Exception):
+    """The decision's budget ran out before a new predictor call."""
+
+
+def state_key(state: State) -> tuple:
+    """Canonical key of a decision state: the order-independent geometry and the widths still to place."""
+    return state.geometry.key, tuple(round(w, 6) for w in state.remaining)
+
+
+def canonical_state(state: State) -> State:
+    """``state`` with its blocks in canonical order (by layer, then x, then width).
+
+    A predictor may treat blocks in order (the IPE draws noise per block);
+    asking it about the canonical state makes its answer a function of the
+    tower, not of the order in which the search happened to build it.
+    """
+    blocks = tuple(sorted(state.geometry.blocks, key=lambda b: (b.layer, b.x, b.width)))
+    return State(Geometry(blocks), state.remaining)
+
+
+def node_rng(seed: int, key: tuple) -> np.random.Generator:
+    """The generator a predictor uses for the children of the state with ``key``, within one decision."""
+    digest = hashlib.blake2b(repr(key).encode(), digest_size=16).digest()
+    words = np.frombuffer(digest, dtype=np.uint32).tolist()
+    return np.random.default_rng(np.random.SeedSequence([int(seed) & (2**63 - 1), *words]))
+
+
+@dataclass
+class Expansion:
+    """The scored children of one state: legal actions, successor states, stability, overhang."""
+
+    actions: list[Action]
+    children: list[State]
+    p: np.ndarray
+    overhang: np.ndarray
+
+
+@dataclass
+class SearchStats:
+    predictor_calls: int = 0
+    actions_scored: int = 0
+    nodes_expanded: int = 0
+    cache_hits: int = 0
+    leaves_pruned: int = 0
+
+    def spend(self, seconds: float, budget: Budget, **extra) -> Spend:
+        return Spend(predictor_calls=self.predictor_calls, actions_scored=self.actions_scored,
+                     nodes_expanded=self.nodes_expanded, seconds=seconds,
+                     budget_exhausted=budget.exhausted(), leaves_pruned=self.leaves_pruned, **extra)
+
+
+@dataclass
+class Expander:
+    """Expands states for one decision: legal actions, one batched prediction, memoised by state.
+
+    ``seed`` fixes the predictor's draws for every state of the decision (see
+    :func:`node_rng`); draw it from the episode's generator once per decision.
+    Before each new predictor call the budget is checked; when it is spent,
+    :class:`BudgetExhausted` is raised, unless ``force`` (a planner must be
+    able to score the root's children to answer at all).
+    """
+
+    world: World
+    predictor: Predictor
+    budget: Budget
+    seed: int
+    resolution: Optional[float] = None
+    stats: SearchStats = field(default_factory=SearchStats)
+    _memo: dict = field(default_factory=dict, repr=False)
+
+    def expand(self, state: State, force: bool = False) -> Expansion:
+        key = state_key(state)
+        hit = self._memo.get(key)
+        if hit is not None:
+            self.stats.cache_hits += 1
+            return hit
+        if not force and self.budget.exhausted():
+            raise BudgetExhausted
+        actions = self.world.legal_actions(state, self.resolution)
+        children = [self.world.successor(state, a) for a in actions]
+        if actions:
+            p = np.asarray(self.predictor.predict(canonical_state(state), actions, node_rng(self.seed, key)),
+                           dtype=float)
+            self.budget.charge(1)
+            self.stats.predictor_calls += 1
+        else:
+            p = np.zeros(0)
+        base = overhang(state.geometry)
+        width = state.next_width or 0.0
+        reach = np.array([abs(a.x) + width / 2 for a in actions], dtype=float)
+        expansion = Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach)
+        self.stats.actions_scored += len(actions)
+        self.stats.nodes_expanded += 1
+        self._memo[key] = expansion
+        return expansion
+
+
+def max_reach(world: World, state: State, resolution: Optional[float] = None) -> float:
+    """The largest overhang one more legal placement can give (the state's own if none is legal)."""
+    base = overhang(state.geometry)
+    if state.done:
+        return base
+    actions = world.legal_actions(state, resolution)
+    width = state.next_width
+    return max([base] + [abs(a.x) + width / 2 for a in actions])
+
+
+def reach_bound(world: World, state: State, depth: int, resolution: Optional[float] = None) -> float:
+    """An upper bound on the overhang of any geometry reachable from ``state`` in ``depth`` placements.
+
+    Geometry alone: the next block's reach is computed exactly over its legal
+    placements, and each later block rests on some block below with a positive
+    overlap, so it extends the tower by less than its width. Capped by the grid.
+    """
+    depth = min(depth, len(state.remaining))
+    if depth <= 0:
+        return overhang(state.geometry)
+    bound = max_reach(world, state, resolution) + sum(state.remaining[1:depth])
+    return max(overhang(state.geometry), min(bound, GRID_HALF_WIDTH))
+
+
+def _leaf_values(value: Value, expansion: Expansion) -> np.ndarray:
+    fast = getattr(value, "children_values", None)
+    if fast is not None:
+        return np.asarray(fast(expansion), dtype=float)
+    return np.array([value(child) for child in expansion.children], dtype=float)
+
+
+def _below(bound: Optional[float], threshold: float) -> bool:
+    """Whether ``bound`` proves a score under ``threshold`` (ties are never pruned)."""
+    return bound is not None and threshold > 0 and bound < threshold * (1 - TIE) - 1e-15
+
+
+def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
+                    threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None) -> float:
+    """``max`` over action sequences of length ``depth`` of ``prod p * V(leaf)`` from ``state``.
+
+    Branch and bound: a child whose score cannot reach ``threshold`` (or the
+    best found so far) is skipped, using ``p <= 1`` along the path and the
+    value's :meth:`~overhang_framework.interfaces.Value.bound`. The result is
+    exact when it is at least ``threshold``; otherwise it is some number below
+    ``threshold`` (the true value is below it too). Ties are never pruned. The
+    sequence stops early when the episode ends. ``memo`` carries results
+    between calls of one decision. ``beam`` keeps only that many children of
+    each inner node, the best by ``p * bound`` (an approximation).
+    """
+    memo = {} if memo is None else memo
+    depth = min(depth, len(state.remaining))
+    if depth == 0:
+        return float(value(state))
+    key = (state_key(state), depth)
+    known = memo.get(key)
+    if known is not None:
+        result, exact, tried = known
+        if exact or threshold >= tried:
+            return result
+    expansion = expander.expand(state)
+    p = expansion.p
+    best = 0.0
+    if depth == 1:
+        scores = p * _leaf_values(value, expansion)
+        best = float(scores.max()) if len(scores) else 0.0
+    else:
+        bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
+        order = np.argsort(-_products(p, bounds), kind="stable")[:beam]
+        for i in order:
+            floor = max(threshold, best)
+            if p[i] <= 0 or _below(p[i] * bounds[i], floor):
+                expander.stats.leaves_pruned += 1
+                continue
+            child = lookahead_value(expander, value, expansion.children[i], depth - 1,
+                                    floor / p[i], memo, beam)
+            best = max(best, float(p[i] * child))
+    exact = best >= threshold * (1 - TIE) or threshold <= 0
+    memo[key] = (best, exact, threshold)
+    return best
+
+
+def _products(p: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """``p * bounds``, with 0 where ``p`` is 0 (an unbounded child that cannot stand scores 0)."""
+    out = np.zeros(len(p))
+    np.multiply(p, bounds, out=out, where=p > 0)
+    return out
+
+
+def _bound(value: Value, state: State, depth: int) -> float:
+    bound = value.bound(state, depth)
+    return np.inf if bound is None else float(bound)
+
+
+def root_scores(expander: Expander, value: Value, state: State, depth: int, exact_all: bool,
+                first: Optional[int] = None, memo: Optional[dict] = None,
+                beam: Optional[int] = None) -> np.ndarray:
+    """The score ``p(s, a) * best continuation`` of every root action, at horizon ``depth``.
+
+    With ``exact_all`` every score is exact (what a softmax rule needs);
+    otherwise only the best ones are, and the others may be any number below
+    the best (enough for argmax, and much cheaper). ``first`` is explored
+    first, e.g. the previous iteration's choice, to tighten the bound early.
+    ``beam`` limits the children searched below the root (see :func:`lookahead_value`).
+    """
+    memo = {} if memo is None else memo
+    expansion = expander.expand(state, force=True)
+    p = expansion.p
+    n = len(expansion.actions)
+    scores = np.zeros(n)
+    if depth <= 1 or len(state.remaining) <= 1:
+        return p * _leaf_values(value, expansion)
+    bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
+    order = list(np.argsort(-_products(p, bounds), kind="stable"))
+    if first is not None and first in order:
+        order.remove(first)
+        order.insert(0, first)
+    best = 0.0
+    for i in order:
+        if p[i] <= 0:
+            expander.stats.leaves_pruned += 1
+            continue
+        floor = 0.0 if exact_all else best
+        if _below(p[i] * bounds[i], floor):
+            expander.stats.leaves_pruned += 1
+            scores[i] = p[i] * bounds[i]
+            continue
+        scores[i] = p[i] * lookahead_value(expander, value, expansion.children[i], depth - 1,
+                                           floor / p[i], memo, beam)
+        best = max(best, scores[i])
+    return scores
+
+
+@dataclass(frozen=True)
+class Choice:
+    index: int
+    probability: float
+    rank: int
+
+
+class ChoiceRule:
+    """How a planner turns the scores of its root actions into one action.
+
+    ``argmax`` picks a best-scoring action, uniformly among ties;
+    ``softmax`` samples with probabilities proportional to
+    ``exp(beta * score)`` (``beta``, the inverse temperature, in 1/metres of
+    overhang). Sampling uses the episode's generator, so a seed fixes the
+    choice. The rank of an action is 1 plus the number of actions scoring
+    strictly more.
+    """
+
+    RULES = ("argmax", "softmax")
+
+    def __init__(self, rule: str = "argmax", beta: float = 10.0):
+        if rule not in self.RULES:
+            raise ValueError(f"unknown choice rule {rule!r}; allowed: {', '.join(self.RULES)}")
+        if isinstance(beta, bool) or not isinstance(beta, (int, float)) or not np.isfinite(beta) or beta < 0:
+            raise ValueError(f"beta must be a number >= 0, got {beta!r}")
+        self.rule, self.beta = rule, float(beta)
+
+    @property
+    def needs_all_scores(self) -> bool:
+        return self.rule == "softmax"
+
+    def probabilities(self, scores: Sequence[float]) -> np.ndarray:
+        s = np.asarray(scores, dtype=float)
+        if s.size == 0:
+            return s
+        if self.rule == "argmax":
+            best = ties(s)
+            out = np.zeros(s.size)
+            out[best] = 1.0 / len(best)
+            return out
+        z = self.beta * (s - s.max())
+        w = np.exp(z)
+        return w / w.sum()
+
+    def choose(self, scores: Sequence[float], rng: np.random.Generator) -> Choice:
+        s = np.asarray(scores, dtype=float)
+        if s.size == 0:
+            raise ValueError("no action to choose from")
+        probs = self.probabilities(s)
+        if self.rule == "argmax":
+            best = ties(s)
+            i = int(best[rng.integers(len(best))]) if len(best) > 1 else int(best[0])
+        else:
+            i = int(rng.choice(s.size, p=probs))
+        rank = 1 + int(np.sum(s > s[i] * (1 + TIE) + 1e-15))
+        return Choice(i, float(probs[i]), rank)
+
+
+def ties(scores: np.ndarray) -> np.ndarray:
+    """Indices of the scores tied with the maximum."""
+    top = scores.max()
+    return np.flatnonzero(scores >= top - max(abs(top) * TIE, 1e-12))

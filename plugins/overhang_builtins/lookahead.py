@@ -1,0 +1,79 @@
+"""Depth-D lookahead: the paper's ``U(pi | s_t) = prod_k p(s_k, a_k) * V(s_{t+D})``, searched exactly."""
+
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+
+from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
+from overhang_framework.search import BudgetExhausted, ChoiceRule, Expander, root_scores
+
+
+class LookaheadPlanner(Planner):
+    """Plays the first action of the best action sequence of length ``depth``.
+
+    Every legal action sequence over the world's discretised action set is
+    considered (fewer steps when the episode ends sooner); every child of a
+    state is scored in one batched predictor call, and verdicts are shared
+    through the world's physics cache. Branch and bound (``p <= 1`` along a
+    path, the value's bound on what a subtree can reach) skips subtrees that
+    cannot change the choice; ``prune=false`` searches everything, for checking.
+    ``beam`` keeps only that many children per inner node (an approximation;
+    ``null``: exhaustive).
+
+    With a budget (``condition=time_limited``) the search deepens
+    iteratively, depth 1, 2, ..., and plays the best action of the deepest
+    depth it completed when the budget runs out. ``choice`` is ``argmax`` or
+    ``softmax`` over the root actions' scores with inverse temperature ``beta``.
+    """
+
+    def __init__(self, world: World, depth: int = 2, beam: Optional[int] = None, prune: bool = True,
+                 choice: str = "argmax", beta: float = 10.0):
+        if isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
+            raise ValueError(f"depth must be a whole number >= 1, got {depth!r}")
+        if beam is not None and (isinstance(beam, bool) or not isinstance(beam, int) or beam < 1):
+            raise ValueError(f"beam must be a whole number >= 1 or null, got {beam!r}")
+        if not isinstance(prune, bool):
+            raise ValueError(f"prune must be true or false, got {prune!r}")
+        self.world = world
+        self.depth = depth
+        self.beam = beam
+        self.prune = prune
+        self.rule = ChoiceRule(choice, beta)
+
+    def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
+             rng: np.random.Generator) -> Decision:
+        start = time.perf_counter()
+        expander = Expander(self.world, predictor, budget, seed=int(rng.integers(2**63)))
+        horizon = max(1, min(self.depth, len(state.remaining)))
+        depths = range(1, horizon + 1) if budget.limited else [horizon]
+        leaf_value = value if self.prune else _Unbounded(value)
+        scores, completed, first, memo = None, 0, None, {}
+        for depth in depths:
+            try:
+                found = root_scores(expander, leaf_value, state, depth, self.rule.needs_all_scores,
+                                    first=first, memo=memo, beam=self.beam)
+            except BudgetExhausted:
+                break
+            scores, completed = found, depth
+            first = int(np.argmax(found))
+        actions = expander.expand(state, force=True)
+        if not actions.actions:
+            raise RuntimeError("no legal action in this state")
+        choice = self.rule.choose(scores, rng)
+        spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=completed)
+        return Decision(actions.actions[choice.index], float(actions.p[choice.index]), spend,
+                        choice.probability, choice.rank)
+
+
+class _Unbounded(Value):
+    """A value with its bound hidden, so that a search prunes nothing."""
+
+    def __init__(self, value: Value):
+        self.value = value
+        self.children_values = getattr(value, "children_values", None)
+
+    def __call__(self, state: State) -> float:
+        return self.value(state)

@@ -1,0 +1,202 @@
+"""Depth-D lookahead: equal to myopic at D=1, finds counterweights, pruning is exact, budgets truncate."""
+
+import numpy as np
+import pytest
+
+from overhang_framework.geometry import Block, Geometry, overhang
+from overhang_framework.interfaces import Budget, State, Task
+from overhang_framework.plugins import Registry
+from overhang_framework.search import ChoiceRule, Expander, lookahead_value, root_scores
+from overhang_framework.tasks import generate_sequences
+
+REG = Registry()
+
+
+@pytest.fixture(scope="module")
+def world():
+    return REG.create("world", {"name": "overhang", "physics": "static"})
+
+
+@pytest.fixture(scope="module")
+def veridical(world):
+    return REG.create("predictor", {"name": "veridical"}, world=world)
+
+
+@pytest.fixture(scope="module")
+def ipe(world):
+    return REG.create("predictor", {"name": "ipe", "K": 8}, world=world)
+
+
+@pytest.fixture(scope="module")
+def value(world):
+    return REG.create("value", {"name": "overhang"}, world=world)
+
+
+def planner(world, name="lookahead", **params):
+    return REG.create("planner", {"name": name, **params}, world=world)
+
+
+def random_states(world, n, seed, min_placed=1, max_placed=3):
+    """States reached by random legal placements that the world calls stable."""
+    rng = np.random.default_rng(seed)
+    states = []
+    for seq in generate_sequences(n * 3, 6, seed=seed):
+        state = world.initial_state(Task("r", tuple(seq)))
+        for _ in range(int(rng.integers(min_placed, max_placed + 1))):
+            actions = world.legal_actions(state)
+            stable = [a for a in actions if world.is_stable(world.successor(state, a).geometry)]
+            state = world.successor(state, stable[rng.integers(len(stable))])
+        states.append(state)
+        if len(states) == n:
+            break
+    return states
+
+
+@pytest.mark.parametrize("predictor_name", ["veridical", "ipe"])
+def test_depth_one_chooses_exactly_as_myopic(world, value, request, predictor_name):
+    predictor = request.getfixturevalue(predictor_name)
+    for i, state in enumerate(random_states(world, 6, seed=1)):
+        a = planner(world, "myopic").plan(state, predictor, value, Budget(), np.random.default_rng(i))
+        b = planner(world, depth=1).plan(state, predictor, value, Budget(), np.random.default_rng(i))
+        assert (a.action, a.predicted_stability, a.choice_probability) == \
+               (b.action, b.predicted_stability, b.choice_probability)
+
+
+def test_depth_two_places_the_counterweight_first_and_myopic_does_not(world, veridical, value):
+    # a 1.8 block on a 1.2 base; a 0.6 and then a 1.8 block to place
+    state = State(Geometry((Block(1.2, 0.0, 0), Block(1.8, 0.3, 1))), (0.6, 1.8))
+    myopic = planner(world, "myopic").plan(state, veridical, value, Budget(), np.random.default_rng(0))
+    deep = planner(world, depth=2).plan(state, veridical, value, Budget(), np.random.default_rng(0))
+
+    def best_final(first):
+        after = world.successor(state, first)
+        return lookahead_value(Expander(world, veridical, Budget(), 0), value, after, 1)
+
+    optimum = max(best_final(a) for a in world.legal_actions(state)
+                  if world.is_stable(world.successor(state, a).geometry))
+    assert myopic.action.x > 0, "myopic puts the small block out on the overhanging side"
+    assert deep.action.x < 0, "lookahead puts it on the far side, as a counterweight"
+    assert best_final(deep.action) == pytest.approx(optimum)
+    assert best_final(myopic.action) < optimum - 0.3
+    assert overhang(world.successor(state, deep.action).geometry) < \
+        overhang(world.successor(state, myopic.action).geometry), "the counterweight gives up immediate overhang"
+
+
+@pytest.mark.parametrize("depth", [2, 3])
+def test_pruning_never_changes_the_scores_or_the_choice(world, veridical, ipe, value, depth):
+    states = random_states(world, 3 if depth == 2 else 2, seed=depth)
+    for predictor in (veridical, ipe):
+        for i, state in enumerate(states):
+            exact = {}
+            for prune in (True, False):
+                leaf = value if prune else _NoBound(value)
+                e = Expander(world, predictor, Budget(), seed=i)
+                exact[prune] = root_scores(e, leaf, state, depth, exact_all=True)
+            np.testing.assert_allclose(exact[True], exact[False], rtol=1e-12)
+            choices = [planner(world, depth=depth, prune=prune)
+                       .plan(state, predictor, value, Budget(), np.random.default_rng(i)) for prune in (True, False)]
+            assert choices[0].action == choices[1].action
+            assert choices[0].spend.predictor_calls <= choices[1].spend.predictor_calls
+
+
+def test_pruning_saves_predictor_calls(world, veridical, value):
+    pruned = unpruned = 0
+    for i, state in enumerate(random_states(world, 2, seed=9, min_placed=1, max_placed=1)):
+        for prune in (True, False):
+            d = planner(world, depth=3, prune=prune).plan(state, veridical, value, Budget(), np.random.default_rng(i))
+            if prune:
+                pruned += d.spend.predictor_calls
+            else:
+                unpruned += d.spend.predictor_calls
+    assert pruned < unpruned
+
+
+class _NoBound:
+    def __init__(self, value):
+        self.value = value
+
+    def __call__(self, state):
+        return self.value(state)
+
+    def bound(self, state, depth):
+        return None
+
+
+def test_a_call_budget_truncates_the_depth_and_is_respected(world, veridical, value):
+    state = random_states(world, 1, seed=4, min_placed=1, max_placed=1)[0]
+    full = planner(world, depth=3).plan(state, veridical, value, Budget(), np.random.default_rng(0))
+    assert full.spend.depth_completed == 3 and full.spend.predictor_calls > 3
+    for limit in (1, 3, full.spend.predictor_calls - 1):
+        d = planner(world, depth=3).plan(state, veridical, value, Budget(predictor_calls=limit),
+                                         np.random.default_rng(0))
+        assert d.spend.predictor_calls <= limit
+        assert d.spend.depth_completed < 3 and d.spend.budget_exhausted
+        assert world.illegal_reason(state, d.action) is None
+    one = planner(world, depth=3).plan(state, veridical, value, Budget(predictor_calls=1), np.random.default_rng(0))
+    myopic = planner(world, "myopic").plan(state, veridical, value, Budget(), np.random.default_rng(0))
+    assert one.spend.depth_completed == 1 and one.action == myopic.action
+
+
+def test_the_time_limited_condition_records_the_depth_reached(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "overhang_framework", "planner=lookahead", "planner.depth=3",
+         "condition=time_limited", "condition.time_limit=null", "condition.call_limit=4",
+         "world.physics=static", "tasks=example", "progress=false", f"hydra.run.dir={tmp_path}"],
+        capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    steps = json.loads((tmp_path / "episodes.jsonl").read_text().splitlines()[0])["steps"]
+    depths = [s["spend"]["depth_completed"] for s in steps]
+    assert all(s["spend"]["predictor_calls"] <= 4 for s in steps)
+    assert min(depths[:3]) < 3 and all(d >= 1 for d in depths)
+    assert any(s["spend"]["budget_exhausted"] for s in steps)
+
+
+def test_softmax_probabilities_sum_to_one_and_become_argmax():
+    scores = np.array([1.0, 1.4, 0.2, 1.4 - 1e-3])
+    for beta in (0.0, 1.0, 10.0):
+        p = ChoiceRule("softmax", beta).probabilities(scores)
+        assert p.sum() == pytest.approx(1.0) and np.all(p > 0)
+    assert np.allclose(ChoiceRule("softmax", 0.0).probabilities(scores), 0.25)
+    hot = ChoiceRule("softmax", 1e6).probabilities(scores)
+    np.testing.assert_allclose(hot, ChoiceRule("argmax").probabilities(scores), atol=1e-12)
+    rng = np.random.default_rng(0)
+    picks = [ChoiceRule("softmax", 1e6).choose(scores, rng).index for _ in range(20)]
+    assert set(picks) == {1}
+
+
+def test_choices_report_rank_and_probability():
+    rule = ChoiceRule("softmax", 2.0)
+    scores = np.array([0.5, 1.5, 1.0])
+    probs = rule.probabilities(scores)
+    rng = np.random.default_rng(3)
+    seen = {}
+    for _ in range(200):
+        c = rule.choose(scores, rng)
+        seen[c.index] = c
+        assert c.probability == pytest.approx(probs[c.index])
+    assert {i: c.rank for i, c in seen.items()} == {0: 3, 1: 1, 2: 2}
+    tie = ChoiceRule("argmax").choose(np.array([2.0, 1.0, 2.0]), np.random.default_rng(0))
+    assert tie.rank == 1 and tie.probability == 0.5
+
+
+def test_bad_planner_parameters_are_refused(world):
+    from overhang_framework.errors import ConfigError
+
+    for params, message in (({"depth": 0}, "depth must be a whole number >= 1"),
+                            ({"beam": 0}, "beam must be a whole number >= 1 or null"),
+                            ({"choice": "best"}, "unknown choice rule 'best'; allowed: argmax, softmax"),
+                            ({"beta": -1}, "beta must be a number >= 0")):
+        with pytest.raises(ConfigError, match=message):
+            planner(world, **params)
+
+
+def test_beam_search_is_an_approximation_that_costs_less(world, veridical, value):
+    state = random_states(world, 1, seed=5, min_placed=1, max_placed=1)[0]
+    full = planner(world, depth=3).plan(state, veridical, value, Budget(), np.random.default_rng(0))
+    beam = planner(world, depth=3, beam=2).plan(state, veridical, value, Budget(), np.random.default_rng(0))
+    assert beam.spend.predictor_calls < full.spend.predictor_calls
+    assert world.illegal_reason(state, beam.action) is None
