@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
+import signal
 import sys
+import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator, Optional
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -72,10 +77,11 @@ def tasks_label(cfg: DictConfig, tasks: list) -> str:
 
 
 class Interrupted(Exception):
-    """The run stopped (Ctrl-C) after ``finished`` of ``expected`` episodes."""
+    """The run stopped (Ctrl-C, SIGTERM) after ``finished`` of ``expected`` episodes."""
 
-    def __init__(self, finished: int, expected: int, kept: Path):
-        self.finished, self.expected, self.kept = finished, expected, kept
+    def __init__(self, finished: int, expected: int, kept: Path, how: str = "interrupted",
+                 overwrite: bool = False):
+        self.finished, self.expected, self.kept, self.how, self.overwrite = finished, expected, kept, how, overwrite
         super().__init__(f"{finished} of {expected} episodes finished")
 
 
@@ -106,29 +112,84 @@ def _call_limit(cfg: DictConfig) -> int | None:
     return value
 
 
+@dataclass
+class Checked:
+    """A run config whose every value was checked: the settings, the tasks and the built models."""
+
+    seed: int
+    repeats: int
+    time_limit: Optional[float]
+    call_limit: Optional[int]
+    progress: bool
+    overwrite: bool
+    tasks: list
+    models: dict
+
+
+def check_config(cfg: DictConfig) -> Checked:
+    """Check every value of ``cfg`` and build its models (nothing runs, nothing is written).
+
+    Raises :class:`~overhang_framework.errors.OverhangError` with a one-line
+    message for the first value refused.
+    """
+    return Checked(
+        seed=_whole(cfg, "seed", 0), repeats=_whole(cfg, "repeats", 1), time_limit=_time_limit(cfg),
+        call_limit=_call_limit(cfg), progress=_flag(cfg, "progress", True),
+        overwrite=_flag(cfg, "overwrite", False), tasks=tasks_from_config(cfg.tasks), models=build_models(cfg))
+
+
+class Terminated(Exception):
+    """The process was asked to stop (SIGTERM, as a cluster scheduler does at a time limit)."""
+
+
+@contextlib.contextmanager
+def _sigterm_stops_the_run() -> Iterator[None]:
+    """Turn SIGTERM into :class:`Terminated` for the duration (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     """Run every (task, repeat) episode of ``cfg`` into ``out_dir``; return the summary.
 
     Everything the config says is checked before the first episode starts.
     Episodes already finished in ``out_dir`` for the same config are kept and
     not run again (see :mod:`overhang_framework.rundir`). If the run stops
-    early (Ctrl-C, a crashed worker), ``metrics.json`` is written for the
-    finished episodes, marked ``complete: false``, and :class:`Interrupted` or
-    :class:`Stopped` is raised.
+    early (Ctrl-C, SIGTERM, a crashed worker), ``metrics.json`` is written for
+    the finished episodes, marked ``complete: false``, and :class:`Interrupted`
+    or :class:`Stopped` is raised.
     """
-    seed, repeats, time_limit = _whole(cfg, "seed", 0), _whole(cfg, "repeats", 1), _time_limit(cfg)
-    call_limit = _call_limit(cfg)
-    show_progress, overwrite = _flag(cfg, "progress", True), _flag(cfg, "overwrite", False)
-    tasks = tasks_from_config(cfg.tasks)
-    models = build_models(cfg)
+    checked = check_config(cfg)
+    seed, repeats, time_limit, call_limit = checked.seed, checked.repeats, checked.time_limit, checked.call_limit
+    tasks, models = checked.tasks, checked.models
     rundir = RunDir(out_dir)
-    done = finished_jobs(rundir.prepare(result_config(_params(cfg)), overwrite=overwrite))
+    done = finished_jobs(rundir.prepare(result_config(_params(cfg)), overwrite=checked.overwrite))
     resumed = len(done)
     jobs = [(i, task, rep) for i, task in enumerate(tasks) for rep in range(repeats)]
     header = {g: cfg[g].get("name") for g in ("world", "predictor", "planner", "value", "condition")}
     header["tasks"] = tasks_label(cfg, tasks)
     started = time.perf_counter()
     log.info("run %s: %d episodes, %d already finished", out_dir, len(jobs), len(done))
+    metrics_file = out_dir / "metrics.json"
+    if resumed == len(jobs) and metrics_file.exists():
+        try:
+            summary = json.loads(metrics_file.read_text())
+        except ValueError:
+            summary = None
+        if summary and summary.get("complete"):
+            log.info("every episode was already finished; results unchanged")
+            summary["episodes_resumed"] = resumed
+            return summary
     rundir.reopen()
 
     def summary_of(complete: bool) -> dict:
@@ -143,15 +204,15 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
             "seed": seed,
             "world_stats": models["world"].stats(),
         })
-        atomic_write_json(out_dir / "metrics.json", summary)
+        atomic_write_json(metrics_file, summary)
         return summary
 
     placements = [len(task.sequence) - 1 for _, task, _ in jobs]
-    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not show_progress, miniters=1,
+    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not checked.progress, miniters=1,
                file=sys.stderr, dynamic_ncols=True,
                initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
     try:
-        with EpisodeLog(rundir.episodes, append=True) as episode_log:
+        with _sigterm_stops_the_run(), EpisodeLog(rundir.episodes, append=True) as episode_log:
             for (i, task, rep), n_placements in zip(jobs, placements):
                 if (i, rep) in done:
                     continue
@@ -166,12 +227,14 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
                 log.info("episode %s repeat %d: reward %.3f, %d placements, %s", task.id, rep,
                          record["reward"], len(record["steps"]),
                          "stood throughout" if record["stable_throughout"] else "collapsed")
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Terminated) as stop:
         bar.close()
         summary_of(complete=False)
-        raise Interrupted(len(done), len(jobs), rundir.partial) from None
-    except PoolCrashed as err:
+        how = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
+        raise Interrupted(len(done), len(jobs), rundir.partial, how, checked.overwrite) from None
+    except Exception as err:  # a crashed worker, or a fault in a model: keep what finished
         bar.close()
+        log.exception("the run stopped on an error")
         summary_of(complete=False)
         raise Stopped(err, len(done), len(jobs), rundir.partial) from None
     bar.close()
@@ -179,6 +242,21 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     log.info("finished: reward %.3f +- %.3f over %d episodes", summary["reward_mean"],
              summary["reward_sem"], summary["episodes"])
     return summary
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
+def _number(value) -> str:
+    """Three decimals, or '-' for a value that does not exist (the SEM of one number, a mean of none)."""
+    if value is None or (isinstance(value, float) and value != value):
+        return "-"
+    return f"{value:.3f}"
+
+
+def _overwrite(cfg: DictConfig) -> bool:
+    return cfg.get("overwrite") is True
 
 
 def format_summary(summary: dict) -> str:
@@ -192,13 +270,14 @@ def format_summary(summary: dict) -> str:
     cfg = summary.get("config", {})
     lines = [
         " ".join(f"{k}={v}" for k, v in cfg.items()),
-        f"{summary['episodes']} episodes, {summary['placements']} placements, {summary.get('wall_time', 0):.1f} s"
+        f"{_count(summary['episodes'], 'episode')}, {_count(summary['placements'], 'placement')}, "
+        f"{summary.get('wall_time', 0):.1f} s"
         + (f" ({summary['episodes_resumed']} finished earlier in this directory)"
            if summary.get("episodes_resumed") else ""),
         f"{'metric':<24}{'mean':>10}{'sem':>10}",
     ]
     for label, key in rows:
-        lines.append(f"{label:<24}{summary[key + '_mean']:>10.3f}{summary[key + '_sem']:>10.3f}")
+        lines.append(f"{label:<24}{_number(summary[key + '_mean']):>10}{_number(summary[key + '_sem']):>10}")
     cache = summary.get("world_stats", {}).get("cache")
     if cache:
         lines.append(f"physics cache: {cache['hits']} hits, {cache['misses']} misses "
@@ -216,15 +295,19 @@ def main(cfg: DictConfig) -> dict:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
     except Interrupted as stop:
-        message = (f"interrupted: {stop.finished} of {stop.expected} episodes finished, kept in {stop.kept} "
-                   f"(metrics.json covers them, marked incomplete); to resume, rerun the same command "
+        again = "the same command without overwrite=true" if stop.overwrite else "the same command"
+        message = (f"{stop.how}: {stop.finished} of {stop.expected} episodes finished, kept in {stop.kept} "
+                   f"(metrics.json covers them, marked incomplete); to resume, rerun {again} "
                    f"with hydra.run.dir={out_dir}")
         log.warning("%s", message)
         print(message, file=sys.stderr)
-        sys.exit(130)
+        sys.exit(143 if stop.how.startswith("terminated") else 130)
     except Stopped as stop:
-        message = (f"error: {stop.error}; {stop.finished} of {stop.expected} episodes finished, kept in "
-                   f"{stop.kept}; to resume, rerun the same command with hydra.run.dir={out_dir}")
+        what = str(stop.error) if isinstance(stop.error, PoolCrashed) else \
+            f"{type(stop.error).__name__}: {stop.error} (traceback in {out_dir / 'run.log'})"
+        message = (f"error: {what}; {stop.finished} of {stop.expected} episodes finished, kept in "
+                   f"{stop.kept}; to resume, rerun the same command{' without overwrite=true' if _overwrite(cfg) else ''} "
+                   f"with hydra.run.dir={out_dir}")
         log.error("%s", message)
         print(message, file=sys.stderr)
         sys.exit(1)

@@ -3,11 +3,18 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from typing import Optional, Sequence
 
 from overhang_framework.errors import OverhangError
-from overhang_framework.preflight import GROUPS, check_command_line, check_group_choices, override_words
+from overhang_framework.preflight import (
+    GROUPS,
+    check_command_line,
+    check_group_choices,
+    override_words,
+    split_flags,
+)
 
 __all__ = ["GROUPS", "check_overrides", "help_text", "list_plugins", "main", "override_words"]
 
@@ -80,26 +87,70 @@ outputs (in hydra.run.dir, by default outputs/<date>/<time>):
   run.json         the config the episodes belong to (rerunning into the directory resumes)
   run.log          one line per episode, and how the run ended
   .hydra/          the composed config and the overrides
+  .run.lock        held while a run writes the directory
 
 An interrupted run keeps every finished episode: rerun the same command with the
 same hydra.run.dir to continue; overwrite=true starts the directory afresh.
-Hydra's own flags: --hydra-help."""
+Hydra's own flags: --hydra-help. Version: --version."""
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    import hydra
+
+    try:
+        ours = version("overhang-framework")
+    except PackageNotFoundError:
+        ours = "(not installed)"
+    return f"overhang-framework {ours} (Hydra {hydra.__version__})"
+
+
+def _plugins_command(args: Sequence[str]) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=f"{PROG} plugins", add_help=True,
+                                     description="List installed plugins and what they register.")
+    parser.add_argument("--json", action="store_true", help="print JSON")
+    options, extra = parser.parse_known_args(list(args))
+    if extra:
+        raise OverhangError(f"plugins takes only --json, got {' '.join(extra)}")
+    print(list_plugins(as_json=options.json))
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     try:
+        _main(args)
+    except KeyboardInterrupt:
+        print("interrupted before the first episode; nothing was written", file=sys.stderr)
+        sys.exit(130)
+    except BrokenPipeError:
+        # the reader went away (``... | head``): stop quietly, as command-line tools do
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        sys.exit(1)
+
+
+def _main(args: list[str]) -> None:
+    try:
         if args and args[0] == "plugins":
-            print(list_plugins(as_json="--json" in args[1:]))
+            _plugins_command(args[1:])
             return
         if "--help" in args or "-h" in args:
             print(help_text())
             return
-        check_command_line(args)
+        if "--version" in args:
+            print(_version())
+            return
+        from overhang_framework.app import check_config
+
+        check_command_line(args, check_config=check_config)
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
     from overhang_framework.app import main as app_main
 
-    sys.argv = [sys.argv[0]] + args
+    flags, words = split_flags(args)
+    sys.argv = [sys.argv[0]] + flags + words  # Hydra wants its flags first
     app_main()

@@ -2,14 +2,19 @@
 
 Hydra reports a bad override with several lines, a hint and sometimes a
 traceback; an appended key that nothing reads (``+planer=myopic``) it accepts
-silently. :func:`check_command_line` composes the config the way the run will,
-and turns every such mistake into one :class:`~overhang_framework.errors.OverhangError`:
+silently; and by the time a run could refuse a value, Hydra has already made
+its output directory. :func:`check_command_line` therefore composes the config
+the way the run will, for every job of a sweep, and turns every mistake into
+one :class:`~overhang_framework.errors.OverhangError` before anything is written:
 
+* flags Hydra does not know, words that are not overrides;
 * config-group choices that are not installed, all of them in one message;
-* overrides that do not parse, keys that do not exist (with the closest
-  existing key), appended keys that no part of the run reads, sweeps given
-  without ``-m``;
-* a run (or sweep) directory that cannot be written.
+* overrides that do not parse, keys that do not exist (all of them, each with
+  the closest existing key), values of the wrong type, appended keys that no
+  part of the run reads, sweeps given without ``-m``;
+* values a model refuses (every job of a sweep is built once, not run);
+* an output directory that is empty, cannot be written, holds another
+  config's results or is being written by another run.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import difflib
 import os
 import tempfile
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 from overhang_framework.errors import OverhangError, UnknownPluginError, UnknownPluginsError
 
@@ -27,27 +32,43 @@ GROUPS = ("world", "predictor", "planner", "value", "condition", "tasks")
 #: Groups whose keys are the parameters of a registered factory; the registry checks those.
 MODEL_GROUPS = ("world", "predictor", "planner", "value")
 
-# Hydra's command-line flags that take the next word as their value.
+# Hydra's command-line flags: those that take the next word as their value, and the rest.
 _VALUE_FLAGS = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
                 "--config-dir", "-cd", "--experimental-rerun", "--shell-completion", "-sc"}
+_PLAIN_FLAGS = {"--multirun", "-m", "--run", "-r", "--resolve", "--hydra-help", "--version", "--help", "-h",
+                "--info", "-i"}
 _INFO_TOPICS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
+_CFG_VALUES = ("job", "hydra", "all")
 # Flags after which Hydra prints something instead of running the job.
-_INFO_FLAGS = {"--cfg", "-c", "--info", "-i", "--hydra-help", "--shell-completion", "-sc", "--resolve"}
+_INFO_FLAGS = {"--cfg", "-c", "--info", "-i", "--hydra-help", "--shell-completion", "-sc", "--resolve",
+               "--version"}
+COMMANDS = ("plugins",)
+
+
+def split_flags(args: Sequence[str]) -> tuple[list[str], list[str]]:
+    """Hydra's flags (with their values) and the overrides, in their orders.
+
+    Hydra wants its flags before the overrides; a user may write them anywhere.
+    """
+    flags, words, i = [], [], 0
+    while i < len(args):
+        arg = args[i]
+        if arg.startswith("-"):
+            flags.append(arg)
+            takes = arg in _VALUE_FLAGS or (
+                arg in ("--info", "-i") and i + 1 < len(args) and args[i + 1] in _INFO_TOPICS)
+            if takes and i + 1 < len(args):
+                flags.append(args[i + 1])
+                i += 1
+        else:
+            words.append(arg)
+        i += 1
+    return flags, words
 
 
 def override_words(args: Sequence[str]) -> list[str]:
     """The config overrides among Hydra's command-line words (flags and their values removed)."""
-    words, skip = [], False
-    for i, arg in enumerate(args):
-        if skip:
-            skip = False
-            continue
-        if arg.startswith("-"):
-            skip = arg in _VALUE_FLAGS or (
-                arg in ("--info", "-i") and i + 1 < len(args) and args[i + 1] in _INFO_TOPICS)
-            continue
-        words.append(arg)
-    return words
+    return split_flags(args)[1]
 
 
 def is_multirun(args: Sequence[str]) -> bool:
@@ -59,11 +80,55 @@ def runs_job(args: Sequence[str]) -> bool:
     return not any(a in _INFO_FLAGS for a in args)
 
 
+def check_flags(args: Sequence[str]) -> None:
+    """Raise for a flag Hydra does not know, or a ``--cfg`` without one of its values."""
+    flags, _ = split_flags(args)
+    known = sorted(_VALUE_FLAGS | _PLAIN_FLAGS)
+    i = 0
+    while i < len(flags):
+        flag = flags[i]
+        if flag not in _VALUE_FLAGS and flag not in _PLAIN_FLAGS:
+            close = difflib.get_close_matches(flag, known, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise OverhangError(f"unknown option {flag!r}{hint}; options: -m (--multirun), --cfg job|hydra|all, "
+                                "--help, --hydra-help, --info, --version; anything else is key=value")
+        if flag in ("--cfg", "-c"):
+            value = flags[i + 1] if i + 1 < len(flags) else None
+            if value not in _CFG_VALUES:
+                raise OverhangError(f"{flag} takes one of {', '.join(_CFG_VALUES)}, got {value!r}")
+        if flag in _VALUE_FLAGS or (flag in ("--info", "-i") and i + 1 < len(flags)
+                                    and flags[i + 1] in _INFO_TOPICS):
+            i += 1
+        i += 1
+
+
 def _parse(word: str):
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     (override,) = OverridesParser.create().parse_overrides([word])
     return override
+
+
+def _parses(word: str) -> bool:
+    try:
+        _parse(word)
+        return True
+    except Exception:
+        return False
+
+
+def check_words(words: Sequence[str]) -> None:
+    """Raise for a word that is not an override at all (``plugin``, ``=3``)."""
+    for word in words:
+        if "=" not in word and not word.startswith("~"):
+            close = difflib.get_close_matches(word, COMMANDS, n=1)
+            hint = f"; did you mean the command '{close[0]}'?" if close else ""
+            raise OverhangError(f"cannot read {word!r}: overrides are key=value, +key=value (add) or ~key "
+                                f"(remove){hint} (see --help)")
+        key = word.lstrip("+~").split("=", 1)[0]
+        if not key:
+            raise OverhangError(f"cannot read {word!r}: the override names no key; overrides are key=value "
+                                "(see --help)")
 
 
 def check_group_choices(args: Sequence[str]) -> None:
@@ -134,6 +199,29 @@ def _variants(words: Sequence[str], multirun: bool) -> list[list[str]]:
     return variants
 
 
+def _choices(words: Sequence[str]) -> list[str]:
+    """The plain config-group choices among ``words``, Hydra's own included (they decide which keys exist)."""
+    out = []
+    for word in words:
+        try:
+            ov = _parse(word)
+        except Exception:
+            continue
+        if (ov.key_or_group in GROUPS or "/" in ov.key_or_group) and not ov.is_sweep_override() \
+                and not ov.is_delete() and not ov.is_add() and not ov.package:
+            out.append(word)
+    return out
+
+
+def _base(words: Sequence[str]):
+    from overhang_framework.config import compose_config
+
+    try:
+        return compose_config(_choices(words), return_hydra_config=True)
+    except Exception:
+        return compose_config(return_hydra_config=True)
+
+
 def _key_error(full_key: str, cfg, problem: str = "unknown config key") -> str:
     """One line for a key that is not in ``cfg``: the closest existing key and the keys there."""
     from omegaconf import OmegaConf
@@ -143,82 +231,77 @@ def _key_error(full_key: str, cfg, problem: str = "unknown config key") -> str:
     where = f"keys of {parent_path}" if parent_path else "top-level keys"
     if parent_path in GROUPS and node is not None and node.get("name"):
         where = f"keys of {parent_path} {node.get('name')!r}"
-    keys = sorted(str(k) for k in node.keys() if k != "hydra") if hasattr(node, "keys") else []
-    close = difflib.get_close_matches(leaf, keys, n=1)
+    hidden = {"hydra"} if not parent_path else set()
+    keys = sorted(str(k) for k in node.keys() if k not in hidden) if hasattr(node, "keys") else []
+    close = [k for k in difflib.get_close_matches(leaf, keys, n=1) if k != leaf]
     hint = f" (did you mean '{(parent_path + '.') if parent_path else ''}{close[0]}'?)" if close else ""
     return f"{problem} '{full_key}'{hint}; {where}: {', '.join(keys) if keys else '(none)'}"
 
 
-def _choices(words: Sequence[str]) -> list[str]:
-    """The plain config-group choices among ``words`` (what decides which keys exist)."""
-    out = []
-    for word in words:
-        try:
-            ov = _parse(word)
-        except Exception:
-            continue
-        if ov.key_or_group in GROUPS and not ov.is_sweep_override() and not ov.is_delete() \
-                and not ov.is_add() and not ov.package:
-            out.append(word)
-    return out
-
-
 def _one_line(text: str) -> str:
     lines = [line.strip() for line in str(text).splitlines() if line.strip()]
-    lines = [line for line in lines if not line.startswith("See https://")]
+    lines = [line for line in lines if not line.startswith(("See https://", "full_key:", "object_type="))]
     return "; ".join(lines)
 
 
-def _compose(words: Sequence[str]):
-    """Compose ``words`` and translate Hydra's errors into :class:`OverhangError`."""
-    from hydra.errors import (
-        ConfigCompositionException,
-        HydraException,
-        MissingConfigException,
-        OverrideParseException,
-    )
-    from omegaconf.errors import OmegaConfBaseException
+def _compose_error(words: Sequence[str], err: Exception) -> str:
+    """The one line for a failed compose of ``words``."""
+    from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-    from overhang_framework.config import compose_config
-
-    try:
-        return compose_config(words, return_hydra_config=True)
-    except OverrideParseException as err:
+    if isinstance(err, OverrideParseException):
         bad = next((w for w in words if not _parses(w)), None)
         what = f"cannot read the override '{bad}'" if bad else "cannot read an override"
-        raise OverhangError(f"{what}: {_one_line(err)}; overrides are key=value, "
-                            "+key=value (add), ~key (remove); see --help") from None
-    except MissingConfigException as err:
-        missing = err.missing_cfg_file or ""
-        group, _, name = missing.rpartition("/")
+        return (f"{what}: {_one_line(err)}; overrides are key=value, +key=value (add), ~key (remove); "
+                "see --help")
+    if isinstance(err, MissingConfigException):
+        group, _, name = (err.missing_cfg_file or "").rpartition("/")
         if group and err.options is not None:
-            raise OverhangError(f"unknown {group} {name!r}; available: {', '.join(err.options) or '(none)'}") from None
-        raise OverhangError(_one_line(err).split("; Config search path:")[0]) from None
-    except ConfigCompositionException as err:
+            return f"unknown {group} {name!r}; available: {', '.join(err.options) or '(none)'}"
+        return _one_line(err).split("; Config search path:")[0]
+    if isinstance(err, ConfigCompositionException):
         cause = err.__cause__
-        if isinstance(cause, OmegaConfBaseException) and getattr(cause, "full_key", None):
-            raise OverhangError(_key_error(cause.full_key, compose_config(_choices(words)))) from None
+        full_key = getattr(cause, "full_key", None)
+        if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and full_key:
+            return _key_error(full_key, _base(words))
+        if isinstance(cause, OmegaConfBaseException) and full_key:
+            message = str(cause).splitlines()[0]
+            return f"bad value for '{full_key}': {message}"
         message = _one_line(err)
         if message.startswith("Ambiguous value for argument"):
             word = message.split("'")[1] if "'" in message else "?"
             key = word.split("=", 1)[0]
-            raise OverhangError(f"'{word}' gives several values: add -m (--multirun) to sweep over "
-                                f"them, or write {key}=[...] for a list") from None
-        raise OverhangError(message) from None
-    except HydraException as err:
-        raise OverhangError(_one_line(err)) from None
+            return (f"'{word}' gives several values: add -m (--multirun) to sweep over them, or write "
+                    f"{key}=[...] for a list")
+        return message
+    return _one_line(err) or type(err).__name__
 
 
-def _parses(word: str) -> bool:
+def _compose(words: Sequence[str]):
+    """Compose ``words``; on failure raise one :class:`OverhangError` naming every bad override."""
+    from overhang_framework.config import compose_config
+
     try:
-        _parse(word)
-        return True
-    except Exception:
-        return False
+        return compose_config(words, return_hydra_config=True)
+    except Exception as err:  # Hydra raises several kinds, some of them plain ValueErrors
+        first = _compose_error(words, err)
+    # report every bad override, not only the first Hydra stopped at
+    choices = _choices(words)
+    messages = [first]
+    for word in words:
+        if word in choices:
+            continue
+        try:
+            compose_config([*choices, word], return_hydra_config=True)
+        except Exception as err:
+            message = _compose_error([*choices, word], err)
+            if message not in messages:
+                messages.append(message)
+    raise OverhangError(" | ".join(messages))
 
 
 def _check_appended(words: Sequence[str]) -> None:
-    """An appended (``+key=value``) key that the run never reads is an error, not a silent no-op.
+    """An added (``+key=value``, ``++key=value``) key that the run never reads is an error.
 
     Keys under a model group are checked later against the factory's
     parameters; an appended config group (``+experiment=x``) is fine.
@@ -226,18 +309,23 @@ def _check_appended(words: Sequence[str]) -> None:
     from overhang_framework.config import group_options
 
     for word in words:
-        if not word.startswith("+") or word.startswith("++"):
+        if not word.startswith("+"):
             continue
-        key = word[1:].split("=", 1)[0].split("@", 1)[0]
+        key = word.lstrip("+").split("=", 1)[0].split("@", 1)[0]
         root = key.split(".")[0]
         if root == "hydra" or root in MODEL_GROUPS:
             continue
         if "." not in key and group_options(key):
             continue
-        from overhang_framework.config import compose_config
+        if word.startswith("++") and _exists(key, words):
+            continue
+        raise OverhangError(_key_error(key, _base(words), problem="nothing reads the added config key"))
 
-        raise OverhangError(_key_error(key, compose_config(_choices(words)),
-                                       problem="nothing reads the added config key"))
+
+def _exists(key: str, words: Sequence[str]) -> bool:
+    from omegaconf import OmegaConf
+
+    return OmegaConf.select(_base(words), key, default=None) is not None
 
 
 def check_writable(directory: str | os.PathLike) -> None:
@@ -263,19 +351,39 @@ def check_writable(directory: str | os.PathLike) -> None:
                             "choose another with hydra.run.dir=DIR (hydra.sweep.dir=DIR with -m)") from None
 
 
-def check_command_line(args: Sequence[str]) -> None:
-    """Everything that can be checked about a command line before Hydra starts the run."""
-    check_group_choices(args)
+def check_command_line(args: Sequence[str], check_config: Optional[Callable] = None) -> None:
+    """Everything that can be checked about a command line before Hydra starts the run.
+
+    ``check_config``, when given, is called with every job's composed config
+    to check its values (the main job builds its models, without running them).
+    """
+    check_flags(args)
     words = override_words(args)
+    check_words(words)
+    check_group_choices(args)
     multirun = is_multirun(args)
-    cfg = None
-    for variant in _variants(words, multirun):
-        cfg = _compose(variant)
+    configs = [_compose(variant) for variant in _variants(words, multirun)]
     _check_appended(words)
-    if cfg is not None:
+    for cfg in configs:
         _check_groups_present(cfg)
-    if cfg is not None and runs_job(args):
-        _check_output_dir(cfg, multirun)
+    if not runs_job(args):
+        return
+    if multirun:
+        _check_launcher(configs[0])
+    if check_config is not None:
+        for cfg in configs:
+            check_config(cfg)
+    _check_output_dir(configs[0], multirun)
+
+
+def _check_launcher(cfg) -> None:
+    """Launcher settings Hydra would only refuse with a traceback once the sweep has started."""
+    from omegaconf import OmegaConf
+
+    n_jobs = OmegaConf.select(cfg, "hydra.launcher.n_jobs", default=None)
+    if n_jobs is not None and (isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0):
+        raise OverhangError(f"hydra.launcher.n_jobs must be a whole number other than 0 (-1: one job per "
+                            f"core), got {n_jobs!r}")
 
 
 def _check_groups_present(cfg) -> None:
@@ -295,5 +403,14 @@ def _check_output_dir(cfg, multirun: bool) -> None:
         directory: Optional[str] = OmegaConf.select(cfg, key)
     except Exception:  # an interpolation only Hydra's runtime can resolve
         return
-    if directory:
-        check_writable(directory)
+    if directory is None or not str(directory).strip():
+        raise OverhangError(f"{key} is empty; give the directory the results go to, e.g. {key}=runs/mine")
+    check_writable(directory)
+    if not multirun:
+        from overhang_framework.rundir import RunDir, result_config
+
+        plain = OmegaConf.to_container(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]),
+                                       resolve=True)
+        rundir = RunDir(directory)
+        rundir.check_free()
+        rundir.check_config(result_config(plain), overwrite=bool(plain.get("overwrite") is True))

@@ -22,10 +22,12 @@ def readable(data: Any) -> Any:
     """``data`` with every float rounded to :data:`SIGNIFICANT_DIGITS` significant digits, for writing.
 
     The values computed are unchanged; only their last-bit noise is dropped
-    from the files (a relative change below 1e-12).
+    from the files (a relative change below 1e-12). A number that does not
+    exist (NaN: the mean of no values, the SEM of one) is written as null,
+    so the files are strict JSON.
     """
     if isinstance(data, float):
-        return float(f"{data:.{SIGNIFICANT_DIGITS}g}") if math.isfinite(data) else data
+        return float(f"{data:.{SIGNIFICANT_DIGITS}g}") if math.isfinite(data) else None
     if isinstance(data, Mapping):
         return {k: readable(v) for k, v in data.items()}
     if isinstance(data, (list, tuple)):
@@ -68,7 +70,7 @@ def atomic_write_text(path: Path | str, text: str) -> None:
 
 def atomic_write_json(path: Path | str, data: Any) -> None:
     """Write ``data`` as indented JSON (floats :func:`readable`), atomically."""
-    atomic_write_text(path, json.dumps(readable(data), indent=2, sort_keys=True) + "\n")
+    atomic_write_text(path, json.dumps(readable(data), indent=2, sort_keys=True, allow_nan=False) + "\n")
 
 
 class EpisodeLog:
@@ -110,11 +112,12 @@ def read_episodes(path: Path | str) -> list[dict]:
 
 
 def mean_sem(values: Iterable[float]) -> tuple[float, float]:
-    """Mean and standard error of the mean (NaN for no values, SEM 0 for one)."""
+    """Mean and standard error of the mean (NaN where it does not exist: both for no values,
+    the SEM for one)."""
     arr = np.asarray(list(values), dtype=float)
     if arr.size == 0:
         return math.nan, math.nan
-    sem = float(arr.std(ddof=1) / np.sqrt(arr.size)) if arr.size > 1 else 0.0
+    sem = float(arr.std(ddof=1) / np.sqrt(arr.size)) if arr.size > 1 else math.nan
     return float(arr.mean()), sem
 
 

@@ -51,11 +51,14 @@ def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
 
 
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """``key: old -> new`` for every leaf that differs (added and removed keys included)."""
+    """``key: old -> new`` for every leaf that differs (added and removed keys included), the
+    most telling first: model names and top-level settings, then by depth."""
     a, b = _flatten(old), _flatten(new)
     missing = object()
     diffs = []
-    for key in sorted(set(a) | set(b)):
+    # the most telling first: model names and top-level settings, then shallow keys, then the rest
+    order = sorted(set(a) | set(b), key=lambda k: (not k.endswith(".name") and "." in k, k.count("."), k))
+    for key in order:
         va, vb = a.get(key, missing), b.get(key, missing)
         if va != vb:
             show = lambda v: "(unset)" if v is missing else json.dumps(v)  # noqa: E731
@@ -122,17 +125,24 @@ class RunDir:
                               "keep one of them, or rerun with overwrite=true")
         return present[0] if present else None
 
-    def prepare(self, config: Mapping[str, Any], overwrite: bool = False) -> list[dict]:
-        """Make the directory ready for ``config``; return the episodes already finished for it.
+    def check_free(self) -> None:
+        """Raise when another run holds the directory."""
+        if not (self.path / LOCK_FILE).exists():
+            return
+        with open(self.path / LOCK_FILE, "a") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise RunDirError(f"another run is writing to {self.path}; wait for it to end, "
+                                  "or use another hydra.run.dir") from None
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
-        Raises :class:`RunDirError` when the directory holds results of another
-        config (or of an unknown one) and ``overwrite`` is false.
-        """
+    def check_config(self, config: Mapping[str, Any], overwrite: bool = False) -> None:
+        """Raise :class:`RunDirError` when the directory holds results of another (or an unknown)
+        config, unless ``overwrite``. Writes nothing."""
+        if overwrite or not self.path.exists():
+            return
         config = readable(config)  # as run.json holds it
-        self.path.mkdir(parents=True, exist_ok=True)
-        if overwrite:
-            for name in RESULT_FILES:
-                (self.path / name).unlink(missing_ok=True)
         existing = self.existing_file()
         run_file = self.path / RUN_FILE
         if run_file.exists():
@@ -149,9 +159,23 @@ class RunDir:
         elif existing is not None:
             raise RunDirError(f"{self.path} holds episodes of an unknown config (no {RUN_FILE}); "
                               "use another hydra.run.dir, or overwrite=true to replace them")
-        else:
-            for stale in ("metrics.json",):
-                (self.path / stale).unlink(missing_ok=True)
+
+    def prepare(self, config: Mapping[str, Any], overwrite: bool = False) -> list[dict]:
+        """Make the directory ready for ``config``; return the episodes already finished for it.
+
+        Raises :class:`RunDirError` when the directory holds results of another
+        config (or of an unknown one) and ``overwrite`` is false.
+        """
+        self.check_config(config, overwrite)
+        config = readable(config)
+        self.path.mkdir(parents=True, exist_ok=True)
+        if overwrite:
+            for name in RESULT_FILES:
+                (self.path / name).unlink(missing_ok=True)
+        existing = self.existing_file()
+        run_file = self.path / RUN_FILE
+        if not run_file.exists():
+            (self.path / "metrics.json").unlink(missing_ok=True)
             atomic_write_json(run_file, {"config": dict(config)})
         return _read_records(existing) if existing is not None else []
 

@@ -56,6 +56,17 @@ def canonical_state(state: State) -> State:
     return State(Geometry(blocks), state.remaining)
 
 
+def mirrored_key(key: tuple) -> tuple:
+    """The canonical geometry key of the mirror image (x -> -x) of the geometry with ``key``."""
+    return tuple(sorted((w, -x + 0.0, layer) for w, x, layer in key))
+
+
+def is_symmetric(state: State) -> bool:
+    """Whether the state's tower is its own mirror image in x."""
+    key = state.geometry.key
+    return key == mirrored_key(key)
+
+
 def node_rng(seed: int, key: tuple) -> np.random.Generator:
     """The generator a predictor uses for the children of the state with ``key``, within one decision."""
     digest = hashlib.blake2b(repr(key).encode(), digest_size=16).digest()
@@ -95,7 +106,10 @@ class Expander:
     :func:`node_rng`); draw it from the episode's generator once per decision.
     Before each new predictor call the budget is checked; when it is spent,
     :class:`BudgetExhausted` is raised, unless ``force`` (a planner must be
-    able to score the root's children to answer at all).
+    able to score the root's children to answer at all). With ``mirror``, a
+    state that is its own mirror image in x gets only its actions with
+    ``x >= 0``: the others lead to the mirror images of those towers, which
+    stand or fall alike when the physics is mirror-symmetric.
     """
 
     world: World
@@ -103,6 +117,7 @@ class Expander:
     budget: Budget
     seed: int
     resolution: Optional[float] = None
+    mirror: bool = False
     stats: SearchStats = field(default_factory=SearchStats)
     _memo: dict = field(default_factory=dict, repr=False)
 
@@ -115,6 +130,8 @@ class Expander:
         if not force and self.budget.exhausted():
             raise BudgetExhausted
         actions = self.world.legal_actions(state, self.resolution)
+        if self.mirror and is_symmetric(state):
+            actions = [a for a in actions if a.x >= 0]
         children = [self.world.successor(state, a) for a in actions]
         if actions:
             p = np.asarray(self.predictor.predict(canonical_state(state), actions, node_rng(self.seed, key)),

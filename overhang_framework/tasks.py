@@ -22,6 +22,8 @@ def parse_tasks(sequences: Optional[Sequence[Any]], ids: Optional[Sequence[Any]]
     """Validate ``sequences`` (lists of widths, at least two each) into :class:`Task` objects."""
     if not sequences:
         raise TaskError("no task sequences given; set tasks=paper20 or tasks.sequences=[[0.6,1.2,...],...]")
+    if ids is not None and (isinstance(ids, (str, bytes)) or not isinstance(ids, Sequence)):
+        raise TaskError(f"tasks.ids must be a list of ids, one per sequence, got {ids!r}")
     if ids is not None and len(ids) != len(sequences):
         raise TaskError(f"tasks.ids has {len(ids)} entries but there are {len(sequences)} sequences")
     tasks = []
@@ -32,9 +34,13 @@ def parse_tasks(sequences: Optional[Sequence[Any]], ids: Optional[Sequence[Any]]
         seq = list(seq)
         if len(seq) < 2:
             raise TaskError(f"task {task_id}: a sequence needs the ground block and at least one more, got {seq!r}")
+        for w in seq:
+            if isinstance(w, bool) or not isinstance(w, (int, float)):
+                raise TaskError(f"task {task_id}: width {w!r} is not a number; allowed widths are "
+                                f"{', '.join(map(str, WIDTHS))}")
         try:
             widths = tuple(check_width(float(w)) for w in seq)
-        except (IllegalWidth, TypeError, ValueError) as err:
+        except IllegalWidth as err:
             raise TaskError(f"task {task_id}: {err}") from None
         tasks.append(Task(task_id, widths))
     if len({t.id for t in tasks}) != len(tasks):
@@ -44,7 +50,14 @@ def parse_tasks(sequences: Optional[Sequence[Any]], ids: Optional[Sequence[Any]]
 
 def tasks_from_config(cfg: Mapping[str, Any]) -> list[Task]:
     """The tasks of a ``tasks`` config group entry, restricted to ``only`` when it is set."""
-    tasks = parse_tasks(cfg.get("sequences"), cfg.get("ids"), prefix=str(cfg.get("prefix", "task")))
+    seed = cfg.get("generator_seed")
+    sequences = cfg.get("sequences")
+    if seed is not None and sequences:
+        expected = generate_sequences(len(sequences), len(sequences[0]), seed=seed)
+        if [list(map(float, s)) for s in sequences] != expected:
+            raise TaskError(f"tasks.sequences of {cfg.get('name')} were changed; for your own sequences use "
+                            "tasks=custom 'tasks.sequences=[[0.6,1.2,...],...]'")
+    tasks = parse_tasks(sequences, cfg.get("ids"), prefix=str(cfg.get("prefix", "task")))
     only = cfg.get("only")
     if only:
         wanted = [only] if isinstance(only, str) else [str(x) for x in only]

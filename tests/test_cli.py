@@ -161,17 +161,45 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
      "error: unknown predictor 'nope' and value 'nada'; installed predictors: ipe, veridical; installed values:"),
     (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),
     (["hydra/launcher=nope"], "error: unknown hydra/launcher 'nope'; available: basic, joblib"),
+    (["planer=myopic", "predicter=ipe"], "error: unknown config key 'planer' (did you mean 'planner'?); top-level "
+     "keys: condition, overwrite, planner, predictor, progress, repeats, seed, tasks, value, world | unknown "
+     "config key 'predicter' (did you mean 'predictor'?)"),
+    (["=3"], "error: cannot read '=3': the override names no key"),
+    (["plugin"], "error: cannot read 'plugin': overrides are key=value, +key=value (add) or ~key (remove); "
+                 "did you mean the command 'plugins'?"),
+    (["--foo"], "error: unknown option '--foo'"),
+    (["--cfg", "jb"], "error: --cfg takes one of job, hydra, all, got 'jb'"),
+    (["-m", "seed=0,-1"], "error: seed must be a whole number >= 0, got -1"),
+    (["-m", "world.resolution=0.1,abc"], "error: world 'overhang': resolution must be a positive number"),
+    (["world.pybullet=5"], "error: world 'overhang': pybullet must be a mapping of pybullet parameters, got 5"),
+    (["world.pybullet.early_stop=maybe"], "error: world 'overhang': PyBulletParams.early_stop must be true or false"),
+    (["-m", "seed=0,1", "hydra/launcher=joblib", "hydra.launcher.n_jobs=abc"],
+     "error: bad value for 'hydra.launcher.n_jobs': Value 'abc' of type 'str' could not be converted to Integer"),
+    (["-m", "seed=0,1", "hydra/launcher=joblib", "hydra.launcher.n_jobs=0"],
+     "error: hydra.launcher.n_jobs must be a whole number other than 0"),
+    (["hydra.run.dri=x"], "error: unknown config key 'hydra.run.dri' (did you mean 'hydra.run.dir'?); keys of "
+                          "hydra.run: dir"),
+    (["++foo=3"], "error: nothing reads the added config key 'foo'"),
+    (["predictor=ipe", "+predictor.backend_params.x=1"],
+     "error: predictor 'ipe': unknown parameter(s) x for physics backend 'static'; allowed: "),
+    (["predictor=ipe", "predictor.sigma=-1"], "error: predictor 'ipe': sigma must be a number >= 0, got -1"),
+    (["tasks.ids=a"], "error: tasks.ids must be a list of ids, one per sequence, got 'a'"),
+    (["tasks.sequences=[[0.6,1.2,abc]]"], "error: task custom00: width 'abc' is not a number; allowed widths"),
+    (["tasks=paper20", "tasks.sequences=[[0.6,1.8,1.2]]"],
+     "error: tasks.sequences of paper20 were changed; for your own sequences use tasks=custom"),
+    (["hydra.run.dir="], "error: hydra.run.dir is empty; give the directory the results go to"),
     (["~world"], "error: the run needs a world; choose one with world=NAME (installed: overhang)"),
 ])
 def test_command_line_mistakes_end_with_one_line_and_status_2(tmp_path, capsys, args, expected):
     from overhang_framework.cli import main
 
+    run_dir = [] if any(a.startswith("hydra.run.dir") for a in args) else [f"hydra.run.dir={tmp_path / 'run'}"]
     with pytest.raises(SystemExit) as exit_info:
-        main([*QUICK, *args, f"hydra.run.dir={tmp_path}", f"hydra.sweep.dir={tmp_path / 'm'}"])
+        main([*QUICK, *run_dir, f"hydra.sweep.dir={tmp_path / 'm'}", *args])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(expected), err
-    assert not (tmp_path / "episodes.jsonl.partial").exists() and not (tmp_path / "m").exists()
+    assert not (tmp_path / "run").exists() and not (tmp_path / "m").exists(), "nothing is written"
 
 
 @pytest.mark.parametrize("directory", ["/proc/overhang-run", "/dev/null/run"])
@@ -244,3 +272,57 @@ def test_run_outputs_are_ignored_by_git():
 
     ignored = (Path(__file__).resolve().parents[1] / ".gitignore").read_text().split()
     assert {"runs/", "outputs/", "multirun/"} <= set(ignored)
+
+
+def test_flags_may_follow_the_overrides(tmp_path):
+    proc = run_cli(*QUICK, "world.physics=static", "seed=0,1", "-m", f"hydra.sweep.dir={tmp_path}")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.isdigit()) == ["0", "1"]
+
+
+def test_version_names_the_project(capsys):
+    from overhang_framework.cli import main
+
+    main(["--version"])
+    assert capsys.readouterr().out.startswith("overhang-framework ")
+
+
+def test_plugins_refuses_unknown_options(capsys):
+    from overhang_framework.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["plugins", "--jsn"])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip() == "error: plugins takes only --json, got --jsn"
+
+
+def test_a_single_episode_has_no_sem_and_metrics_are_strict_json(tmp_path):
+    proc = run_cli("tasks=example", "world.physics=static", "progress=false", f"hydra.run.dir={tmp_path}")
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((tmp_path / "metrics.json").read_text(),
+                         parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+    assert metrics["reward_sem"] is None and metrics["reward_mean"] > 0
+    assert "1 episode, 5 placements" in proc.stdout
+    assert next(line for line in proc.stdout.splitlines() if line.startswith("terminal reward")).split()[-1] == "-"
+
+
+def test_a_model_failing_mid_run_is_one_line_and_keeps_finished_episodes(tmp_path, capsys, monkeypatch):
+    import overhang_framework.app as app
+    from overhang_framework.cli import main
+
+    real, calls = app.run_episode, []
+
+    def fail_on_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ZeroDivisionError("a planner bug")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(app, "run_episode", fail_on_second)
+    with pytest.raises(SystemExit) as exit_info:
+        main([*QUICK, "world.physics=static", f"hydra.run.dir={tmp_path}"])
+    assert exit_info.value.code == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ZeroDivisionError: a planner bug (traceback in ")
+    assert "Traceback" in (tmp_path / "run.log").read_text()
+    assert len(read_episodes(tmp_path / "episodes.jsonl.partial")) == 1

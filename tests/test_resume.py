@@ -71,11 +71,13 @@ def test_rerunning_a_finished_run_changes_nothing(tmp_path):
     args = [*FAST, f"hydra.run.dir={tmp_path}"]
     assert run(*args).returncode == 0
     before = (tmp_path / "episodes.jsonl").read_bytes()
+    metrics = (tmp_path / "metrics.json").read_bytes()
     again = run(*args)
     assert again.returncode == 0, again.stderr
     assert "(2 finished earlier in this directory)" in again.stdout
     assert (tmp_path / "episodes.jsonl").read_bytes() == before
     assert json.loads((tmp_path / "metrics.json").read_text())["episodes"] == 2
+    assert (tmp_path / "metrics.json").read_bytes() == metrics, "the finished run's metrics are kept"
 
 
 def test_a_directory_of_another_config_is_refused_unless_overwrite(tmp_path):
@@ -87,6 +89,7 @@ def test_a_directory_of_another_config_is_refused_unless_overwrite(tmp_path):
         f"error: {tmp_path} holds results of a different config (seed: 1 -> 2; world.resolution: 0.1 -> 0.2); "
         "use another hydra.run.dir, or overwrite=true to replace them"]
     assert (tmp_path / "episodes.jsonl").read_bytes() == before
+    assert "seed=1" in (tmp_path / ".hydra" / "overrides.yaml").read_text(), "a refused run writes nothing"
     replaced = run(*FAST, "seed=2", "world.resolution=0.2", "overwrite=true", f"hydra.run.dir={tmp_path}")
     assert replaced.returncode == 0, replaced.stderr
     assert {e["seed"] for e in read_episodes(tmp_path / "episodes.jsonl")} == {2}
@@ -127,3 +130,37 @@ def test_two_runs_cannot_write_one_directory_at_once(tmp_path):
                 pass
     with RunDir(tmp_path).lock():  # released
         pass
+
+
+def test_sigterm_ends_the_run_like_an_interrupt(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen(command(*SLOW, f"hydra.run.dir={out}"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    partial = out / "episodes.jsonl.partial"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (partial.exists() and partial.read_text().count("\n") >= 1):
+        time.sleep(0.05)
+    proc.terminate()
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143
+    assert err.strip().splitlines()[-1].startswith("terminated (SIGTERM): ")
+    assert json.loads((out / "metrics.json").read_text())["complete"] is False
+    assert "terminated (SIGTERM)" in (out / "run.log").read_text()
+
+
+def test_interrupting_an_overwrite_run_says_to_resume_without_overwrite(tmp_path):
+    out = tmp_path / "run"
+    stopped = interrupt_after_first_episode([*SLOW, "overwrite=true", f"hydra.run.dir={out}"],
+                                            out / "episodes.jsonl.partial")
+    assert stopped.returncode == 130
+    assert "rerun the same command without overwrite=true" in stopped.stderr.strip().splitlines()[-1]
+
+
+def test_ctrl_c_while_starting_is_one_line(tmp_path):
+    proc = subprocess.Popen(command(*SLOW, f"hydra.run.dir={tmp_path / 'run'}"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    time.sleep(0.4)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and len([line for line in err.splitlines() if line.startswith(("interrupted", "error"))]) == 1

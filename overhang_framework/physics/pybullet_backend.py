@@ -71,6 +71,8 @@ class PyBulletParams:
         check_fields(self, positive=("time_step", "duration", "threshold", "density", "depth", "rest_speed"),
                      non_negative=("friction", "restitution", "gravity", "rest_time", "min_time"),
                      whole=("solver_iterations", "check_every"))
+        if not isinstance(self.early_stop, bool):
+            raise ValueError(f"PyBulletParams.early_stop must be true or false, got {self.early_stop!r}")
 
 
 @dataclass(frozen=True)

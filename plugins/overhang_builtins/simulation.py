@@ -203,7 +203,8 @@ class IPEPredictor(Predictor):
             raise ValueError(f"K must be a whole number >= 1, got {K!r}")
         for name, value in (("sigma", sigma), ("sigma_position", sigma_position),
                             ("sigma_gravity", sigma_gravity), ("sigma_friction", sigma_friction)):
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not np.isfinite(value) or value < 0):
                 raise ValueError(f"{name} must be a number >= 0, got {value!r}")
         if isinstance(backend, str) and backend not in BACKENDS:
             raise ValueError(f"unknown IPE backend {backend!r}; allowed: {', '.join(BACKENDS)}")
@@ -215,8 +216,16 @@ class IPEPredictor(Predictor):
             friction=float(sigma if sigma_friction is None else sigma_friction),
         )
         self.backend_name = backend if isinstance(backend, str) else getattr(backend, "name", "custom")
+        if backend_params is not None and not isinstance(backend_params, Mapping):
+            raise ValueError(f"backend_params must be a mapping of parameter names to values, got {backend_params!r}")
         self.backend_params = dict(backend_params or {})
         self._backend = None if isinstance(backend, str) else backend
+        if self._backend is None and self.backend_name in ("static", "pybullet"):
+            from overhang_framework.physics.factory import backend_params as checked
+
+            params = dict(getattr(world, "backend_params", {}).get(self.backend_name, {}))
+            params.update(self.backend_params)
+            checked(self.backend_name, **params)  # refuse unknown or bad parameters now, not mid-run
 
     @property
     def backend(self):

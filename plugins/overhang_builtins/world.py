@@ -33,6 +33,9 @@ class OverhangWorld(World):
             raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
         self.resolution = float(resolution)
         self.physics_name = physics
+        for name, given in (("pybullet", pybullet), ("static", static)):
+            if given is not None and not isinstance(given, Mapping):
+                raise ValueError(f"{name} must be a mapping of {name} parameters, got {given!r}")
         self.backend_params = {"pybullet": dict(pybullet or {}), "static": dict(static or {})}
         if physics not in self.backend_params:
             raise ValueError(f"unknown physics {physics!r}; allowed: {', '.join(self.backend_params)}")

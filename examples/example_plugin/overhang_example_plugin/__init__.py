@@ -20,6 +20,9 @@ class RandomPlanner(Planner):
 
     def __init__(self, world, min_stability: float = 0.0):
         self.world = world
+        if isinstance(min_stability, bool) or not isinstance(min_stability, (int, float)) \
+                or not 0 <= min_stability <= 1:
+            raise ValueError(f"min_stability must be a number in [0, 1], got {min_stability!r}")
         self.min_stability = float(min_stability)
 
     def plan(self, state, predictor, value, budget: Budget, rng: np.random.Generator) -> Decision:

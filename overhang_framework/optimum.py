@@ -1,0 +1,192 @@
+"""The optimum of a task: the best reward over the discretised action set, proved by search.
+
+``OptimumSearch`` maximises ``prod_k p(s_k, a_k) * overhang(final tower)`` over
+every remaining placement, exhaustively with branch and bound: a greedy
+continuation gives a first achievable score, and a subtree is skipped only
+when :func:`~overhang_framework.search.reach_bound` (geometry alone) proves it
+cannot reach the best score found. States are memoised by their canonical
+geometry and remaining widths, and a tower that is its own mirror image is
+expanded on one side only. With the veridical predictor the result is the
+best reward the task allows.
+
+Optima are kept on disk, keyed by task sequence, physics and resolution, so
+every later run and report can show reward / optimum without recomputing it::
+
+    python -m overhang_framework.optimum                       # paper20 with the default world
+    python -m overhang_framework.optimum tasks=example world.physics=static
+
+writes (or completes) ``overhang_framework/data/optima.json``; ``--out FILE``
+writes elsewhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.interfaces import Budget, Predictor, State, Task, World
+from overhang_framework.results import atomic_write_json
+from overhang_framework.search import Expander, lookahead_value, root_scores
+
+DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
+
+
+class _FinalOverhang:
+    """Leaf value of the full-depth search: the final tower's overhang, with the geometric bound.
+
+    No tighter physical bound is used: a block may be slid under an
+    overhanging one and clamped there, so a placement can extend the tower by
+    almost its whole width and still stand.
+    """
+
+    def __init__(self, world: World):
+        from overhang_builtins.values import OverhangValue
+
+        self.inner = OverhangValue(world)
+
+    def __call__(self, state: State) -> float:
+        return self.inner(state)
+
+    def children_values(self, expansion):
+        return expansion.overhang
+
+    def bound(self, state: State, depth: int) -> float:
+        return self.inner.bound(state, depth)
+
+
+class OptimumSearch:
+    """Exhaustive search with bounds for the best ``prod p * final overhang`` from a state."""
+
+    def __init__(self, world: World, predictor: Predictor, seed: int = 0, mirror: bool = True,
+                 budget: Optional[Budget] = None):
+        self.world = world
+        self.expander = Expander(world, predictor, Budget() if budget is None else _Unlimited(budget),
+                                 seed=seed, mirror=mirror)
+        self.value = _FinalOverhang(world)
+        self.memo: dict = {}
+
+    def greedy(self, state: State) -> float:
+        """The score of the myopic continuation from ``state``: a score the optimum reaches or beats."""
+        score = 1.0
+        while not state.done:
+            e = self.expander.expand(state, force=True)
+            if not e.actions:
+                return 0.0
+            i = int(np.argmax(e.p * e.overhang))
+            if e.p[i] <= 0:
+                return 0.0
+            score *= float(e.p[i])
+            state = e.children[i]
+        return score * self.value(state)
+
+    def value_of(self, state: State) -> float:
+        """The optimum score from ``state`` to the end of its episode."""
+        floor = self.greedy(state)
+        return lookahead_value(self.expander, self.value, state, len(state.remaining), floor, self.memo)
+
+    def root_scores(self, state: State) -> np.ndarray:
+        """The optimum score after each first action (exact for the best ones, below them for the rest)."""
+        self.greedy(state)
+        return root_scores(self.expander, self.value, state, len(state.remaining), exact_all=False,
+                           memo=self.memo)
+
+
+class _Unlimited(Budget):
+    """A budget the optimum ignores (it is the reference), keeping its start time for reports."""
+
+    def __init__(self, budget: Budget):
+        super().__init__(started=budget.started)
+
+
+def physics_id(world: World) -> dict:
+    """What a world's verdicts depend on: its physics and their parameters, and its resolution."""
+    physics = getattr(world, "physics_name", type(world).__name__)
+    params = getattr(world, "backend_params", {}).get(physics, {})
+    return {"physics": physics, "params": params, "resolution": getattr(world, "resolution", None)}
+
+
+def optimum_key(task: Task, world: World) -> str:
+    """The disk-cache key of a task's optimum under a world's physics and resolution."""
+    ident = {"sequence": [round(w, 6) for w in task.sequence], **physics_id(world)}
+    return hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def load_optima(path: Path | str = DATA_FILE) -> dict:
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except ValueError as err:
+        raise ValueError(f"{path} is not a JSON file of optima: {err}") from None
+    return data.get("optima", {})
+
+
+def task_optimum(task: Task, world: World, predictor: Optional[Predictor] = None,
+                 path: Path | str | None = DATA_FILE) -> dict:
+    """The optimum of ``task`` (veridical predictor by default), from the disk cache or computed."""
+    key = optimum_key(task, world)
+    cached = load_optima(path).get(key) if path is not None else None
+    if cached is not None:
+        return cached
+    if predictor is None:
+        from overhang_framework.plugins import Registry
+
+        predictor = Registry().create("predictor", {"name": "veridical"}, world=world)
+    started = time.perf_counter()
+    search = OptimumSearch(world, predictor)
+    best = search.value_of(world.initial_state(task))
+    return {"task_id": task.id, "sequence": list(task.sequence), "optimum": best,
+            "seconds": time.perf_counter() - started, "nodes_expanded": search.expander.stats.nodes_expanded,
+            "leaves_pruned": search.expander.stats.leaves_pruned, **physics_id(world)}
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m overhang_framework.optimum",
+        description="Compute the optimum of every task of a task set and keep it in the optima file.")
+    parser.add_argument("overrides", nargs="*", help="config overrides, as for the main job (tasks=..., world....)")
+    parser.add_argument("--out", default=str(DATA_FILE), help=f"optima file (default: {DATA_FILE})")
+    args = parser.parse_args(argv)
+
+    from tqdm import tqdm
+
+    from overhang_framework.app import build_models
+    from overhang_framework.config import compose_config
+    from overhang_framework.errors import OverhangError
+    from overhang_framework.preflight import check_command_line
+    from overhang_framework.tasks import tasks_from_config
+
+    try:
+        check_command_line([*args.overrides, "--cfg", "job"])
+        cfg = compose_config([*args.overrides, "predictor=veridical"])
+        tasks = tasks_from_config(cfg.tasks)
+        world = build_models(cfg)["world"]
+    except OverhangError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    optima = load_optima(out)
+    bar = tqdm(tasks, desc="optima", unit="task", file=sys.stderr)
+    for task in bar:
+        key = optimum_key(task, world)
+        if key not in optima:
+            optima[key] = task_optimum(task, world, path=None)
+            atomic_write_json(out, {"command": "python -m overhang_framework.optimum " + " ".join(args.overrides),
+                                    "optima": optima})
+        bar.set_postfix_str(f"{task.id} {optima[key]['optimum']:.2f}")
+    for task in tasks:
+        row = optima[optimum_key(task, world)]
+        print(f"{task.id}  {' '.join(f'{w:.1f}' for w in task.sequence)}  optimum {row['optimum']:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
