@@ -107,8 +107,16 @@ class _Unlimited(Budget):
 
 def physics_id(world: World) -> dict:
     """What a world's verdicts depend on: its physics and their parameters, and its resolution."""
+    import dataclasses
+
+    from overhang_framework.physics.factory import backend_params
+
     physics = getattr(world, "physics_name", type(world).__name__)
-    params = getattr(world, "backend_params", {}).get(physics, {})
+    params = dict(getattr(world, "backend_params", {}).get(physics, {}))
+    try:
+        params = dataclasses.asdict(backend_params(physics, **params))  # every parameter, defaults included
+    except (ValueError, TypeError):
+        pass
     return {"physics": physics, "params": params, "resolution": getattr(world, "resolution", None)}
 
 
@@ -148,13 +156,32 @@ def task_optimum(task: Task, world: World, predictor: Optional[Predictor] = None
             "leaves_pruned": search.expander.stats.leaves_pruned, **physics_id(world)}
 
 
+def _solve(overrides: Sequence[str], index: int) -> tuple[str, dict]:
+    """Worker: the optimum of task ``index`` of the config ``overrides`` compose to."""
+    from overhang_framework.app import build_models
+    from overhang_framework.config import compose_config
+    from overhang_framework.tasks import tasks_from_config
+
+    cfg = compose_config([*overrides, "predictor=veridical"])
+    task = tasks_from_config(cfg.tasks)[index]
+    world = build_models(cfg)["world"]
+    return optimum_key(task, world), task_optimum(task, world, path=None)
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m overhang_framework.optimum",
-        description="Compute the optimum of every task of a task set and keep it in the optima file.")
+        description="Compute the optimum of every task of a task set (veridical predictor, the world's "
+                    "physics and resolution) and keep it in the optima file; tasks already there are skipped.")
     parser.add_argument("overrides", nargs="*", help="config overrides, as for the main job (tasks=..., world....)")
     parser.add_argument("--out", default=str(DATA_FILE), help=f"optima file (default: {DATA_FILE})")
+    parser.add_argument("--workers", type=int, default=1, help="tasks solved in parallel processes (default 1)")
     args = parser.parse_args(argv)
+    if args.workers < 1:
+        print(f"error: --workers must be a whole number >= 1, got {args.workers}", file=sys.stderr)
+        return 2
+
+    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     from tqdm import tqdm
 
@@ -169,22 +196,27 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         cfg = compose_config([*args.overrides, "predictor=veridical"])
         tasks = tasks_from_config(cfg.tasks)
         world = build_models(cfg)["world"]
-    except OverhangError as err:
+        out = Path(args.out)
+        optima = load_optima(out)
+    except (OverhangError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    optima = load_optima(out)
-    bar = tqdm(tasks, desc="optima", unit="task", file=sys.stderr)
-    for task in bar:
-        key = optimum_key(task, world)
-        if key not in optima:
-            optima[key] = task_optimum(task, world, path=None)
-            atomic_write_json(out, {"command": "python -m overhang_framework.optimum " + " ".join(args.overrides),
-                                    "optima": optima})
-        bar.set_postfix_str(f"{task.id} {optima[key]['optimum']:.2f}")
+    todo = [i for i, task in enumerate(tasks) if optimum_key(task, world) not in optima]
+    bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc="optima", unit="task", file=sys.stderr)
+    command = "python -m overhang_framework.optimum " + " ".join(args.overrides)
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        futures = {pool.submit(_solve, list(args.overrides), i): i for i in todo}
+        for future in as_completed(futures):
+            key, row = future.result()
+            optima[key] = row
+            atomic_write_json(out, {"command": command.strip(), "optima": optima})  # each one kept as it lands
+            bar.set_postfix_str(f"{row['task_id']} {row['optimum']:.2f}")
+            bar.update(1)
+    bar.close()
     for task in tasks:
         row = optima[optimum_key(task, world)]
-        print(f"{task.id}  {' '.join(f'{w:.1f}' for w in task.sequence)}  optimum {row['optimum']:.3f}")
+        print(f"{task.id}  {' '.join(f'{w:.1f}' for w in task.sequence)}  optimum {row['optimum']:.3f}"
+              f"  ({row['seconds']:.0f} s)")
     return 0
 
 

@@ -26,9 +26,11 @@ def register_predictors(register):
 def register_planners(register):
     from overhang_builtins.lookahead import LookaheadPlanner
     from overhang_builtins.myopic import MyopicPlanner
+    from overhang_builtins.optimal import OptimalPlanner
 
     register("myopic", MyopicPlanner)
     register("lookahead", LookaheadPlanner)
+    register("optimal", OptimalPlanner)
 
 
 @hookimpl
