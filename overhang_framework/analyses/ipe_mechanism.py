@@ -152,7 +152,24 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     args = ap.parse_args(argv)
     if args.quick:
         args.towers, args.sigmas, args.K, args.reference = 20, "0,0.03,0.1", 20, "static"
-    args.sigma_list = [float(s) for s in args.sigmas.split(",") if s.strip()]
+    try:
+        args.sigma_list = [float(s) for s in args.sigmas.split(",") if s.strip()]
+    except ValueError:
+        ap.error(f"--sigmas must be comma-separated numbers, got {args.sigmas!r}")
+    for name in ("towers", "K", "workers"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name} must be a whole number >= 1, got {getattr(args, name)}")
+    if any(s < 0 for s in args.sigma_list) or not args.sigma_list:
+        ap.error(f"--sigmas must be numbers >= 0, got {args.sigmas!r}")
+    if not 2 <= args.min_blocks <= args.max_blocks:
+        ap.error(f"need 2 <= --min-blocks <= --max-blocks, got {args.min_blocks} and {args.max_blocks}")
+    from overhang_framework.errors import OverhangError
+    from overhang_framework.preflight import check_writable
+
+    try:
+        check_writable(args.out)
+    except OverhangError as err:
+        ap.error(str(err).replace("; choose another with hydra.run.dir=DIR (hydra.sweep.dir=DIR with -m)", ""))
     return args
 
 
