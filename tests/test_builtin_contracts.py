@@ -28,3 +28,36 @@ class TestOverhangValue(ValueContract):
     @pytest.fixture
     def value(self, world):
         return Registry().create("value", {"name": "overhang"}, world=world)
+
+
+class _StaticWorld:
+    """Search planners and rollouts check thousands of towers: the static physics keeps these quick."""
+
+    @pytest.fixture
+    def world(self):
+        return Registry().create("world", {"name": "overhang", "physics": "static"})
+
+
+class TestLookaheadPlanner(_StaticWorld, PlannerContract):
+    @pytest.fixture
+    def planner(self, world):
+        return Registry().create("planner", {"name": "lookahead", "depth": 2}, world=world)
+
+
+class TestSoftmaxLookaheadPlanner(_StaticWorld, PlannerContract):
+    @pytest.fixture
+    def planner(self, world):
+        return Registry().create("planner", {"name": "lookahead", "depth": 2, "choice": "softmax", "beta": 5.0},
+                                 world=world)
+
+
+class TestOptimalPlanner(_StaticWorld, PlannerContract):
+    @pytest.fixture
+    def planner(self, world):
+        return Registry().create("planner", {"name": "optimal"}, world=world)
+
+
+class TestRolloutValue(_StaticWorld, ValueContract):
+    @pytest.fixture
+    def value(self, world):
+        return Registry().create("value", {"name": "rollout"}, world=world)

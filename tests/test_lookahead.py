@@ -200,3 +200,24 @@ def test_beam_search_is_an_approximation_that_costs_less(world, veridical, value
     beam = planner(world, depth=3, beam=2).plan(state, veridical, value, Budget(), np.random.default_rng(0))
     assert beam.spend.predictor_calls < full.spend.predictor_calls
     assert world.illegal_reason(state, beam.action) is None
+
+
+def test_values_never_exceed_their_bounds(world, veridical):
+    overhang_value = REG.create("value", {"name": "overhang"}, world=world)
+    rollout = REG.create("value", {"name": "rollout"}, world=world)
+    for state in random_states(world, 6, seed=11, min_placed=1, max_placed=3):
+        for value in (overhang_value, rollout):
+            assert value(state) <= value.bound(state, 0) + 1e-12
+            e = Expander(world, veridical, Budget(), seed=0).expand(state)
+            for child in e.children[::3]:
+                assert value(child) <= value.bound(state, 1) + 1e-12
+        # a finished tower is worth its overhang; a rollout never ends below zero
+        assert 0.0 <= rollout(state)
+
+
+def test_the_rollout_value_sees_past_the_horizon(world, veridical):
+    rollout = REG.create("value", {"name": "rollout"}, world=world)
+    state = State(Geometry((Block(1.2, 0.0, 0), Block(1.8, 0.3, 1))), (0.6, 1.8))
+    d = planner(world, depth=1).plan(state, veridical, rollout, Budget(), np.random.default_rng(0))
+    greedy = planner(world, "myopic").plan(state, veridical, rollout, Budget(), np.random.default_rng(0))
+    assert d.action != greedy.action, "with a rollout leaf value, depth 1 already looks beyond the next block"
