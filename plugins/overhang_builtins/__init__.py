@@ -25,10 +25,12 @@ def register_predictors(register):
 @hookimpl
 def register_planners(register):
     from overhang_builtins.lookahead import LookaheadPlanner
+    from overhang_builtins.mcts import MCTSPlanner
     from overhang_builtins.myopic import MyopicPlanner
 
     register("myopic", MyopicPlanner)
     register("lookahead", LookaheadPlanner)
+    register("mcts", MCTSPlanner)
 
 
 @hookimpl
