@@ -75,6 +75,9 @@ class MCTSPlanner(Planner):
     checked before every simulation (seconds) and before every predictor call
     (calls); a simulation cut short by the budget is discarded. With no
     simulation at all the root's priors decide, which is the myopic choice.
+    The spend records the simulations run (``iterations``) and, as
+    ``depth_completed``, the deepest placement (from the decision's state)
+    whose state the tree scored; rollouts do not count.
 
     **Choice.** ``argmax`` plays the most-visited root action, ties broken by
     its value ``Q_a`` (the prior for unvisited actions), then uniformly with
