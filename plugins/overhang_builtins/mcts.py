@@ -79,6 +79,11 @@ class MCTSPlanner(Planner):
     ``depth_completed``, the deepest placement (from the decision's state)
     whose state the tree scored; rollouts do not count.
 
+    With ``backup=max`` the search also stops when the tree is exhausted
+    (every action that can stand leads to terminal or exhausted states): its
+    values are then the exact lookahead scores to the end of the episode and
+    the best of them is played, as exhaustive lookahead would.
+
     **Choice.** ``argmax`` plays the most-visited root action, ties broken by
     its value ``Q_a`` (the prior for unvisited actions), then uniformly with
     the episode's generator; the recorded rank counts the actions ahead of it
@@ -124,7 +129,9 @@ class MCTSPlanner(Planner):
         if not root.expansion.actions:
             raise RuntimeError("no legal action in this state")
         done = 0
-        while len(root.order) and done < self.iterations and not budget.exhausted():
+        exhaustive = self.backup == "max"
+        while len(root.order) and not (exhaustive and root.solved) and done < self.iterations \
+                and not budget.exhausted():
             try:
                 search.simulate(root)
             except BudgetExhausted:
@@ -137,7 +144,8 @@ class MCTSPlanner(Planner):
 
     def _choose(self, root: "_Node", rng: np.random.Generator) -> tuple[int, float, int]:
         q = root.values(self.backup)
-        if self.rule.rule == "softmax":
+        if self.rule.rule == "softmax" or (root.solved and self.backup == "max"):
+            # softmax over the values; or argmax of values that an exhausted tree makes exact
             choice = self.rule.choose(q, rng)
             return choice.index, choice.probability, choice.rank
         visits = root.n.astype(float)
@@ -162,7 +170,8 @@ def _leaf_values(value: Value, expansion: Expansion) -> np.ndarray:
 class _Node:
     """An expanded state: its children's stability and priors, and the visit statistics of each action."""
 
-    __slots__ = ("state", "depth", "expansion", "prior", "order", "n", "w", "v", "children", "estimate")
+    __slots__ = ("state", "depth", "expansion", "prior", "order", "n", "w", "v", "children", "estimate",
+                 "solved")
 
     def __init__(self, state: State, depth: int, expansion: Expansion, leaf: np.ndarray):
         self.state = state
@@ -178,6 +187,18 @@ class _Node:
         self.v = self.prior.copy()
         self.children: dict[int, _Node] = {}
         self.estimate = float(self.prior.max()) if size else 0.0
+        self.solved = self._all_known()
+
+    def _all_known(self) -> bool:
+        """Whether every child that can stand is terminal or a solved node (the subtree is exhausted)."""
+        for a in self.order:
+            child = self.children.get(int(a))
+            if child is None:
+                if not self.expansion.children[a].done:
+                    return False
+            elif not child.solved:
+                return False
+        return True
 
     def values(self, backup: str) -> np.ndarray:
         """``Q_a`` of every action: ``p_a`` times its child's mean return (``mean``) or best
@@ -227,7 +248,7 @@ class _Search:
                 ret = float(self.value(state))
                 break
             child = self.node(state, node.depth + 1)
-            ret = child.estimate = self._leaf_return(child)
+            ret = child.estimate = child.estimate if child.solved else self._leaf_return(child)
             node.children[a] = child
             break
         best = self.planner.backup == "max"
@@ -236,9 +257,12 @@ class _Search:
             parent.w[a] += ret
             ret *= float(parent.expansion.p[a])
             child = parent.children.get(a)
-            if best and child is not None:
-                parent.v[a] = parent.expansion.p[a] * child.estimate
+            if best:
+                if child is not None:
+                    parent.v[a] = parent.expansion.p[a] * child.estimate
                 parent.estimate = float(parent.v.max())
+            if child is not None and child.solved:
+                parent.solved = parent._all_known()
         self.scale = max(self.scale, ret, root.estimate)
 
     def _select(self, node: _Node) -> Optional[int]:
