@@ -156,7 +156,7 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
                    "seed=[...] for a list"),
     (["predictor=hybird", "planner=lookahaed", "planner.depth=3"],
      "error: unknown predictor 'hybird' and planner 'lookahaed'; installed predictors: ipe, veridical; "
-     "installed planners: lookahead, myopic"),
+     "installed planners: lookahead, mcts, myopic, optimal"),
     (["-m", "predictor=veridical,nope", "value=nada"],
      "error: unknown predictor 'nope' and value 'nada'; installed predictors: ipe, veridical; installed values:"),
     (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),

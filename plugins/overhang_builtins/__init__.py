@@ -25,11 +25,13 @@ def register_predictors(register):
 @hookimpl
 def register_planners(register):
     from overhang_builtins.lookahead import LookaheadPlanner
+    from overhang_builtins.mcts import MCTSPlanner
     from overhang_builtins.myopic import MyopicPlanner
     from overhang_builtins.optimal import OptimalPlanner
 
     register("myopic", MyopicPlanner)
     register("lookahead", LookaheadPlanner)
+    register("mcts", MCTSPlanner)
     register("optimal", OptimalPlanner)
 
 
