@@ -91,6 +91,26 @@ class OptimumSearch:
         floor = self.greedy(state)
         return lookahead_value(self.expander, self.value, state, len(state.remaining), floor, self.memo)
 
+    def best_path(self, state: State) -> tuple[float, list]:
+        """The optimum score from ``state`` and a sequence of actions that reaches it."""
+        best = self.value_of(state)
+        path = []
+        target = best
+        while not state.done and target > 0:
+            depth = len(state.remaining)
+            e = self.expander.expand(state, force=True)
+            for action, child, p in zip(e.actions, e.children, e.p):
+                if p <= 0:
+                    continue
+                v = lookahead_value(self.expander, self.value, child, depth - 1, target / p, self.memo)
+                if p * v >= target * (1 - 1e-9):
+                    path.append(action)
+                    state, target = child, v
+                    break
+            else:  # pragma: no cover - the search found the optimum along some child
+                raise RuntimeError("no child reaches the optimum found")
+        return best, path
+
     def root_scores(self, state: State) -> np.ndarray:
         """The optimum score after each first action (exact for the best ones, below them for the rest)."""
         self.greedy(state)
@@ -150,8 +170,9 @@ def task_optimum(task: Task, world: World, predictor: Optional[Predictor] = None
         predictor = Registry().create("predictor", {"name": "veridical"}, world=world)
     started = time.perf_counter()
     search = OptimumSearch(world, predictor)
-    best = search.value_of(world.initial_state(task))
+    best, path = search.best_path(world.initial_state(task))
     return {"task_id": task.id, "sequence": list(task.sequence), "optimum": best,
+            "actions": [[a.x, a.layer] for a in path],
             "seconds": time.perf_counter() - started, "nodes_expanded": search.expander.stats.nodes_expanded,
             "leaves_pruned": search.expander.stats.leaves_pruned, **physics_id(world)}
 
@@ -166,6 +187,27 @@ def _solve(overrides: Sequence[str], index: int) -> tuple[str, dict]:
     task = tasks_from_config(cfg.tasks)[index]
     world = build_models(cfg)["world"]
     return optimum_key(task, world), task_optimum(task, world, path=None)
+
+
+def optimal_moves(world: World, path: Path | str | None = None) -> dict:
+    """The next optimal action of every state on the stored optimal paths of this world's physics and
+    resolution, by canonical state key (what the optimal planner replays instead of searching).
+    ``path`` defaults to the project's optima file."""
+    from overhang_framework.geometry import Action
+    from overhang_framework.search import state_key
+
+    path = DATA_FILE if path is None else path
+    ident = physics_id(world)
+    moves = {}
+    for row in load_optima(path).values():
+        if {k: row.get(k) for k in ident} != json.loads(json.dumps(ident, default=str)) or "actions" not in row:
+            continue
+        state = world.initial_state(Task(row["task_id"], tuple(row["sequence"])))
+        for x, layer in row["actions"]:
+            action = Action(float(x), int(layer))
+            moves[state_key(state)] = action
+            state = world.successor(state, action)
+    return moves
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

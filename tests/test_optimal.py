@@ -86,3 +86,26 @@ def test_optima_are_cached_on_disk_by_task_physics_and_resolution(tmp_path, worl
                             "tasks.sequences=[[0.6,1.8,1.2],[1.2,0.6,0.6]]", "world.physics=static",
                             "world.resolution=0.2", f"--out={out}"], capture_output=True, text=True)
     assert again.returncode == 0 and json.loads(out.read_text())["optima"] == optima
+
+
+def test_the_optimal_planner_replays_stored_optimal_paths(tmp_path, world, veridical, monkeypatch):
+    import overhang_framework.optimum as optimum
+
+    task = Task("t", (1.2, 0.6, 1.8, 1.8))
+    row = task_optimum(task, world, path=None)
+    out = tmp_path / "optima.json"
+    out.write_text(json.dumps({"optima": {optimum_key(task, world): row}}))
+    monkeypatch.setattr(optimum, "DATA_FILE", out)
+    value = REG.create("value", {"name": "overhang"}, world=world)
+    played = {}
+    for stored in (True, False):
+        planner = REG.create("planner", {"name": "optimal", "stored": stored}, world=world)
+        state, actions, calls = world.initial_state(task), [], 0
+        while not state.done:
+            d = planner.plan(state, veridical, value, Budget(), np.random.default_rng(0))
+            calls += d.spend.predictor_calls
+            actions.append(d.action)
+            state = world.step(state, d.action)
+        played[stored] = (overhang(state.geometry), calls)
+    assert played[True][0] == played[False][0] == pytest.approx(row["optimum"])
+    assert played[True][1] == 3 < played[False][1], "stored paths are replayed with one check per placement"

@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
+from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, Spend, State, Value, World
 from overhang_framework.optimum import OptimumSearch
 from overhang_framework.search import ChoiceRule
 
@@ -24,18 +24,42 @@ class OptimalPlanner(Planner):
     neither the value plugin nor any budget: it is the reference the other
     planners are measured against. Ties among optimal first actions are broken
     with the episode's generator.
+
+    With the veridical predictor on the world's own physics, a state on an
+    optimal path stored by ``python -m overhang_framework.optimum`` (same
+    physics and resolution) is answered from that file without searching
+    (``stored: false`` always searches).
     """
 
-    def __init__(self, world: World, mirror: bool = True):
-        if not isinstance(mirror, bool):
-            raise ValueError(f"mirror must be true or false, got {mirror!r}")
+    def __init__(self, world: World, mirror: bool = True, stored: bool = True):
+        for name, flag in (("mirror", mirror), ("stored", stored)):
+            if not isinstance(flag, bool):
+                raise ValueError(f"{name} must be true or false, got {flag!r}")
         self.world = world
         self.mirror = mirror
+        self.stored = stored
         self.rule = ChoiceRule("argmax")
+        self._moves: Optional[dict] = None
+
+    def _stored_move(self, state: State, predictor: Predictor):
+        if not self.stored or not getattr(predictor, "world_verdicts", False):
+            return None
+        if self._moves is None:
+            from overhang_framework.optimum import optimal_moves
+
+            self._moves = optimal_moves(self.world)
+        from overhang_framework.search import state_key
+
+        return self._moves.get(state_key(state))
 
     def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
              rng: np.random.Generator) -> Decision:
         start = time.perf_counter()
+        stored = self._stored_move(state, predictor)
+        if stored is not None:
+            p = float(np.asarray(predictor.predict(state, [stored], rng))[0])
+            return Decision(stored, p, Spend(predictor_calls=1, actions_scored=1, seconds=time.perf_counter() - start,
+                                             depth_completed=len(state.remaining)))
         search = OptimumSearch(self.world, predictor, seed=int(rng.integers(2**63)), mirror=self.mirror,
                                budget=budget)
         scores = search.root_scores(state)

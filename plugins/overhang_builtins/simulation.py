@@ -341,3 +341,8 @@ class VeridicalPredictor(IPEPredictor):
     def __init__(self, world: World, backend: Union[str, PhysicsBackend] = "world",
                  backend_params: Optional[Mapping[str, Any]] = None):
         super().__init__(world, K=1, sigma=0.0, backend=backend, backend_params=backend_params)
+
+    @property
+    def world_verdicts(self) -> bool:
+        """Whether the probabilities are exactly the world's own verdicts (1 stands, 0 falls)."""
+        return self.backend_name == "world" and not self.backend_params
