@@ -5,7 +5,7 @@ import pytest
 
 from overhang_framework.geometry import Geometry
 from overhang_framework.physics.static_backend import StaticBackend, StaticParams
-from overhang_framework.towers import random_towers
+from overhang_framework.bench.towers import random_towers
 
 
 def G(*rows):
@@ -129,4 +129,11 @@ def test_params_validate():
     with pytest.raises(ValueError):
         StaticParams(friction_combine="max")
     with pytest.raises(ValueError):
-        StaticParams(margin=-1)
+        StaticParams(margin=float("nan"))
+
+
+def test_a_negative_margin_widens_the_contacts():
+    tower = G((0.6, 0.0, 0), (1.2, 0.31, 1))  # the upper block's centre 1 cm past the edge
+    assert not StaticBackend(margin=0.0).stable(tower)
+    assert StaticBackend(margin=-0.02).stable(tower)
+    assert StaticBackend(margin=-0.02).stable_batch([tower])[0]

@@ -19,7 +19,8 @@ Bullet combines frictions; ``mu_a * ground_friction`` on the ground) and
 balance every block's weight in force and torque. The *safety margin* shrinks
 every contact segment by ``margin`` at both ends (a segment shorter than
 ``2 * margin`` becomes a point at its middle), so a block whose load passes
-within ``margin`` of an edge counts as tipping.
+within ``margin`` of an edge counts as tipping. A negative margin widens every
+segment by ``-margin`` at both ends (a lenient model, used to prove falls).
 
 Gravity is any vector ``(gx, gz)``; only its direction matters. Friction is
 optional per block.
@@ -89,7 +90,9 @@ class StaticParams:
     def __post_init__(self):
         if self.friction_combine not in ("product", "min", "mean"):
             raise ValueError(f"friction_combine must be product, min or mean, not {self.friction_combine!r}")
-        check_fields(self, non_negative=("margin", "friction", "ground_friction", "gravity", "min_contact",
+        if isinstance(self.margin, bool) or not isinstance(self.margin, (int, float)) or not np.isfinite(self.margin):
+            raise ValueError(f"StaticParams.margin must be a finite number, got {self.margin!r}")
+        check_fields(self, non_negative=("friction", "ground_friction", "gravity", "min_contact",
                                          "side_gap", "side_overlap", "lp_tolerance"))
 
 
@@ -284,8 +287,12 @@ def _cuts_pass(bt: _Batch, params: StaticParams) -> np.ndarray:
 
 
 def _shrink(a: np.ndarray, c: np.ndarray, margin: float):
-    if margin <= 0:
+    """Segments ``[a, c]`` shrunk by ``margin`` at both ends (to their middle at most); a negative
+    ``margin`` widens them."""
+    if margin == 0:
         return a, c
+    if margin < 0:
+        return a + margin, c - margin
     mid = (a + c) / 2
     return np.minimum(a + margin, mid), np.maximum(c - margin, mid)
 
@@ -452,6 +459,8 @@ def _single_tree(geometry: Geometry, gravity, friction, params: StaticParams) ->
         if margin > 0:
             mid = (a + c) / 2
             a, c = min(a + margin, mid), max(c - margin, mid)
+        elif margin < 0:
+            a, c = a + margin, c - margin
         cop = sx[i] / sm[i] + (b.layer * BLOCK_HEIGHT - sz[i] / sm[i]) * ratio
         if abs(gx) > mu * abs(gz) + 1e-12 or cop < a - 1e-12 or cop > c + 1e-12:
             return None if side else False
