@@ -15,11 +15,15 @@ static model twice, at two settings that bracket the reference:
   gravity as given (a tower that needs friction to stand, a friction jam,
   is never taken on the static model's word). Only interpenetration-free
   towers qualify.
-* **falls for sure**: no static equilibrium even with every contact widened
-  by ``fall_margin`` at both ends, block friction ``fall_friction``, blocks
-  of one layer up to ``fall_side_gap`` apart counted as touching (a tipping
-  block may come to rest against a neighbour), under gravity as given and
-  tilted by ``+fall_tilt`` and ``-fall_tilt``.
+* **falls for sure**: no static equilibrium even with block friction
+  ``fall_friction``, blocks of one layer up to ``fall_side_gap`` apart
+  counted as touching (a tipping block may come to rest against a
+  neighbour), under gravity as given and tilted by ``+fall_tilt`` and
+  ``-fall_tilt``, with every contact shrunk by ``fall_margin`` (a negative
+  value widens them). The default, 1 micrometre, makes a load passing
+  exactly through a support's edge fall: in the reference such a tower rests
+  for a while, then creeps off the edge and falls, while one whose load passes
+  0.01 to 0.3 mm inside the edge may stand (docs/physics.md).
 
 A tower that is neither (the band around its tipping point) goes to the
 reference: the full-window PyBullet run, which ends early only once a block
@@ -53,7 +57,7 @@ class TieredParams:
     stable_margin: float = 0.005
     stable_tilt: float = 0.02
     frictionless_stable: bool = True
-    fall_margin: float = -0.0005
+    fall_margin: float = 1e-6
     fall_tilt: float = 0.0
     fall_friction: float = 0.6
     fall_side_gap: float = 0.12
@@ -61,6 +65,9 @@ class TieredParams:
     def __post_init__(self):
         check_fields(self, non_negative=("stable_margin", "stable_tilt", "fall_tilt",
                                          "fall_friction", "fall_side_gap"))
+        if isinstance(self.fall_margin, bool) or not isinstance(self.fall_margin, (int, float)) \
+                or not np.isfinite(self.fall_margin) or self.fall_margin > self.stable_margin:
+            raise ValueError(f"TieredParams.fall_margin must be a number <= stable_margin, got {self.fall_margin!r}")
         if not isinstance(self.frictionless_stable, bool):
             raise ValueError(f"TieredParams.frictionless_stable must be true or false, got {self.frictionless_stable!r}")
         for name in ("stable_tilt", "fall_tilt"):
@@ -98,7 +105,7 @@ class TieredBackend:
         self.counts = dict.fromkeys(STAGES, 0)
         base = replace(static, side_overlap=1e-6)
         self._stable = StaticBackend(replace(base, margin=params.stable_margin))
-        self._fall = StaticBackend(replace(static, margin=-params.fall_margin, side_gap=params.fall_side_gap,
+        self._fall = StaticBackend(replace(static, margin=params.fall_margin, side_gap=params.fall_side_gap,
                                            side_overlap=1e9, friction=params.fall_friction))
         self._reference = None
 
