@@ -331,7 +331,7 @@ def _on_an_edge(geometry: Geometry) -> Optional[Geometry]:
         s = sum(b.width * b.x for b in above)
         for edge in (max(upper.left, lower.left), min(upper.right, lower.right)) if k else (lower.left, lower.right):
             options.append((m + last.width) * edge / last.width - s / last.width)
-    static = StaticBackend(margin=0.0)
+    static = StaticBackend(margin=0.0, height_margin=0.0, friction_scale=1.0)
     lo, hi = last_block_interval(geometry)
     for x in sorted(options, key=lambda v: abs(v - last.x)):
         if lo <= x <= hi:
@@ -366,7 +366,9 @@ def family_towers(family: str, n: int, seed: int = 0) -> list[Geometry]:
     if family == "random":
         return random_towers(n, seed=seed)
     out: list[Geometry] = []
-    while len(out) < n:
+    for _ in range(100 * n + 100):
+        if len(out) >= n:
+            break
         if family == "tall_cantilever":
             out.append(_stack(rng, int(rng.integers(4, 8))))
         elif family == "counterweight":
@@ -379,4 +381,6 @@ def family_towers(family: str, n: int, seed: int = 0) -> list[Geometry]:
                 out.append(g)
         else:
             raise ValueError(f"unknown tower family {family!r}; allowed: {', '.join(FAMILIES)}")
+    if len(out) < n:
+        raise RuntimeError(f"found only {len(out)} of {n} {family} towers")
     return out

@@ -83,12 +83,12 @@ from overhang_framework.physics import check_fields
 class StaticParams:
     """Parameters of :class:`StaticBackend` (defaults calibrated against PyBullet, see docs/physics.md)."""
 
-    margin: float = 0.002
+    margin: float = 0.001
     friction: float = 0.5
     ground_friction: float = 0.5
     friction_combine: str = "product"
-    height_margin: float = 0.0
-    friction_scale: float = 1.0
+    height_margin: float = 0.002
+    friction_scale: float = 0.8
     gravity: float = 9.81
     min_contact: float = 1e-6
     side_contacts: bool = True

@@ -20,10 +20,10 @@ static model twice, at two settings that bracket the reference:
   counted as touching (a tipping block may come to rest against a
   neighbour), under gravity as given and tilted by ``+fall_tilt`` and
   ``-fall_tilt``, with every contact shrunk by ``fall_margin`` (a negative
-  value widens them). The default, 1 micrometre, makes a load passing
-  exactly through a support's edge fall: in the reference such a tower rests
-  for a while, then creeps off the edge and falls, while one whose load passes
-  0.01 to 0.3 mm inside the edge may stand (docs/physics.md).
+  value widens them). With the default 0, a load passing exactly through a
+  support's edge is not a sure fall: in the reference most such towers rest
+  for a while, then creep off the edge and fall, but not all
+  (docs/physics.md), so they go to the reference.
 
 A tower that is neither (the band around its tipping point) goes to the
 reference: the full-window PyBullet run, which ends early only once a block
@@ -57,7 +57,7 @@ class TieredParams:
     stable_margin: float = 0.005
     stable_tilt: float = 0.02
     frictionless_stable: bool = True
-    fall_margin: float = 1e-6
+    fall_margin: float = 0.0
     fall_tilt: float = 0.0
     fall_friction: float = 0.6
     fall_side_gap: float = 0.12
@@ -86,7 +86,8 @@ class TieredBackend:
 
     ``params`` set the static stages (:class:`TieredParams`), ``static`` the
     static model they start from (friction, ground friction, gravity, side
-    contacts; its ``margin`` is replaced by the stages' own),
+    contacts; its ``margin``, ``height_margin`` and ``friction_scale`` are
+    replaced by the stages' own settings),
     ``pybullet`` the reference (its ``early_stop`` is ignored: the reference is
     the full window). ``workers > 1`` runs reference checks on a
     :class:`~overhang_framework.physics.pool.PyBulletPool`. ``counts`` holds how
@@ -103,6 +104,7 @@ class TieredBackend:
         self.workers = max(1, int(workers))
         self.params = (params, static, self.reference_params)
         self.counts = dict.fromkeys(STAGES, 0)
+        static = replace(static, height_margin=0.0, friction_scale=1.0)  # the stages bring their own margins
         base = replace(static, side_overlap=1e-6)
         self._stable = StaticBackend(replace(base, margin=params.stable_margin))
         self._fall = StaticBackend(replace(static, margin=params.fall_margin, side_gap=params.fall_side_gap,
