@@ -23,6 +23,9 @@ and reports, by family and by distance to the flip:
   towers scanned in 1 mm steps across their flip, and how often moving the
   last block by one unit in the last place changes a verdict within 1 cm of
   the flip;
+* with ``--creep-only``: only how towers balanced exactly on an edge creep
+  (speed between 0.1 and 0.5 s, when they pass the threshold), against the
+  early-stop rest speed;
 * with ``--robust K``: how often the robust verdict (stable under the exact
   geometry and K fixed 1 mm jitters) differs from the reference on the placed
   towers and on the workload candidates near their flip (those the tiered
@@ -195,6 +198,44 @@ def throughput(decisions: Sequence[Sequence[Geometry]], tiered: TieredParams, qu
             "early_stop_mean_steps": early_steps / n}
 
 
+EDGE_TOWERS = (((1.8, 0.0, 0), (1.8, 0.9, 1)), ((0.6, 0.0, 0), (1.2, -0.3, 1)), ((1.8, 0.0, 0), (0.6, -0.9, 1)))
+"""Towers whose upper block's load passes exactly through the lower block's edge."""
+
+
+def edge_creep(params: PyBulletParams = PyBulletParams()) -> list[dict]:
+    """For each of :data:`EDGE_TOWERS`: its largest block speed over time and when it passes the threshold.
+
+    Speed is measured as the early stop measures it (linear speed plus angular
+    speed times the block height), after every step of the full window.
+    """
+    from overhang_framework.geometry import BLOCK_HEIGHT
+
+    out = []
+    for rows in EDGE_TOWERS:
+        g = Geometry.from_tuples(rows)
+        sim = PyBulletSimulator(params)
+        p, cid = sim._p, sim._client
+        bodies = sim._build(g, None, None)
+        start = np.array([[b.x, 0.0, b.z] for b in g.blocks])
+        total = int(round(params.duration / params.time_step))
+        speed, disp = np.zeros(total), np.zeros(total)
+        for k in range(total):
+            p.stepSimulation(physicsClientId=cid)
+            vel = [p.getBaseVelocity(b, physicsClientId=cid) for b in bodies]
+            speed[k] = max(np.linalg.norm(v) + np.linalg.norm(w) * BLOCK_HEIGHT for v, w in vel)
+            pos = np.array([p.getBasePositionAndOrientation(b, physicsClientId=cid)[0] for b in bodies])
+            disp[k] = np.max(np.linalg.norm(pos - start, axis=1))
+        sim.close()
+        t = np.arange(1, total + 1) * params.time_step
+        early = (t >= 0.1) & (t <= 0.5)
+        passed = np.flatnonzero(disp > params.threshold)
+        out.append({"tower": [list(r) for r in rows], "speed_0.1_0.5s": [float(speed[early].min()), float(speed[early].max())],
+                    "speed_1s": float(speed[np.searchsorted(t, 1.0)]), "speed_2s": float(speed[np.searchsorted(t, 2.0)]),
+                    "passes_threshold_s": float(t[passed[0]]) if passed.size else None,
+                    "rest_speed": params.rest_speed})
+    return out
+
+
 def chaotic_band(crit: dict, reference: Reference, n: int, seed: int) -> dict:
     """The reference across the flip of ``n`` near-critical towers, and its sensitivity to one ulp of x."""
     rng = np.random.default_rng([seed, 11])
@@ -335,11 +376,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--robust", type=int, default=0, metavar="K", help="robust verdicts with K jitters")
     ap.add_argument("--speed-decisions", type=int, default=100, help="decisions timed (default 100: all)")
     ap.add_argument("--reference-cache", metavar="FILE", help="keep reference verdicts in FILE between runs")
+    ap.add_argument("--creep-only", action="store_true", help="only measure how edge-balanced towers creep")
     ap.add_argument("--episodes", type=int, default=20, help="paper20 tasks played for the workloads (default 20)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 4 towers per family, 2 episodes, 5 decisions")
     ap.add_argument("--out", help="also write the JSON figures to this file")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
+    if args.creep_only:
+        creep = edge_creep()
+        if not args.quiet:
+            for c in creep:
+                lo, hi = c["speed_0.1_0.5s"]
+                print(f"{c['tower']}: speed {lo:.2e}-{hi:.2e} m/s between 0.1 and 0.5 s (rest_speed {c['rest_speed']:g}), "
+                      f"{c['speed_1s']:.1e} at 1 s, {c['speed_2s']:.1e} at 2 s, passes the threshold at {c['passes_threshold_s']:.2f} s")
+        print(json.dumps({"edge_creep": creep}))
+        return 0
     if args.quick:
         args.per_family, args.offsets, args.speed_decisions = min(args.per_family, 4), 1, min(args.speed_decisions, 5)
         args.episodes = min(args.episodes, 2)
