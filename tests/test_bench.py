@@ -23,3 +23,31 @@ def test_quick_benchmark_prints_its_json_line(tmp_path):
         assert 0.0 <= figures[key] <= 1.0
     assert figures["speedup_static"] > 1 and figures["static_checks_per_s"] > 0
     assert json.loads(out.read_text())["towers"] == 30
+
+
+@pytest.mark.slow
+def test_quick_agreement_benchmark_reports_families_stages_and_speed(tmp_path):
+    out = tmp_path / "agreement.json"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.bench.agreement", "--quick", "--quiet",
+                           "--workers", "2", "--out", str(out)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    figures = json.loads(proc.stdout.strip().splitlines()[-1])
+    fams = figures["families"]
+    assert {"edge", "veridical candidates", "ipe candidates", "veridical placed"} <= set(fams)
+    for row in fams.values():
+        assert abs(sum(row["stages"].values()) - 1) < 1e-9
+        assert row["tiered"]["agreement"] == 1.0
+    assert figures["placed_tiered_equals_reference"] is True
+    assert figures["speed"]["queries"] > 0 and figures["speed"]["tiered_per_s"] > 0
+    assert json.loads(out.read_text())["seed"] == figures["seed"]
+
+
+def test_edge_creep_is_reported_against_the_rest_speed():
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.bench.agreement", "--creep-only", "--quiet"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    creep = json.loads(proc.stdout.strip().splitlines()[-1])["edge_creep"]
+    assert len(creep) == 3
+    for c in creep:
+        assert c["passes_threshold_s"] is not None  # every exactly edge-balanced tower falls in the window
+    assert creep[0]["speed_0.1_0.5s"][1] < creep[0]["rest_speed"] < creep[0]["speed_2s"]

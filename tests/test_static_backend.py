@@ -5,7 +5,7 @@ import pytest
 
 from overhang_framework.geometry import Geometry
 from overhang_framework.physics.static_backend import StaticBackend, StaticParams
-from overhang_framework.towers import random_towers
+from overhang_framework.bench.towers import random_towers
 
 
 def G(*rows):
@@ -105,18 +105,41 @@ def test_batched_equals_single_with_and_without_noise(static):
     assert 0 < batch.sum() < len(batch)
 
 
-def test_fast_paths_agree_with_the_lp_on_every_tower():
+@pytest.mark.parametrize("params", [
+    StaticParams(margin=0.005),
+    StaticParams(margin=0.002, height_margin=0.01, friction_scale=0.8),
+    StaticParams(margin=-0.01, side_gap=0.1),
+], ids=["margin", "height-margin", "widened"])
+def test_fast_paths_agree_with_the_lp_on_every_tower(params):
     from overhang_framework.physics import static_backend as sb
 
     towers = random_towers(300, seed=9)
     rng = np.random.default_rng(1)
     grav = np.c_[rng.normal(0, 1.0, len(towers)), -9.81 + rng.normal(0, 0.3, len(towers))]
     fric = [rng.uniform(0.2, 1.0, len(g)) for g in towers]
-    params = StaticParams(margin=0.005)
+    backend = StaticBackend(params)
     for gv, fr in ((None, None), (grav, fric)):
         batch = sb._Batch(towers, gv, fr, params)
         lp_all = sb._lp_verdicts(batch, np.arange(len(towers)), params)
-        assert np.array_equal(lp_all, StaticBackend(params).stable_batch(towers, gv, fr))
+        assert np.array_equal(lp_all, backend.stable_batch(towers, gv, fr))
+        single = [backend.stable(g, None if gv is None else gv[i], None if fr is None else fr[i])
+                  for i, g in enumerate(towers)]
+        assert np.array_equal(lp_all, single)
+
+
+def test_height_margin_tips_tall_loads_earlier():
+    short = G((1.8, 0.0, 0), (1.2, 0.85, 1))  # 5 cm inside the edge
+    tall = G((1.8, 0.0, 0), (1.2, 0.85, 1), (1.2, 0.85, 2), (1.2, 0.85, 3), (1.2, 0.85, 4))
+    plain, corrected = StaticBackend(margin=0.002), StaticBackend(margin=0.002, height_margin=0.05)
+    assert plain.stable(short) and plain.stable(tall)
+    assert corrected.stable(short) and not corrected.stable(tall)
+    assert not corrected.stable_batch([tall])[0]
+
+
+def test_friction_scale_drops_the_friction_jam():
+    jam = G((0.6, 0.0, 0), (0.6, -0.54, 1), (1.8, 0.08, 2), (0.6, 0.48, 1))
+    assert StaticBackend(friction_scale=1.0).stable(jam)
+    assert not StaticBackend(friction_scale=0.8).stable(jam)
 
 
 def test_order_of_blocks_does_not_matter(static):
@@ -129,4 +152,11 @@ def test_params_validate():
     with pytest.raises(ValueError):
         StaticParams(friction_combine="max")
     with pytest.raises(ValueError):
-        StaticParams(margin=-1)
+        StaticParams(margin=float("nan"))
+
+
+def test_a_negative_margin_widens_the_contacts():
+    tower = G((0.6, 0.0, 0), (1.2, 0.31, 1))  # the upper block's centre 1 cm past the edge
+    assert not StaticBackend(margin=0.0).stable(tower)
+    assert StaticBackend(margin=-0.02).stable(tower)
+    assert StaticBackend(margin=-0.02).stable_batch([tower])[0]

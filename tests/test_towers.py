@@ -6,7 +6,9 @@ import pytest
 from overhang_framework.geometry import WIDTHS
 from overhang_framework.physics.static_backend import StaticBackend
 from overhang_framework.rules import is_legal
-from overhang_framework.towers import (
+from overhang_framework.bench.towers import (
+    FAMILIES,
+    family_towers,
     Geometry,
     episode_questions,
     find_flips,
@@ -91,3 +93,20 @@ def test_episode_questions_need_a_standing_tower_to_grow():
         episode_questions(lambda towers: np.zeros(len(towers), dtype=bool), per_height=4, max_blocks=4)
     assert len(episode_questions(lambda towers: np.zeros(len(towers), dtype=bool), per_height=4,
                                  max_blocks=2)) == 4
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_family_towers_are_seeded_and_shaped(family):
+    towers = family_towers(family, 8, seed=3)
+    assert len(towers) == 8
+    assert [g.key for g in towers] == [g.key for g in family_towers(family, 8, seed=3)]
+    for g in towers:
+        assert g.blocks[0].layer == 0 and all(b.width in WIDTHS for b in g.blocks)
+    if family == "tall_cantilever":
+        assert all(len(g) >= 4 and len({b.layer for b in g.blocks}) == len(g) for g in towers)
+    if family == "indeterminate":
+        assert all(sum(1 for b in g.blocks if b.layer == 1) == 2 for g in towers)
+    if family == "edge":  # a load passes exactly through an edge: stands rigidly, tips with any margin
+        exact = StaticBackend(margin=0.0, height_margin=0.0, friction_scale=1.0)
+        tipped = StaticBackend(margin=1e-6, height_margin=0.0, friction_scale=1.0)
+        assert all(exact.stable(g) and not tipped.stable(g) for g in towers)

@@ -41,11 +41,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.bench import machine
+from overhang_framework.bench.physics import machine
 from overhang_framework.geometry import Action, Geometry
 from overhang_framework.interfaces import State
 from overhang_framework.physics.factory import make_backend
-from overhang_framework.towers import episode_questions, near_critical_towers, random_towers
+from overhang_framework.bench.towers import episode_questions, near_critical_towers, random_towers
 
 
 def as_question(tower: Geometry) -> tuple[State, Action]:

@@ -42,7 +42,7 @@ import numpy as np
 
 from overhang_framework.physics.factory import make_backend
 from overhang_framework.results import atomic_output, atomic_write_json, atomic_write_text, mean_sem
-from overhang_framework.towers import Verdicts, episode_questions
+from overhang_framework.bench.towers import Verdicts, episode_questions
 
 
 def binary_entropy(p: np.ndarray) -> np.ndarray:

@@ -135,4 +135,12 @@ class CachedBackend:
         return out
 
     def stats(self) -> dict:
-        return self.cache.stats()
+        """The cache's counters, and the wrapped backend's own under ``backend`` when it keeps any."""
+        inner = getattr(self.backend, "stats", None)
+        return {**self.cache.stats(), "backend": inner()} if inner else self.cache.stats()
+
+    def close(self) -> None:
+        """Close the wrapped backend (a process pool, say) if it can be closed."""
+        close = getattr(self.backend, "close", None)
+        if close is not None:
+            close()

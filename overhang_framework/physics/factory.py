@@ -6,7 +6,7 @@ from typing import Optional
 
 from overhang_framework.physics.cache import CachedBackend, VerdictCache
 
-BACKENDS = ("pybullet", "static")
+BACKENDS = ("pybullet", "static", "tiered")
 
 
 def backend_params(name: str, **params):
@@ -16,6 +16,8 @@ def backend_params(name: str, **params):
         from overhang_framework.physics.pybullet_backend import PyBulletParams as cls
     elif name == "static":
         from overhang_framework.physics.static_backend import StaticParams as cls
+    elif name == "tiered":
+        from overhang_framework.physics.tiered import TieredParams as cls
     else:
         raise ValueError(f"unknown physics backend {name!r}; allowed: {', '.join(BACKENDS)}")
     fields = set(cls.__dataclass_fields__)
@@ -27,17 +29,26 @@ def backend_params(name: str, **params):
     return cls(**params)
 
 
-def make_backend(name: str, *, workers: Optional[int] = None, cache=None, **params):
+def make_backend(name: str, *, workers: Optional[int] = None, cache=None, pybullet=None, static=None,
+                 **params):
     """The backend called ``name`` with ``params`` overriding its parameter defaults.
 
     ``pybullet`` takes :class:`PyBulletParams` fields and, with ``workers > 1``,
     runs on a :class:`PyBulletPool`; ``static`` takes :class:`StaticParams`
-    fields. ``cache`` wraps the backend in a :class:`CachedBackend`: ``True``
+    fields; ``tiered`` takes :class:`TieredParams` fields, plus the mappings
+    ``pybullet`` and ``static`` for the reference and static model it is
+    built on (reference checks on a pool with ``workers > 1``). ``cache`` wraps the backend in a :class:`CachedBackend`: ``True``
     for a fresh :class:`VerdictCache`, or a cache to share. Unknown names and
     unknown parameters raise ``ValueError``.
     """
     prm = backend_params(name, **params)
-    if name == "pybullet":
+    if name == "tiered":
+        from overhang_framework.physics.tiered import TieredBackend
+
+        backend = TieredBackend(prm, static=backend_params("static", **dict(static or {})),
+                                pybullet=backend_params("pybullet", **dict(pybullet or {})),
+                                workers=workers or 1)
+    elif name == "pybullet":
         if workers is not None and workers > 1:
             from overhang_framework.physics.pool import PyBulletPool
 

@@ -19,7 +19,16 @@ Bullet combines frictions; ``mu_a * ground_friction`` on the ground) and
 balance every block's weight in force and torque. The *safety margin* shrinks
 every contact segment by ``margin`` at both ends (a segment shorter than
 ``2 * margin`` becomes a point at its middle), so a block whose load passes
-within ``margin`` of an edge counts as tipping.
+within ``margin`` of an edge counts as tipping. A negative margin widens every
+segment by ``-margin`` at both ends (a lenient model, used to prove falls).
+
+Two corrections bring the rigid model closer to the reference engine, whose
+contacts are compliant: ``height_margin`` shrinks the contact under a block by
+a further ``height_margin`` times the height of the centre of mass of that
+block and everything resting on it (directly or not) above the contact, so a
+tall load tips earlier, as it does in the engine; and ``friction_scale``
+multiplies every combined friction coefficient (the engine lets blocks slip
+out of friction-held configurations that rigid equilibrium accepts).
 
 Gravity is any vector ``(gx, gz)``; only its direction matters. Friction is
 optional per block.
@@ -74,10 +83,12 @@ from overhang_framework.physics import check_fields
 class StaticParams:
     """Parameters of :class:`StaticBackend` (defaults calibrated against PyBullet, see docs/physics.md)."""
 
-    margin: float = 0.002
+    margin: float = 0.001
     friction: float = 0.5
     ground_friction: float = 0.5
     friction_combine: str = "product"
+    height_margin: float = 0.002
+    friction_scale: float = 0.8
     gravity: float = 9.81
     min_contact: float = 1e-6
     side_contacts: bool = True
@@ -89,16 +100,21 @@ class StaticParams:
     def __post_init__(self):
         if self.friction_combine not in ("product", "min", "mean"):
             raise ValueError(f"friction_combine must be product, min or mean, not {self.friction_combine!r}")
-        check_fields(self, non_negative=("margin", "friction", "ground_friction", "gravity", "min_contact",
+        if isinstance(self.margin, bool) or not isinstance(self.margin, (int, float)) or not np.isfinite(self.margin):
+            raise ValueError(f"StaticParams.margin must be a finite number, got {self.margin!r}")
+        check_fields(self, non_negative=("friction", "height_margin", "friction_scale", "ground_friction", "gravity", "min_contact",
                                          "side_gap", "side_overlap", "lp_tolerance"))
 
 
-def _combine(a: np.ndarray, b: np.ndarray, how: str) -> np.ndarray:
+def _combine(a: np.ndarray, b: np.ndarray, params: "StaticParams") -> np.ndarray:
+    how, scale = params.friction_combine, params.friction_scale
     if how == "product":
-        return a * b
-    if how == "min":
-        return np.minimum(a, b)
-    return (a + b) / 2
+        out = a * b
+    elif how == "min":
+        out = np.minimum(a, b)
+    else:
+        out = (a + b) / 2
+    return out if scale == 1.0 else out * scale
 
 
 class _Batch:
@@ -146,11 +162,30 @@ class _Batch:
         else:
             self.side = np.zeros_like(same)
         self.ground = valid & (layer == 0)
+        self.cmargin = self._contact_margins(params)
+
+    def _contact_margins(self, params: "StaticParams"):
+        """The margin of the contacts under each block, ``(B, N)``, or the scalar ``margin``."""
+        if params.height_margin == 0:
+            return params.margin
+        B, N = self.below.shape[:2]
+        up = self.below.transpose(0, 2, 1).astype(float)  # up[b, i, k]: k rests on i
+        reach = np.broadcast_to(np.eye(N), (B, N, N)).copy()
+        for _ in range(N):
+            nxt = np.minimum(reach + reach @ up, 1.0)
+            if np.array_equal(nxt, reach):
+                break
+            reach = nxt
+        mass = reach @ self.m[:, :, None]
+        height = (reach @ (self.m * self.zc)[:, :, None]) / np.where(mass > 0, mass, 1.0)
+        above = np.maximum(height[:, :, 0] - self.layer * BLOCK_HEIGHT, 0.0)
+        return params.margin + params.height_margin * np.where(self.valid, above, 0.0)
 
     def subset(self, rows: np.ndarray) -> "_Batch":
         """The geometries ``rows`` of this batch, as a new batch sharing no state."""
         sub = object.__new__(_Batch)
         sub.B, sub.N = int(rows.size), self.N
+        sub.cmargin = self.cmargin
         for k, v in vars(self).items():
             if isinstance(v, np.ndarray):
                 setattr(sub, k, v[rows])
@@ -192,12 +227,12 @@ def _tree_check(bt: _Batch, parent: np.ndarray, params: StaticParams) -> np.ndar
     pr = np.take_along_axis(bt.right, safe_parent, axis=1)
     a = np.where(bt.ground, bt.left, np.maximum(bt.left, pl))
     c = np.where(bt.ground, bt.right, np.minimum(bt.right, pr))
-    a, c = _shrink(a, c, params.margin)
+    a, c = _shrink(a, c, bt.cmargin)
     zcont = bt.layer * BLOCK_HEIGHT
     gx, gz = bt.g[:, 0:1], bt.g[:, 1:2]
     pmu = np.take_along_axis(bt.mu, safe_parent, axis=1)
-    mu = np.where(bt.ground, _combine(bt.mu, np.full_like(bt.mu, params.ground_friction), params.friction_combine),
-                  _combine(bt.mu, pmu, params.friction_combine))
+    mu = np.where(bt.ground, _combine(bt.mu, np.full_like(bt.mu, params.ground_friction), params),
+                  _combine(bt.mu, pmu, params))
     down = gz < 0
     gzs = np.where(down, gz, -1.0)
     cop = X + (zcont - Z) * gx / gzs
@@ -244,12 +279,13 @@ def _cuts_pass(bt: _Batch, params: StaticParams) -> np.ndarray:
     adj = below | below.transpose(0, 2, 1) | bt.side | bt.side.transpose(0, 2, 1)
     a = np.maximum(bt.left[:, :, None], bt.left[:, None, :])
     c = np.minimum(bt.right[:, :, None], bt.right[:, None, :])
-    a, c = _shrink(a, c, params.margin)
-    mu_pair = _combine(bt.mu[:, :, None], bt.mu[:, None, :], params.friction_combine)
-    ga, gc = _shrink(bt.left, bt.right, params.margin)
+    cm = bt.cmargin if np.isscalar(bt.cmargin) else bt.cmargin[:, :, None]
+    a, c = _shrink(a, c, cm)
+    mu_pair = _combine(bt.mu[:, :, None], bt.mu[:, None, :], params)
+    ga, gc = _shrink(bt.left, bt.right, bt.cmargin)
     lo = np.where(bt.ground, ga, np.where(below, a, np.inf).min(axis=2))
     hi = np.where(bt.ground, gc, np.where(below, c, -np.inf).max(axis=2))
-    mu_g = _combine(bt.mu, np.full_like(bt.mu, params.ground_friction), params.friction_combine)
+    mu_g = _combine(bt.mu, np.full_like(bt.mu, params.ground_friction), params)
     mub = np.where(bt.ground, mu_g, np.where(below, mu_pair, 0.0).max(axis=2))
     gx, gz = bt.g[:, 0:1], bt.g[:, 1:2]
     down = gz[:, 0] < 0
@@ -283,9 +319,17 @@ def _cuts_pass(bt: _Batch, params: StaticParams) -> np.ndarray:
     return (ok & down) | bt.zero_g
 
 
-def _shrink(a: np.ndarray, c: np.ndarray, margin: float):
-    if margin <= 0:
+def _shrink(a: np.ndarray, c: np.ndarray, margin):
+    """Segments ``[a, c]`` shrunk by ``margin`` (a number or an array like ``a``) at both ends, to
+    their middle at most; a negative ``margin`` widens them."""
+    if not np.isscalar(margin):
+        mid = (a + c) / 2
+        pos = margin > 0
+        return np.where(pos, np.minimum(a + margin, mid), a + margin), np.where(pos, np.maximum(c - margin, mid), c - margin)
+    if margin == 0:
         return a, c
+    if margin < 0:
+        return a + margin, c - margin
     mid = (a + c) / 2
     return np.minimum(a + margin, mid), np.maximum(c - margin, mid)
 
@@ -304,17 +348,17 @@ def _lp_verdicts(bt: _Batch, rows_b: np.ndarray, params: StaticParams) -> np.nda
     gb = rows_b[sb]
     a = np.maximum(bt.left[gb, i], bt.left[gb, j])
     c = np.minimum(bt.right[gb, i], bt.right[gb, j])
-    a, c = _shrink(a, c, params.margin)
+    a, c = _shrink(a, c, bt.cmargin if np.isscalar(bt.cmargin) else bt.cmargin[gb, i])
     zc = bt.layer[gb, i] * h
-    mu = _combine(bt.mu[gb, i], bt.mu[gb, j], params.friction_combine)
+    mu = _combine(bt.mu[gb, i], bt.mu[gb, j], params)
     one, zero = np.ones_like(a), np.zeros_like(a)
     geo.append(np.stack([zero, one, one, zero, a, zc, c, zc, mu], axis=1))
     s_list.append(sb), A_list.append(i), Bd_list.append(j)
     # ground contacts
     sg, i = np.nonzero(bt.ground[rows_b])
     gg = rows_b[sg]
-    a, c = _shrink(bt.left[gg, i], bt.right[gg, i], params.margin)
-    mu = _combine(bt.mu[gg, i], np.full(i.shape, params.ground_friction), params.friction_combine)
+    a, c = _shrink(bt.left[gg, i], bt.right[gg, i], bt.cmargin if np.isscalar(bt.cmargin) else bt.cmargin[gg, i])
+    mu = _combine(bt.mu[gg, i], np.full(i.shape, params.ground_friction), params)
     one, zero = np.ones_like(a), np.zeros_like(a)
     geo.append(np.stack([zero, one, one, zero, a, zero, c, zero, mu], axis=1))
     s_list.append(sg), A_list.append(i), Bd_list.append(np.full(i.shape, -1))
@@ -323,7 +367,7 @@ def _lp_verdicts(bt: _Batch, rows_b: np.ndarray, params: StaticParams) -> np.nda
     gs = rows_b[ss]
     xs = (bt.right[gs, i] + bt.left[gs, j]) / 2
     z0, z1 = _shrink(bt.layer[gs, i] * h, bt.layer[gs, i] * h + h, params.margin)
-    mu = _combine(bt.mu[gs, i], bt.mu[gs, j], params.friction_combine)
+    mu = _combine(bt.mu[gs, i], bt.mu[gs, j], params)
     one, zero = np.ones_like(xs), np.zeros_like(xs)
     geo.append(np.stack([one, zero, zero, one, xs, z0, xs, z1, mu], axis=1))
     s_list.append(ss), A_list.append(j), Bd_list.append(i)
@@ -449,9 +493,14 @@ def _single_tree(geometry: Geometry, gravity, friction, params: StaticParams) ->
             mu = min(mus[i], mu_b)
         else:
             mu = (mus[i] + mu_b) / 2
+        mu *= params.friction_scale
+        if params.height_margin:
+            margin = params.margin + params.height_margin * max(sz[i] / sm[i] - b.layer * BLOCK_HEIGHT, 0.0)
         if margin > 0:
             mid = (a + c) / 2
             a, c = min(a + margin, mid), max(c - margin, mid)
+        elif margin < 0:
+            a, c = a + margin, c - margin
         cop = sx[i] / sm[i] + (b.layer * BLOCK_HEIGHT - sz[i] / sm[i]) * ratio
         if abs(gx) > mu * abs(gz) + 1e-12 or cop < a - 1e-12 or cop > c + 1e-12:
             return None if side else False

@@ -1,4 +1,4 @@
-"""The Overhang Tower world of the paper: grid rules, PyBullet (or static) physics, overhang reward."""
+"""The Overhang Tower world of the paper: grid rules, physics with the reference's verdicts, overhang reward."""
 
 from __future__ import annotations
 
@@ -12,17 +12,20 @@ from overhang_framework.interfaces import State, Task, World
 class OverhangWorld(World):
     """Blocks of height 0.6 on an 8 x 8 grid; the first block stands at the ground centre.
 
-    ``physics`` names the ground-truth backend (``pybullet`` or ``static``);
-    ``pybullet`` and ``static`` are the parameters of each backend (see
-    ``conf/world/overhang.yaml``). ``resolution`` is the x step of the candidate
+    ``physics`` names the ground-truth backend: ``tiered`` (the full-window
+    PyBullet reference's verdicts, decided by static checks where they are
+    sure), ``pybullet`` (the reference itself with ``early_stop: false``) or
+    ``static`` (static equilibrium); ``tiered``, ``pybullet`` and ``static``
+    are the parameters of each backend (see ``conf/world/overhang.yaml``;
+    ``tiered`` builds on the other two). ``resolution`` is the x step of the candidate
     actions that :meth:`legal_actions` enumerates; ``cache`` memoises verdicts by
     the canonical geometry key; ``workers > 1`` runs PyBullet batches on a
     process pool of that many workers.
     """
 
-    def __init__(self, physics: str = "pybullet", resolution: float = 0.1, cache: bool = True,
+    def __init__(self, physics: str = "tiered", resolution: float = 0.1, cache: bool = True,
                  workers: int = 1, pybullet: Optional[Mapping[str, Any]] = None,
-                 static: Optional[Mapping[str, Any]] = None):
+                 static: Optional[Mapping[str, Any]] = None, tiered: Optional[Mapping[str, Any]] = None):
         from overhang_framework.physics.factory import backend_params, make_backend
 
         if not isinstance(resolution, (int, float)) or isinstance(resolution, bool) or resolution <= 0:
@@ -33,15 +36,18 @@ class OverhangWorld(World):
             raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
         self.resolution = float(resolution)
         self.physics_name = physics
-        for name, given in (("pybullet", pybullet), ("static", static)):
+        for name, given in (("pybullet", pybullet), ("static", static), ("tiered", tiered)):
             if given is not None and not isinstance(given, Mapping):
                 raise ValueError(f"{name} must be a mapping of {name} parameters, got {given!r}")
-        self.backend_params = {"pybullet": dict(pybullet or {}), "static": dict(static or {})}
+        self.backend_params = {"pybullet": dict(pybullet or {}), "static": dict(static or {}),
+                               "tiered": dict(tiered or {})}
         if physics not in self.backend_params:
             raise ValueError(f"unknown physics {physics!r}; allowed: {', '.join(self.backend_params)}")
         for name, params in self.backend_params.items():
             backend_params(name, **params)
-        self.backend = make_backend(physics, workers=workers, cache=cache, **self.backend_params[physics])
+        extra = {"pybullet": self.backend_params["pybullet"], "static": self.backend_params["static"]} \
+            if physics == "tiered" else {}
+        self.backend = make_backend(physics, workers=workers, cache=cache, **self.backend_params[physics], **extra)
 
     def initial_state(self, task: Task) -> State:
         widths = tuple(check_width(w) for w in task.sequence)

@@ -252,3 +252,135 @@ def episode_questions(reference: Verdicts, per_height: int, seed: int = 0, min_b
         if not pool and n < max_blocks:
             raise RuntimeError(f"no tower of {n} blocks stands; cannot grow to {n + 1}")
     return questions
+
+
+FAMILIES = ("random", "tall_cantilever", "counterweight", "indeterminate", "edge")
+"""Tower families of :func:`family_towers`."""
+
+
+def _stack(rng: np.random.Generator, n_blocks: int) -> Geometry:
+    """A single-support stack: every block on the block just below it, anywhere it still touches."""
+    geometry = Geometry((Block(WIDTHS[rng.integers(3)], 0.0, 0),))
+    for layer in range(1, n_blocks):
+        below = geometry.blocks[-1]
+        w = WIDTHS[rng.integers(3)]
+        reach = (below.width + w) / 2 - 0.05
+        x = below.x + float(rng.uniform(-reach, reach)) * float(rng.uniform(0.3, 1.0))
+        geometry = geometry.add(Block(w, round(x, 3), layer))
+    return geometry
+
+
+def _counterweight(rng: np.random.Generator) -> Geometry:
+    """A block whose own centre overhangs its support, held by a counterweight on its inner end."""
+    base = Block(WIDTHS[rng.integers(1, 3)], 0.0, 0)
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    arm = Block(1.8, side * round(base.width / 2 + float(rng.uniform(0.0, 0.5)), 3), 1)
+    blocks = [base, arm]
+    if rng.random() < 0.4:  # a load on the outer end too
+        blocks.append(Block(0.6, round(arm.x + side * float(rng.uniform(0.2, 0.6)), 3), 2))
+    w = WIDTHS[rng.integers(3)]
+    inner = arm.x - side * float(rng.uniform(0.0, 0.9))
+    if blocks[-1].layer == 2:
+        outer = blocks[-1]
+        limit = outer.x - side * (outer.width + w) / 2
+        inner = min(inner, limit) if side > 0 else max(inner, limit)
+    blocks.append(Block(w, round(inner, 3), 2))
+    return Geometry(tuple(blocks))
+
+
+def _indeterminate(rng: np.random.Generator) -> Geometry:
+    """Two pillars on a base carry a bridge; one or two blocks above it; several blocks have two supports."""
+    base = Block(1.8, 0.0, 0)
+    wl, wr = WIDTHS[rng.integers(2)], WIDTHS[rng.integers(2)]
+    xl = round(-0.9 + wl / 2 + float(rng.uniform(-0.3, 0.3)), 3)
+    xr = round(0.9 - wr / 2 + float(rng.uniform(-0.3, 0.3)), 3)
+    xr = max(xr, xl + (wl + wr) / 2 + 0.05)
+    bridge = Block(1.8, round((xl + xr) / 2 + float(rng.uniform(-0.6, 0.6)), 3), 2)
+    blocks = [base, Block(wl, xl, 1), Block(wr, xr, 1), bridge]
+    for layer in range(3, 3 + int(rng.integers(1, 3))):
+        below = blocks[-1]
+        w = WIDTHS[rng.integers(3)]
+        blocks.append(Block(w, round(below.x + float(rng.uniform(-0.6, 0.6)), 3), layer))
+    return Geometry(tuple(blocks))
+
+
+def _on_an_edge(geometry: Geometry) -> Optional[Geometry]:
+    """``geometry`` with its last block moved so that the load on one contact below it passes
+    exactly through that contact's edge, or ``None`` when no such legal placement holds the rest.
+
+    Only for single-support chains under the last block; the candidate x values
+    are tried nearest first, and kept when the rigid model with no margin
+    (which accepts a load exactly on an edge) calls the tower stable.
+    """
+    from overhang_framework.physics.static_backend import StaticBackend
+
+    blocks = list(geometry.blocks)
+    last = blocks[-1]
+    chain = []
+    cur = last
+    while cur.layer > 0:
+        sup = [b for b in blocks[:-1] if b.layer == cur.layer - 1 and min(cur.right, b.right) - max(cur.left, b.left) > 0]
+        if len(sup) != 1:
+            return None
+        chain.append((cur, sup[0]))
+        cur = sup[0]
+    options = []
+    for k, (upper, lower) in enumerate(chain):
+        above = [b for b in blocks[:-1] if b.layer >= upper.layer and _rests_on(blocks[:-1], b, upper)]
+        m = sum(b.width for b in above)
+        s = sum(b.width * b.x for b in above)
+        for edge in (max(upper.left, lower.left), min(upper.right, lower.right)) if k else (lower.left, lower.right):
+            options.append((m + last.width) * edge / last.width - s / last.width)
+    static = StaticBackend(margin=0.0, height_margin=0.0, friction_scale=1.0)
+    lo, hi = last_block_interval(geometry)
+    for x in sorted(options, key=lambda v: abs(v - last.x)):
+        if lo <= x <= hi:
+            g = with_last_x(geometry, x)
+            if static.stable(g):
+                return g
+    return None
+
+
+def _rests_on(blocks, block: Block, upper: Block) -> bool:
+    """Whether ``block`` is ``upper`` or rests, directly or not, on it (single-support chains)."""
+    cur = block
+    while cur.layer > upper.layer:
+        sup = [b for b in blocks if b.layer == cur.layer - 1 and min(cur.right, b.right) - max(cur.left, b.left) > 0]
+        if not sup:
+            return False
+        cur = sup[0]
+    return cur == upper
+
+
+def family_towers(family: str, n: int, seed: int = 0) -> list[Geometry]:
+    """``n`` seeded towers of one of :data:`FAMILIES`, legal or not, before any move to a flip.
+
+    ``random``: :func:`random_towers`; ``tall_cantilever``: single-support
+    stacks of 4 to 7 blocks; ``counterweight``: a block overhanging its
+    support held by a block on its inner end; ``indeterminate``: a bridge on
+    two pillars with blocks above (statically indeterminate); ``edge``: random
+    stacks and towers whose last block is moved so that a load passes exactly
+    through a support's edge.
+    """
+    rng = np.random.default_rng([seed, FAMILIES.index(family)])
+    if family == "random":
+        return random_towers(n, seed=seed)
+    out: list[Geometry] = []
+    for _ in range(100 * n + 100):
+        if len(out) >= n:
+            break
+        if family == "tall_cantilever":
+            out.append(_stack(rng, int(rng.integers(4, 8))))
+        elif family == "counterweight":
+            out.append(_counterweight(rng))
+        elif family == "indeterminate":
+            out.append(_indeterminate(rng))
+        elif family == "edge":
+            g = _on_an_edge(_stack(rng, int(rng.integers(2, 7))))
+            if g is not None:
+                out.append(g)
+        else:
+            raise ValueError(f"unknown tower family {family!r}; allowed: {', '.join(FAMILIES)}")
+    if len(out) < n:
+        raise RuntimeError(f"found only {len(out)} of {n} {family} towers")
+    return out

@@ -1,0 +1,3 @@
+from overhang_framework.bench.physics import main
+
+raise SystemExit(main())

@@ -1,0 +1,139 @@
+"""Check towers with the world's physics: ``python -m overhang_framework.check TOWERS [OVERRIDES...]``.
+
+``TOWERS`` is a JSON Lines file (``-`` for standard input), one tower per line
+as ``{"blocks": [[width, x, layer], ...]}`` with the ground block first
+(layer 0). Blank lines are skipped. For every tower, in input order, one JSON
+object ``{"stable": true|false}`` is written to standard output.
+
+The physics is the world of the composed run config, chosen with the usual
+overrides, e.g. ``world.physics=pybullet world.pybullet.early_stop=false`` for
+the full-window reference or ``world.physics=static``. The whole input is
+read and checked before any physics runs; a malformed line stops the command
+with ``error: TOWERS line N: <what is wrong>`` and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Optional, Sequence
+
+from overhang_framework.geometry import Block, Geometry, IllegalWidth, check_width
+
+
+class BadTower(ValueError):
+    """A line of TOWERS that is not a tower."""
+
+
+def parse_tower(text: str) -> Geometry:
+    """The tower of one JSON Lines line; :class:`BadTower` says what is wrong."""
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise BadTower(f"not JSON ({exc.msg} at column {exc.colno})") from None
+    if not isinstance(obj, dict) or "blocks" not in obj:
+        raise BadTower('expected an object {"blocks": [[width, x, layer], ...]}')
+    rows = obj["blocks"]
+    if not isinstance(rows, list) or not rows:
+        raise BadTower('"blocks" must be a non-empty list of [width, x, layer]')
+    blocks = []
+    for k, row in enumerate(rows, 1):
+        if not isinstance(row, list) or len(row) != 3:
+            raise BadTower(f"block {k} must be [width, x, layer], got {json.dumps(row)}")
+        width, x, layer = row
+        if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in row):
+            raise BadTower(f"block {k} must hold three finite numbers, got {json.dumps(row)}")
+        try:
+            width = check_width(width)
+        except IllegalWidth as exc:
+            raise BadTower(f"block {k}: {exc}") from None
+        if float(layer) != int(layer) or layer < 0:
+            raise BadTower(f"block {k}: layer must be a whole number >= 0, got {layer!r}")
+        blocks.append(Block(width, float(x), int(layer)))
+    if blocks[0].layer != 0:
+        raise BadTower(f"the first block must be the ground block (layer 0), got layer {blocks[0].layer}")
+    return Geometry(tuple(blocks))
+
+
+def read_towers(lines) -> list[Geometry]:
+    """Every tower of the JSON Lines ``lines``; :class:`BadTower` names the first bad line."""
+    towers = []
+    for number, text in enumerate(lines, 1):
+        if not text.strip():
+            continue
+        try:
+            towers.append(parse_tower(text))
+        except BadTower as exc:
+            raise BadTower(f"line {number}: {exc}") from None
+    return towers
+
+
+def build_world(overrides: Sequence[str]):
+    """The world of the run config composed with ``overrides``, built through the plugin registry."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.plugins import Registry
+
+    cfg = compose_config(list(overrides))
+    return Registry().create("world", OmegaConf.to_container(cfg.world, resolve=True))
+
+
+def verdicts(world, towers: Sequence[Geometry], chunk: int = 256, progress: bool = True) -> list[bool]:
+    """The world's verdict for every tower, asked in batches of ``chunk``."""
+    from tqdm import tqdm
+
+    backend = getattr(world, "backend", None)
+    out: list[bool] = []
+    with tqdm(total=len(towers), desc="towers", unit="tower", disable=not progress, file=sys.stderr) as bar:
+        for start in range(0, len(towers), chunk):
+            part = towers[start:start + chunk]
+            if backend is not None and hasattr(backend, "stable_batch"):
+                out.extend(bool(v) for v in backend.stable_batch(part))
+            else:
+                out.extend(bool(world.is_stable(g)) for g in part)
+            bar.update(len(part))
+    return out
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.check", description=__doc__.split("\n\n")[0])
+    ap.add_argument("towers", metavar="TOWERS", help="JSON Lines file of towers, or - for standard input")
+    ap.add_argument("overrides", nargs="*", metavar="OVERRIDE",
+                    help="config overrides, as for the main job (e.g. world.physics=static)")
+    ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = ap.parse_intermixed_args(argv)
+
+    def fail(message: str) -> int:
+        print(f"error: {message}", file=sys.stderr)
+        return 2
+
+    try:
+        if args.towers == "-":
+            towers = read_towers(sys.stdin)
+        else:
+            with open(args.towers, encoding="utf-8") as fh:
+                towers = read_towers(fh)
+    except BadTower as exc:
+        return fail(f"TOWERS {exc}")
+    except (OSError, UnicodeDecodeError) as exc:
+        return fail(f"TOWERS: cannot read {args.towers}: {getattr(exc, 'strerror', None) or exc}")
+    try:
+        world = build_world(args.overrides)
+    except Exception as exc:  # a bad override or parameter: one line, as the main job reports it
+        return fail(" ".join(str(exc).split()) or type(exc).__name__)
+    try:
+        results = verdicts(world, towers, progress=not args.quiet)
+    finally:
+        close = getattr(getattr(world, "backend", None), "close", None)
+        if close is not None:
+            close()
+    sys.stdout.write("".join(json.dumps({"stable": v}) + "\n" for v in results))
+    sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
