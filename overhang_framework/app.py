@@ -208,7 +208,8 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
         return summary
 
     placements = [len(task.sequence) - 1 for _, task, _ in jobs]
-    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not checked.progress, miniters=1,
+    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not checked.progress,
+               miniters=1, mininterval=0,
                file=sys.stderr, dynamic_ncols=True,
                initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
     try:
