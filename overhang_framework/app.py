@@ -122,6 +122,7 @@ class Checked:
     call_limit: Optional[int]
     progress: bool
     overwrite: bool
+    jobs: int
     tasks: list
     models: dict
 
@@ -135,7 +136,8 @@ def check_config(cfg: DictConfig) -> Checked:
     return Checked(
         seed=_whole(cfg, "seed", 0), repeats=_whole(cfg, "repeats", 1), time_limit=_time_limit(cfg),
         call_limit=_call_limit(cfg), progress=_flag(cfg, "progress", True),
-        overwrite=_flag(cfg, "overwrite", False), tasks=tasks_from_config(cfg.tasks), models=build_models(cfg))
+        overwrite=_flag(cfg, "overwrite", False), jobs=_whole(cfg, "jobs", 1) if "jobs" in cfg else 1,
+        tasks=tasks_from_config(cfg.tasks), models=build_models(cfg))
 
 
 class Terminated(Exception):
@@ -192,11 +194,13 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
             return summary
     rundir.reopen()
 
-    def summary_of(complete: bool) -> dict:
+    def summary_of(complete: bool, error: Optional[BaseException] = None) -> dict:
         episodes = [done[(i, rep)] for i, _, rep in jobs if (i, rep) in done]
         summary = summarize(episodes)
         summary.update({
             "complete": complete,
+            "status": "complete" if complete else ("failed" if error is not None else "incomplete"),
+            "error": "" if error is None else _first_line(error),
             "episodes_expected": len(jobs),
             "episodes_resumed": resumed,
             "wall_time": time.perf_counter() - started,
@@ -212,20 +216,34 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
                miniters=1, mininterval=0,
                file=sys.stderr, dynamic_ncols=True,
                initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
+    length = {(i, rep): n for (i, _, rep), n in zip(jobs, placements)}
+    todo = [(i, rep) for i, _, rep in jobs if (i, rep) not in done]
+
+    def serial() -> Iterator[dict]:
+        for i, rep in todo:
+            bar.set_postfix_str(f"episode {len(done) + 1}/{len(jobs)} {tasks[i].id}")
+            record = run_episode(tasks[i], models["world"], models["predictor"], models["planner"],
+                                 models["value"], episode_rng(seed, i, rep), time_limit,
+                                 on_step=lambda step: bar.update(1), call_limit=call_limit)
+            record.update({"seed": seed, "repeat": rep, "task_index": i})
+            yield record
+
+    if checked.jobs > 1 and len(todo) > 1:
+        from overhang_framework.parallel import play_episodes
+
+        bar.set_postfix_str(f"{min(checked.jobs, len(todo))} processes")
+        records = play_episodes(_params(cfg), todo, seed, time_limit, call_limit, checked.jobs,
+                                on_step=lambda: bar.update(1))
+    else:
+        records = serial()
     try:
         with _sigterm_stops_the_run(), EpisodeLog(rundir.episodes, append=True) as episode_log:
-            for (i, task, rep), n_placements in zip(jobs, placements):
-                if (i, rep) in done:
-                    continue
-                bar.set_postfix_str(f"episode {len(done) + 1}/{len(jobs)} {task.id}")
-                record = run_episode(task, models["world"], models["predictor"], models["planner"],
-                                     models["value"], episode_rng(seed, i, rep), time_limit,
-                                     on_step=lambda step: bar.update(1), call_limit=call_limit)
-                bar.update(n_placements - len(record["steps"]))
-                record.update({"seed": seed, "repeat": rep, "task_index": i})
+            for record in records:
+                key = (record["task_index"], record["repeat"])
+                bar.update(length[key] - len(record["steps"]))  # placements a collapse cut short
                 episode_log.write(record)
-                done[(i, rep)] = readable(record)
-                log.info("episode %s repeat %d: reward %.3f, %d placements, %s", task.id, rep,
+                done[key] = readable(record)
+                log.info("episode %s repeat %d: reward %.3f, %d placements, %s", record["task_id"], key[1],
                          record["reward"], len(record["steps"]),
                          "stood throughout" if record["stable_throughout"] else "collapsed")
     except (KeyboardInterrupt, Terminated) as stop:
@@ -236,7 +254,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     except Exception as err:  # a crashed worker, or a fault in a model: keep what finished
         bar.close()
         log.exception("the run stopped on an error")
-        summary_of(complete=False)
+        summary_of(complete=False, error=err)
         raise Stopped(err, len(done), len(jobs), rundir.partial) from None
     bar.close()
     summary = summary_of(complete=True)
@@ -254,6 +272,28 @@ def _number(value) -> str:
     if value is None or (isinstance(value, float) and value != value):
         return "-"
     return f"{value:.3f}"
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
+
+
+def _in_sweep() -> bool:
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def _job_failed(out_dir: Path, error: BaseException) -> None:
+    """In a sweep, a job that fails records why in its metrics.json and lets the other jobs run."""
+    metrics = out_dir / "metrics.json"
+    try:
+        summary = json.loads(metrics.read_text()) if metrics.exists() else {}
+    except ValueError:
+        summary = {}
+    summary.update({"complete": False, "status": "failed", "error": _first_line(error)})
+    atomic_write_json(metrics, summary)
 
 
 def _overwrite(cfg: DictConfig) -> bool:
@@ -294,6 +334,9 @@ def main(cfg: DictConfig) -> dict:
     except OverhangError as err:
         log.error("%s", err)
         print(f"error: {err}", file=sys.stderr)
+        if _in_sweep():
+            _job_failed(out_dir, err)
+            return {}
         sys.exit(2)
     except Interrupted as stop:
         again = "the same command without overwrite=true" if stop.overwrite else "the same command"
@@ -311,6 +354,8 @@ def main(cfg: DictConfig) -> dict:
                    f"with hydra.run.dir={out_dir}")
         log.error("%s", message)
         print(message, file=sys.stderr)
+        if _in_sweep():
+            return {}  # metrics.json says failed; the sweep goes on and reports it
         sys.exit(1)
     except KeyboardInterrupt:
         print("interrupted before the first episode; no episode was written", file=sys.stderr)

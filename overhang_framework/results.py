@@ -93,7 +93,17 @@ class EpisodeLog:
         self._fh.flush()
 
     def close(self) -> None:
+        """Rename the finished log into place, its lines in job order (``task_index``, ``repeat``):
+        episodes played in parallel, or resumed, finish out of order."""
         self._fh.close()
+        with open(self.partial) as fh:
+            lines = [line for line in fh if line.strip()]
+        ordered = sorted(lines, key=_job_order)
+        if ordered != lines:
+            with open(self.partial, "w") as fh:
+                fh.writelines(ordered)
+                fh.flush()
+                os.fsync(fh.fileno())
         os.replace(self.partial, self.path)
 
     def __enter__(self):
@@ -104,6 +114,11 @@ class EpisodeLog:
             self.close()
         else:
             self._fh.close()
+
+
+def _job_order(line: str) -> tuple:
+    record = json.loads(line)
+    return int(record.get("task_index", 0)), int(record.get("repeat", 0))
 
 
 def read_episodes(path: Path | str) -> list[dict]:

@@ -8,8 +8,8 @@ episode. Running again into a directory that already holds episodes:
 * of another config, is refused with one line naming the differences, unless
   ``overwrite=true``, which removes the earlier results first.
 
-Settings that do not change results (``progress``, ``overwrite``) are not part
-of the config compared.
+Settings that do not change results (``progress``, ``overwrite``, ``jobs``)
+are not part of the config compared.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ LOCK_FILE = ".run.lock"
 EPISODES = "episodes.jsonl"
 RESULT_FILES = (EPISODES, EPISODES + ".partial", "metrics.json", RUN_FILE)
 #: Top-level settings that change how a run looks, not what it computes.
-PRESENTATION_KEYS = ("progress", "overwrite")
+PRESENTATION_KEYS = ("progress", "overwrite", "jobs")
 
 
 class RunDirError(OverhangError):

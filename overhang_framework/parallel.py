@@ -1,0 +1,88 @@
+"""Episodes of one run spread over worker processes (``jobs=N``), with the results of a serial run.
+
+Every episode draws its generator from ``(seed, task index, repeat)`` and the
+physics answers do not depend on what ran before (a cache only remembers
+verdicts), so an episode's record is the same whichever process plays it and
+in whatever order. Each worker builds the run's models once from the resolved
+config and plays the episodes it is given; placements are reported back as
+they happen, so the progress bar still moves per placement. Workers ignore
+Ctrl-C: the parent process handles it, stops them, and keeps every episode
+that finished.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import queue as queue_module
+import signal
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
+
+_MODELS: Optional[dict] = None
+_TASKS: Optional[list] = None
+_TICKS = None
+
+
+def _init(config: Mapping[str, Any], ticks) -> None:
+    global _MODELS, _TASKS, _TICKS
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    from omegaconf import OmegaConf
+
+    from overhang_framework.app import build_models
+    from overhang_framework.config import enable_plugin_configs
+    from overhang_framework.tasks import tasks_from_config
+
+    enable_plugin_configs()
+    cfg = OmegaConf.create(dict(config))
+    _MODELS = build_models(cfg)
+    _TASKS = tasks_from_config(cfg.tasks)
+    _TICKS = ticks
+
+
+def _play(index: int, repeat: int, seed: int, time_limit: Optional[float], call_limit: Optional[int]) -> dict:
+    from overhang_framework.episode import episode_rng, run_episode
+
+    m = _MODELS
+    record = run_episode(_TASKS[index], m["world"], m["predictor"], m["planner"], m["value"],
+                         episode_rng(seed, index, repeat), time_limit,
+                         on_step=lambda step: _TICKS.put(1), call_limit=call_limit)
+    record.update({"seed": seed, "repeat": repeat, "task_index": index})
+    return record
+
+
+def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], seed: int,
+                  time_limit: Optional[float], call_limit: Optional[int], workers: int,
+                  on_step: Callable[[], None]) -> Iterator[dict]:
+    """Yield the record of every ``(task index, repeat)`` in ``todo`` as it finishes, played on
+    ``workers`` processes; ``on_step`` is called once per placement made anywhere."""
+    context = mp.get_context("spawn")
+    ticks = context.Queue()
+    executor = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init,
+                                   initargs=(dict(config), ticks))
+    pending: set[Future] = set()
+    try:
+        for index, repeat in todo:
+            pending.add(executor.submit(_play, index, repeat, seed, time_limit, call_limit))
+        while pending:
+            finished, pending = wait(pending, timeout=0.1, return_when=FIRST_COMPLETED)
+            _drain(ticks, on_step)
+            for future in finished:
+                yield future.result()
+        _drain(ticks, on_step)
+    finally:
+        processes = list((getattr(executor, "_processes", None) or {}).values())
+        for future in pending:
+            future.cancel()
+        executor.shutdown(wait=not pending, cancel_futures=True)
+        for process in processes:
+            if process.is_alive():
+                process.terminate()
+
+
+def _drain(ticks, on_step: Callable[[], None]) -> None:
+    while True:
+        try:
+            ticks.get_nowait()
+        except queue_module.Empty:
+            return
+        on_step()
