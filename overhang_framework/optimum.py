@@ -127,27 +127,42 @@ class _Unlimited(Budget):
 
 def physics_id(world: World) -> dict:
     """What a world's verdicts depend on: its physics and their parameters, and its resolution."""
+    physics = getattr(world, "physics_name", type(world).__name__)
+    params = dict(getattr(world, "backend_params", {}).get(physics, {}))
+    return _ident(physics, params, getattr(world, "resolution", None))
+
+
+def _ident(physics: str, params: dict, resolution) -> dict:
     import dataclasses
 
     from overhang_framework.physics.factory import backend_params
 
-    physics = getattr(world, "physics_name", type(world).__name__)
-    params = dict(getattr(world, "backend_params", {}).get(physics, {}))
     try:
         params = dataclasses.asdict(backend_params(physics, **params))  # every parameter, defaults included
     except (ValueError, TypeError):
         pass
-    return {"physics": physics, "params": params, "resolution": getattr(world, "resolution", None)}
+    return {"physics": physics, "params": params, "resolution": resolution}
 
 
 def optimum_key(task: Task, world: World) -> str:
     """The disk-cache key of a task's optimum under a world's physics and resolution."""
-    ident = {"sequence": [round(w, 6) for w in task.sequence], **physics_id(world)}
+    return _key(task.sequence, physics_id(world))
+
+
+def optimum_key_for(sequence: Sequence[float], world_config: dict) -> str:
+    """:func:`optimum_key` from a run's resolved ``world`` config (as ``run.json`` holds it)."""
+    physics = world_config.get("physics", "tiered")
+    return _key(sequence, _ident(physics, dict(world_config.get(physics) or {}), world_config.get("resolution")))
+
+
+def _key(sequence: Sequence[float], ident: dict) -> str:
+    ident = {"sequence": [round(w, 6) for w in sequence], **ident}
     return hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def load_optima(path: Path | str = DATA_FILE) -> dict:
-    path = Path(path)
+def load_optima(path: Path | str | None = None) -> dict:
+    """The optima kept in ``path`` (default: the project's optima file), by key."""
+    path = Path(DATA_FILE if path is None else path)
     if not path.exists():
         return {}
     try:
@@ -158,10 +173,11 @@ def load_optima(path: Path | str = DATA_FILE) -> dict:
 
 
 def task_optimum(task: Task, world: World, predictor: Optional[Predictor] = None,
-                 path: Path | str | None = DATA_FILE) -> dict:
-    """The optimum of ``task`` (veridical predictor by default), from the disk cache or computed."""
+                 path: Path | str | None = "default") -> dict:
+    """The optimum of ``task`` (veridical predictor by default), from the optima file at ``path``
+    (the project's by default; ``None``: always compute) or computed."""
     key = optimum_key(task, world)
-    cached = load_optima(path).get(key) if path is not None else None
+    cached = load_optima(None if path == "default" else path).get(key) if path is not None else None
     if cached is not None:
         return cached
     if predictor is None:
