@@ -142,3 +142,17 @@ def test_robust_verdict_needs_every_jitter_to_stand():
     out = sim.check(clear)
     sim.close()
     assert out.stable and out.steps == 3 * 240
+
+
+def test_world_config_lists_every_tiered_and_pybullet_parameter_with_its_default():
+    from overhang_framework.config import compose_config
+
+    world_cfg = compose_config([]).world
+    assert world_cfg.physics == "tiered"
+    for section, params in (("tiered", TieredParams()), ("pybullet", PyBulletParams())):
+        listed = dict(world_cfg[section])
+        assert set(listed) == set(params.__dataclass_fields__), section
+        for name, value in listed.items():
+            assert value == getattr(params, name), (section, name)
+    for name in ("height_margin", "friction_scale", "margin"):
+        assert world_cfg.static[name] == getattr(StaticBackend().params, name)
