@@ -142,3 +142,31 @@ def test_robust_verdict_needs_every_jitter_to_stand():
     out = sim.check(clear)
     sim.close()
     assert out.stable and out.steps == 3 * 240
+
+
+def test_world_config_lists_every_tiered_and_pybullet_parameter_with_its_default():
+    from overhang_framework.config import compose_config
+
+    world_cfg = compose_config([]).world
+    assert world_cfg.physics == "tiered"
+    for section, params in (("tiered", TieredParams()), ("pybullet", PyBulletParams())):
+        listed = dict(world_cfg[section])
+        assert set(listed) == set(params.__dataclass_fields__), section
+        for name, value in listed.items():
+            assert value == getattr(params, name), (section, name)
+    for name in ("height_margin", "friction_scale", "margin"):
+        assert world_cfg.static[name] == getattr(StaticBackend().params, name)
+
+
+def test_the_veridical_predictor_plans_with_the_worlds_tiered_verdicts():
+    reg = Registry()
+    w = reg.create("world", {"name": "overhang"})
+    predictor = reg.create("predictor", {"name": "veridical"}, world=w)
+    assert predictor.backend is w.backend and w.backend.name == "tiered"
+    from overhang_framework.interfaces import State
+    from overhang_framework.geometry import Action
+
+    state = State(Geometry.from_tuples([(1.8, 0.0, 0)]), (1.8,))
+    p = predictor.predict(state, [Action(0.9, 1), Action(0.5, 1)], np.random.default_rng(0))
+    assert list(p) == [0.0, 1.0]  # the edge placement the early-stop physics accepted is not stable
+    assert w.stats()["cache"]["hits"] == 0 and w.is_stable(EDGE) is False and w.stats()["cache"]["hits"] == 1

@@ -130,7 +130,10 @@ def find_flips(towers: Sequence[Geometry], reference: Verdicts, tolerance: float
     The bracket is the block's current x and whichever end of its legal
     interval (:func:`last_block_interval`) has the other verdict (the farther
     end when both do); it is then bisected until shorter than ``tolerance``.
-    ``None`` for towers whose verdict is the same at all three points.
+    ``None`` for towers whose verdict is the same at all three points. The
+    reference is chaotic within millimetres of its flip (docs/physics.md), so
+    the x found is one sample of that band, not the only place where the
+    verdict changes.
     ``progress`` is called with the number of reference checks done per round.
     """
     n = len(towers)
