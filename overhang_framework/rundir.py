@@ -107,15 +107,18 @@ class RunDir:
         """Hold the directory for this run; a second run into it at the same time is refused."""
         self.path.mkdir(parents=True, exist_ok=True)
         with open(self.path / LOCK_FILE, "a") as fh:
-            try:
-                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                raise RunDirError(f"another run is writing to {self.path}; wait for it to end, "
-                                  "or use another hydra.run.dir") from None
+            self._take(fh)
             try:
                 yield
             finally:
                 fcntl.flock(fh, fcntl.LOCK_UN)
+
+    def _take(self, fh) -> None:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise RunDirError(f"another run is writing to {self.path}; wait for it to end, "
+                              "or use another hydra.run.dir") from None
 
     def existing_file(self) -> Optional[Path]:
         """The episode file already there (``episodes.jsonl`` or its ``.partial``), if any."""
@@ -130,11 +133,7 @@ class RunDir:
         if not (self.path / LOCK_FILE).exists():
             return
         with open(self.path / LOCK_FILE, "a") as fh:
-            try:
-                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                raise RunDirError(f"another run is writing to {self.path}; wait for it to end, "
-                                  "or use another hydra.run.dir") from None
+            self._take(fh)
             fcntl.flock(fh, fcntl.LOCK_UN)
 
     def check_config(self, config: Mapping[str, Any], overwrite: bool = False) -> None:

@@ -12,24 +12,7 @@ from overhang_framework.tasks import generate_sequences
 REG = Registry()
 
 
-@pytest.fixture(scope="module")
-def world():
-    return REG.create("world", {"name": "overhang", "physics": "static"})
-
-
-@pytest.fixture(scope="module")
-def veridical(world):
-    return REG.create("predictor", {"name": "veridical"}, world=world)
-
-
-@pytest.fixture(scope="module")
-def ipe(world):
-    return REG.create("predictor", {"name": "ipe", "K": 8}, world=world)
-
-
-@pytest.fixture(scope="module")
-def value(world):
-    return REG.create("value", {"name": "overhang"}, world=world)
+from search_fixtures import ipe, value, veridical, world  # noqa: E402,F401  (shared fixtures)
 
 
 def planner(world, name="lookahead", **params):

@@ -16,24 +16,7 @@ from overhang_framework.testing.contracts import PlannerContract, mid_episode_st
 REG = Registry()
 
 
-@pytest.fixture(scope="module")
-def world():
-    return REG.create("world", {"name": "overhang", "physics": "static"})
-
-
-@pytest.fixture(scope="module")
-def veridical(world):
-    return REG.create("predictor", {"name": "veridical"}, world=world)
-
-
-@pytest.fixture(scope="module")
-def ipe(world):
-    return REG.create("predictor", {"name": "ipe", "K": 8}, world=world)
-
-
-@pytest.fixture(scope="module")
-def value(world):
-    return REG.create("value", {"name": "overhang"}, world=world)
+from search_fixtures import ipe, value, veridical, world  # noqa: E402,F401  (shared fixtures)
 
 
 @pytest.fixture(scope="module")

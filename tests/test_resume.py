@@ -159,7 +159,9 @@ def test_interrupting_an_overwrite_run_says_to_resume_without_overwrite(tmp_path
 def test_ctrl_c_while_starting_is_one_line(tmp_path):
     proc = subprocess.Popen(command(*SLOW, f"hydra.run.dir={tmp_path / 'run'}"), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=ROOT)
-    time.sleep(0.4)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (tmp_path / "run" / ".hydra").exists():
+        time.sleep(0.01)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
