@@ -162,6 +162,16 @@ class Predictor(abc.ABC):
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
         """Probabilities in [0, 1], one per action, from one batched call."""
 
+    def predict_many(self, requests: Sequence[tuple[State, Sequence[Action]]],
+                     rngs: Sequence[np.random.Generator]) -> list[np.ndarray]:
+        """:meth:`predict` for several ``(state, actions)`` requests, each with its own generator.
+
+        Each result must equal ``predict(state, actions, rng)``; a predictor
+        that can serve them together (one physics call, one forward pass)
+        overrides this to be faster. Searches use it to score many states at once.
+        """
+        return [self.predict(state, actions, rng) for (state, actions), rng in zip(requests, rngs)]
+
 
 class Value(abc.ABC):
     """Scores a search leaf. Values are >= 0 (a collapse is worth 0)."""

@@ -38,6 +38,12 @@ from overhang_framework.search import Expander, lookahead_value, root_scores
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
 
 
+#: Children of the last placement scored this many at a time, furthest-reaching first
+#: (:meth:`~overhang_framework.search.Expander.best_leaf`); None scores them all at once, which with
+#: prefetching (all siblings' children in one physics call) measured twice as fast.
+LAZY_LEAVES = None
+
+
 class _FinalOverhang:
     """Leaf value of the full-depth search: the final tower's overhang, with the geometric bound.
 
@@ -89,7 +95,8 @@ class OptimumSearch:
     def value_of(self, state: State) -> float:
         """The optimum score from ``state`` to the end of its episode."""
         floor = self.greedy(state)
-        return lookahead_value(self.expander, self.value, state, len(state.remaining), floor, self.memo)
+        return lookahead_value(self.expander, self.value, state, len(state.remaining), floor, self.memo,
+                               lazy_leaves=LAZY_LEAVES, prefetch=True)
 
     def best_path(self, state: State) -> tuple[float, list]:
         """The optimum score from ``state`` and a sequence of actions that reaches it."""
@@ -102,7 +109,8 @@ class OptimumSearch:
             for action, child, p in zip(e.actions, e.children, e.p):
                 if p <= 0:
                     continue
-                v = lookahead_value(self.expander, self.value, child, depth - 1, target / p, self.memo)
+                v = lookahead_value(self.expander, self.value, child, depth - 1, target / p, self.memo,
+                                    lazy_leaves=LAZY_LEAVES, prefetch=True)
                 if p * v >= target * (1 - 1e-9):
                     path.append(action)
                     state, target = child, v
@@ -115,7 +123,7 @@ class OptimumSearch:
         """The optimum score after each first action (exact for the best ones, below them for the rest)."""
         self.greedy(state)
         return root_scores(self.expander, self.value, state, len(state.remaining), exact_all=False,
-                           memo=self.memo)
+                           memo=self.memo, lazy_leaves=LAZY_LEAVES, prefetch=True)
 
 
 class _Unlimited(Budget):

@@ -132,7 +132,6 @@ class Expander:
         actions = self.world.legal_actions(state, self.resolution)
         if self.mirror and is_symmetric(state):
             actions = [a for a in actions if a.x >= 0]
-        children = [self.world.successor(state, a) for a in actions]
         if actions:
             p = np.asarray(self.predictor.predict(canonical_state(state), actions, node_rng(self.seed, key)),
                            dtype=float)
@@ -140,14 +139,94 @@ class Expander:
             self.stats.predictor_calls += 1
         else:
             p = np.zeros(0)
+        expansion = self._expansion(state, actions, p)
+        self._memo[key] = expansion
+        return expansion
+
+
+    def expand_many(self, states: Sequence[State]) -> None:
+        """Expand every state of ``states`` not expanded yet, with one :meth:`Predictor.predict_many` call.
+
+        Each state counts as one predictor call against the budget, as if
+        expanded alone; a budget that cannot pay for all of them expands none
+        (the search then expands them one by one until it runs out).
+        """
+        todo, seen = [], set()
+        for state in states:
+            key = state_key(state)
+            if key not in self._memo and key not in seen and not state.done:
+                seen.add(key)
+                todo.append((key, state))
+        if len(todo) < 2:
+            return
+        if self.budget.predictor_calls is not None and \
+                self.budget.calls_used + len(todo) > self.budget.predictor_calls:
+            return
+        if self.budget.exhausted():
+            return
+        parts = []
+        for key, state in todo:
+            actions = self.world.legal_actions(state, self.resolution)
+            if self.mirror and is_symmetric(state):
+                actions = [a for a in actions if a.x >= 0]
+            parts.append((key, state, actions))
+        asked = [(canonical_state(state), actions) for _, state, actions in parts if actions]
+        rngs = [node_rng(self.seed, key) for key, _, actions in parts if actions]
+        answers = iter(self.predictor.predict_many(asked, rngs)) if asked else iter(())
+        for key, state, actions in parts:
+            p = np.asarray(next(answers), dtype=float) if actions else np.zeros(0)
+            if actions:
+                self.budget.charge(1)
+                self.stats.predictor_calls += 1
+            self._memo[key] = self._expansion(state, actions, p)
+
+    def _expansion(self, state: State, actions: list, p: np.ndarray) -> Expansion:
+        children = [self.world.successor(state, a) for a in actions]
         base = overhang(state.geometry)
         width = state.next_width or 0.0
         reach = np.array([abs(a.x) + width / 2 for a in actions], dtype=float)
-        expansion = Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach)
         self.stats.actions_scored += len(actions)
         self.stats.nodes_expanded += 1
-        self._memo[key] = expansion
-        return expansion
+        return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach)
+
+    def best_leaf(self, state: State, value: Value, threshold: float, chunk: int) -> float:
+        """``max_a p(s, a) * V(child_a)`` over the children of ``state``, predicting lazily.
+
+        Children are taken in order of decreasing ``V`` and scored ``chunk`` at
+        a time; the scan stops once no remaining child can beat the best found
+        (``p <= 1``) or reach ``threshold``. Each chunk is predicted with the
+        state's own generator, so every child gets the probability a single
+        batched call would give it. Exact above ``threshold`` like
+        :func:`lookahead_value`; the children never scored count as pruned.
+        """
+        key = state_key(state)
+        actions = self.world.legal_actions(state, self.resolution)
+        if self.mirror and is_symmetric(state):
+            actions = [a for a in actions if a.x >= 0]
+        if not actions:
+            return 0.0
+        children = [self.world.successor(state, a) for a in actions]
+        values = np.array([value(c) for c in children], dtype=float)
+        order = np.argsort(-values, kind="stable")
+        canonical = canonical_state(state)
+        best, scored = 0.0, 0
+        for start in range(0, len(order), chunk):
+            top = values[order[start]]
+            if top <= best or _below(top, threshold):
+                break
+            if self.budget.exhausted():
+                raise BudgetExhausted
+            idx = order[start:start + chunk]
+            p = np.asarray(self.predictor.predict(canonical, [actions[i] for i in idx], node_rng(self.seed, key)),
+                           dtype=float)
+            self.budget.charge(1)
+            self.stats.predictor_calls += 1
+            self.stats.actions_scored += len(idx)
+            scored += len(idx)
+            best = max(best, float(np.max(p * values[idx])))
+        self.stats.nodes_expanded += 1
+        self.stats.leaves_pruned += len(order) - scored
+        return best
 
 
 def max_reach(world: World, state: State, resolution: Optional[float] = None) -> float:
@@ -187,7 +266,8 @@ def _below(bound: Optional[float], threshold: float) -> bool:
 
 
 def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
-                    threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None) -> float:
+                    threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None,
+                    lazy_leaves: Optional[int] = None, prefetch: bool = False) -> float:
     """``max`` over action sequences of length ``depth`` of ``prod p * V(leaf)`` from ``state``.
 
     Branch and bound: a child whose score cannot reach ``threshold`` (or the
@@ -198,6 +278,13 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     sequence stops early when the episode ends. ``memo`` carries results
     between calls of one decision. ``beam`` keeps only that many children of
     each inner node, the best by ``p * bound`` (an approximation).
+    ``lazy_leaves`` scores the last level's children that many at a time, best
+    value first, and stops when no other can win (:meth:`Expander.best_leaf`):
+    the same result with far fewer predictions, at the cost of more, smaller
+    predictor calls. ``prefetch`` expands all the children of a node one level
+    above the leaves together (:meth:`Expander.expand_many`), which is faster
+    when one large physics call costs much less than many small ones, at the
+    cost of scoring children that a bound would have skipped.
     """
     memo = {} if memo is None else memo
     depth = min(depth, len(state.remaining))
@@ -209,6 +296,11 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
         result, exact, tried = known
         if exact or threshold >= tried:
             return result
+    if depth == 1 and lazy_leaves:
+        best = expander.best_leaf(state, value, threshold, lazy_leaves)
+        exact = best >= threshold * (1 - TIE) or threshold <= 0
+        memo[key] = (best, exact, threshold)
+        return best
     expansion = expander.expand(state)
     p = expansion.p
     best = 0.0
@@ -218,13 +310,17 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     else:
         bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
         order = np.argsort(-_products(p, bounds), kind="stable")[:beam]
+        if depth == 2 and prefetch:
+            floor = threshold
+            expander.expand_many([expansion.children[i] for i in order
+                                  if p[i] > 0 and not _below(p[i] * bounds[i], floor)])
         for i in order:
             floor = max(threshold, best)
             if p[i] <= 0 or _below(p[i] * bounds[i], floor):
                 expander.stats.leaves_pruned += 1
                 continue
             child = lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                    floor / p[i], memo, beam)
+                                    floor / p[i], memo, beam, lazy_leaves, prefetch)
             best = max(best, float(p[i] * child))
     exact = best >= threshold * (1 - TIE) or threshold <= 0
     memo[key] = (best, exact, threshold)
@@ -245,14 +341,15 @@ def _bound(value: Value, state: State, depth: int) -> float:
 
 def root_scores(expander: Expander, value: Value, state: State, depth: int, exact_all: bool,
                 first: Optional[int] = None, memo: Optional[dict] = None,
-                beam: Optional[int] = None) -> np.ndarray:
+                beam: Optional[int] = None, lazy_leaves: Optional[int] = None,
+                prefetch: bool = False) -> np.ndarray:
     """The score ``p(s, a) * best continuation`` of every root action, at horizon ``depth``.
 
     With ``exact_all`` every score is exact (what a softmax rule needs);
     otherwise only the best ones are, and the others may be any number below
     the best (enough for argmax, and much cheaper). ``first`` is explored
     first, e.g. the previous iteration's choice, to tighten the bound early.
-    ``beam`` limits the children searched below the root (see :func:`lookahead_value`).
+    ``beam``, ``lazy_leaves`` and ``prefetch`` are passed on to :func:`lookahead_value`.
     """
     memo = {} if memo is None else memo
     expansion = expander.expand(state, force=True)
@@ -263,6 +360,8 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
         return p * _leaf_values(value, expansion)
     bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
     order = list(np.argsort(-_products(p, bounds), kind="stable"))
+    if depth == 2 and prefetch:
+        expander.expand_many([expansion.children[i] for i in order if p[i] > 0])
     if first is not None and first in order:
         order.remove(first)
         order.insert(0, first)
@@ -277,7 +376,7 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
             scores[i] = p[i] * bounds[i]
             continue
         scores[i] = p[i] * lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                           floor / p[i], memo, beam)
+                                           floor / p[i], memo, beam, lazy_leaves, prefetch)
         best = max(best, scores[i])
     return scores
 

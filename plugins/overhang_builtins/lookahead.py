@@ -54,7 +54,7 @@ class LookaheadPlanner(Planner):
         for depth in depths:
             try:
                 found = root_scores(expander, leaf_value, state, depth, self.rule.needs_all_scores,
-                                    first=first, memo=memo, beam=self.beam)
+                                    first=first, memo=memo, beam=self.beam, prefetch=True)
             except BudgetExhausted:
                 break
             scores, completed = found, depth

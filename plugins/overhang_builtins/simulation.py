@@ -330,6 +330,12 @@ class IPEPredictor(Predictor):
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
         return self.sample_verdicts(state, actions, rng).mean(axis=1)
 
+    def predict_many(self, requests: Sequence[tuple[State, Sequence[Action]]],
+                     rngs: Sequence[np.random.Generator]) -> list[np.ndarray]:
+        """:meth:`predict` for several states, simulated in one backend call."""
+        scenes = [self.scenes(state, actions, rng) for (state, actions), rng in zip(requests, rngs)]
+        return [verdicts.mean(axis=1) for verdicts in self.run(scenes)]
+
 
 class VeridicalPredictor(IPEPredictor):
     """Noise-free physics: 1 where the world's physics says the tower stands, else 0.
