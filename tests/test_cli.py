@@ -140,7 +140,7 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
 
 @pytest.mark.parametrize("args, expected", [
     (["planer=myopic"],
-     "error: unknown config key 'planer' (did you mean 'planner'?); top-level keys: condition, overwrite, planner,"),
+     "error: unknown config key 'planer' (did you mean 'planner'?); top-level keys: condition, jobs, overwrite, planner,"),
     (["+planer=myopic"],
      "error: nothing reads the added config key 'planer' (did you mean 'planner'?); top-level keys: condition,"),
     (["+tasks.bogus=1"], "error: nothing reads the added config key 'tasks.bogus'; keys of tasks 'custom': ids,"),
@@ -162,7 +162,7 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),
     (["hydra/launcher=nope"], "error: unknown hydra/launcher 'nope'; available: basic, joblib"),
     (["planer=myopic", "predicter=ipe"], "error: unknown config key 'planer' (did you mean 'planner'?); top-level "
-     "keys: condition, overwrite, planner, predictor, progress, repeats, seed, tasks, value, world | unknown "
+     "keys: condition, jobs, overwrite, planner, predictor, progress, repeats, seed, tasks, value, world | unknown "
      "config key 'predicter' (did you mean 'predictor'?)"),
     (["=3"], "error: cannot read '=3': the override names no key"),
     (["plugin"], "error: cannot read 'plugin': overrides are key=value, +key=value (add) or ~key (remove); "
