@@ -43,6 +43,8 @@ _CFG_VALUES = ("job", "hydra", "all")
 _INFO_FLAGS = {"--cfg", "-c", "--info", "-i", "--hydra-help", "--shell-completion", "-sc", "--resolve",
                "--version"}
 COMMANDS = ("plugins",)
+#: Launcher configs of Hydra plugins that are optional extras: (package, extra).
+OPTIONAL_LAUNCHERS = {"ray": ("hydra-ray-launcher", "ray"), "ray_aws": ("hydra-ray-launcher", "ray")}
 
 
 def split_flags(args: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -256,6 +258,11 @@ def _compose_error(words: Sequence[str], err: Exception) -> str:
                 "see --help")
     if isinstance(err, MissingConfigException):
         group, _, name = (err.missing_cfg_file or "").rpartition("/")
+        if group == "hydra/launcher" and name in OPTIONAL_LAUNCHERS:
+            chosen = next((w.split("=", 1)[1] for w in words if w.startswith("hydra/launcher=")), name)
+            package, extra = OPTIONAL_LAUNCHERS[name]
+            return (f"hydra/launcher={chosen} needs {package}, which is not installed; it is the optional "
+                    f"extra '{extra}': pip install -e '.[{extra}]'")
         if group and err.options is not None:
             return f"unknown {group} {name!r}; available: {', '.join(err.options) or '(none)'}"
         return _one_line(err).split("; Config search path:")[0]
