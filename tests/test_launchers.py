@@ -100,6 +100,23 @@ def test_ray_without_its_extra_stops_with_one_line_naming_the_extra(tmp_path, ca
     assert not (tmp_path / "sweep").exists()
 
 
+def test_joining_a_ray_cluster_without_clearing_the_object_store_size_is_refused_in_one_line():
+    from omegaconf import OmegaConf
+
+    from overhang_framework.errors import OverhangError
+    from overhang_framework.preflight import _check_launcher
+
+    def cfg(**init):
+        return OmegaConf.create({"hydra": {"launcher": {
+            "_target_": "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher",
+            "ray": {"init": init, "remote": {}}}}})
+
+    with pytest.raises(OverhangError, match=r"also needs \+hydra.launcher.ray.init.object_store_memory=null"):
+        _check_launcher(cfg(address="auto"))
+    _check_launcher(cfg(address="auto", object_store_memory=None))
+    _check_launcher(cfg(address=None))
+
+
 # ---- real multiruns ---------------------------------------------------------------------------
 
 def test_a_joblib_sweep_writes_results_csv(tmp_path):
