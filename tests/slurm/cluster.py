@@ -8,7 +8,8 @@ ports are free ones picked at start-up, the cluster name is unique, and no
 system file or service is touched, so several clusters (other test runs on the
 same machine) can run side by side. The daemons run in the foreground as
 children of the test process and are stopped, and the directory removed, on
-teardown, whatever happened in between. Every wait has a timeout; a failure
+teardown, whatever happened in between; should the test process itself be
+killed, the daemons get SIGTERM from the kernel (``PR_SET_PDEATHSIG``). Every wait has a timeout; a failure
 names what did not come up and shows the end of its log.
 
 Commands that talk to the cluster (``sbatch``, ``sinfo``, submitit) need the
@@ -58,6 +59,16 @@ def unavailable_reason() -> Optional[str]:
     if os.geteuid() != 0:
         return "starting slurmd needs root (it runs the jobs as their submitting user)"
     return None
+
+
+def _die_with_parent() -> None:
+    """In the daemon's child process: get SIGTERM when the test process dies, even by SIGKILL (Linux)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def _free_port() -> int:
@@ -167,7 +178,8 @@ PartitionName=debug Nodes={self.node} Default=YES MaxTime=INFINITE State=UP
     def _spawn(self, name: str, argv: list, log: Optional[Path] = None) -> None:
         out = open(self.dir / f"{name}.out", "wb")
         self.procs[name] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                            env=self.env, cwd=self.dir, start_new_session=True)
+                                            env=self.env, cwd=self.dir, start_new_session=True,
+                                            preexec_fn=_die_with_parent)
         out.close()
 
     def _logs(self, name: str) -> str:
