@@ -43,6 +43,8 @@ _CFG_VALUES = ("job", "hydra", "all")
 _INFO_FLAGS = {"--cfg", "-c", "--info", "-i", "--hydra-help", "--shell-completion", "-sc", "--resolve",
                "--version"}
 COMMANDS = ("plugins",)
+#: Launcher configs of Hydra plugins that are optional extras: (package, extra).
+OPTIONAL_LAUNCHERS = {"ray": ("hydra-ray-launcher", "ray"), "ray_aws": ("hydra-ray-launcher", "ray")}
 
 
 def split_flags(args: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -256,6 +258,11 @@ def _compose_error(words: Sequence[str], err: Exception) -> str:
                 "see --help")
     if isinstance(err, MissingConfigException):
         group, _, name = (err.missing_cfg_file or "").rpartition("/")
+        if group == "hydra/launcher" and name in OPTIONAL_LAUNCHERS:
+            chosen = next((w.split("=", 1)[1] for w in words if w.startswith("hydra/launcher=")), name)
+            package, extra = OPTIONAL_LAUNCHERS[name]
+            return (f"hydra/launcher={chosen} needs {package}, which is not installed; it is the optional "
+                    f"extra '{extra}': pip install -e '.[{extra}]'")
         if group and err.options is not None:
             return f"unknown {group} {name!r}; available: {', '.join(err.options) or '(none)'}"
         return _one_line(err).split("; Config search path:")[0]
@@ -384,6 +391,15 @@ def _check_launcher(cfg) -> None:
     if n_jobs is not None and (isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0):
         raise OverhangError(f"hydra.launcher.n_jobs must be a whole number other than 0 (-1: one job per "
                             f"core), got {n_jobs!r}")
+    # hydra-ray-launcher asks ray.init() for a 75 MB object store unless the key is there (even as null),
+    # and Ray refuses any object-store size when it joins a running cluster: say so before the sweep starts.
+    target = str(OmegaConf.select(cfg, "hydra.launcher._target_", default="") or "")
+    init = OmegaConf.select(cfg, "hydra.launcher.ray.init", default=None)
+    if target.endswith(".RayLauncher") and init is not None and init.get("address") not in (None, "local") \
+            and "object_store_memory" not in init:
+        raise OverhangError("joining a running Ray cluster (hydra.launcher.ray.init.address) also needs "
+                            "+hydra.launcher.ray.init.object_store_memory=null: the Ray launcher otherwise asks "
+                            "for an object store of its own size, which Ray refuses for a running cluster")
 
 
 def _check_groups_present(cfg) -> None:
