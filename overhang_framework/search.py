@@ -349,7 +349,9 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
     otherwise only the best ones are, and the others may be any number below
     the best (enough for argmax, and much cheaper). ``first`` is explored
     first, e.g. the previous iteration's choice, to tighten the bound early.
-    ``beam``, ``lazy_leaves`` and ``prefetch`` are passed on to :func:`lookahead_value`.
+    ``beam``, ``lazy_leaves`` and ``prefetch`` are passed on to :func:`lookahead_value`
+    (the root's own children are expanded one by one, so that pruning keeps its
+    effect where the subtrees are largest).
     """
     memo = {} if memo is None else memo
     expansion = expander.expand(state, force=True)
@@ -360,8 +362,6 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
         return p * _leaf_values(value, expansion)
     bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
     order = list(np.argsort(-_products(p, bounds), kind="stable"))
-    if depth == 2 and prefetch:
-        expander.expand_many([expansion.children[i] for i in order if p[i] > 0])
     if first is not None and first in order:
         order.remove(first)
         order.insert(0, first)
