@@ -274,8 +274,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         futures = {pool.submit(_solve, list(args.overrides), i): i for i in todo}
         for future in as_completed(futures):
             key, row = future.result()
+            row["command"] = command.strip()
             optima[key] = row
-            atomic_write_json(out, {"command": command.strip(), "optima": optima})  # each one kept as it lands
+            atomic_write_json(out, {"optima": optima})  # each one kept as it lands
             bar.set_postfix_str(f"{row['task_id']} {row['optimum']:.2f}")
             bar.update(1)
     bar.close()
