@@ -114,6 +114,7 @@ class RasterRenderer(Renderer):
     name = "raster"
     BEVEL = 0.5  # the bevel channel is 1 - BEVEL at a block's side faces and 1 at its centre
     TOP = 0.5  # the top channel is 1 - TOP at a block's bottom face and 1 at its top
+    CHUNK = 64  # images rendered per matrix product
 
     def __init__(self, size=(48, 96), x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
         super().__init__(size, x_max, z_max)
@@ -143,6 +144,12 @@ class RasterRenderer(Renderer):
         """
         n, m = widths.shape
         out = self._out(n, out)
+        if n > self.CHUNK:  # small products stay in the CPU's cache
+            for start in range(0, n, self.CHUNK):
+                stop = min(n, start + self.CHUNK)
+                self.render_arrays(widths[start:stop], xs[start:stop], layers[start:stop], mask[start:stop],
+                                   out=out[start:stop])
+            return out
         if n == 0:
             return out
         h, w, n_layers = self.height, self.width, self._rows.shape[1]

@@ -73,12 +73,13 @@ def save_checkpoint(path: Path | str, model, renderer_spec: Mapping[str, Any], b
 
 
 def read_checkpoint(path: Path | str) -> dict:
-    """The checkpoint's contents, on the CPU; ``FileNotFoundError`` / ``ValueError`` with the path."""
+    """The checkpoint's contents, on the CPU; ``ValueError`` naming the path when it is missing or unreadable."""
     import torch
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"no CNN checkpoint at {path}")
+        raise ValueError(f"no CNN checkpoint at {path}; use checkpoint=default or a .pt file written by "
+                         f"python -m overhang_framework.cnn.train")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
