@@ -40,7 +40,6 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
     from overhang_framework.cnn.data import DataSpec, generate, load
     from overhang_framework.cnn.model import StabilityModel
     from overhang_framework.cnn.train import scores
-    from overhang_framework.render import block_arrays  # noqa: F401  (the model renders)
 
     for name, value, low in (("n", n, 2), ("shard_size", shard_size, 2), ("threads", threads, 1),
                              ("workers", workers, 1), ("seed", seed, 0)):
