@@ -16,10 +16,14 @@ def register_worlds(register):
 
 @hookimpl
 def register_predictors(register):
+    from overhang_builtins.cnn import CNNPredictor
+    from overhang_builtins.hybrid import HybridPredictor
     from overhang_builtins.simulation import IPEPredictor, VeridicalPredictor
 
     register("veridical", VeridicalPredictor)
     register("ipe", IPEPredictor)
+    register("cnn", CNNPredictor)
+    register("hybrid", HybridPredictor)
 
 
 @hookimpl

@@ -1,0 +1,74 @@
+"""Speed of the CNN predictor, rendering included: ``python -m overhang_framework.cnn.bench``.
+
+Prints, for each thread count and batch size, the images per second of
+:meth:`StabilityModel.probabilities` (render + forward pass, no cache) on
+random towers, and of ``predictor=cnn`` scoring every legal action of
+episode-like states (as a planner calls it, cache off). The last line is one
+JSON object with every figure.
+
+    python -m overhang_framework.cnn.bench                 # threads 1 and 2
+    python -m overhang_framework.cnn.bench --threads 1 --batches 64,512
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+
+def main(argv=None) -> dict:
+    import torch
+
+    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.cnn.model import StabilityModel
+    from overhang_framework.interfaces import State
+    from overhang_framework.plugins import Registry
+    from overhang_framework.rules import legal_actions
+
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.cnn.bench", description=__doc__.splitlines()[0])
+    ap.add_argument("--checkpoint", default="default")
+    ap.add_argument("--threads", default="1,2", help="comma-separated torch thread counts (default 1,2)")
+    ap.add_argument("--batches", default="70,512", help="comma-separated batch sizes (default 70,512)")
+    ap.add_argument("--images", type=int, default=3000, help="images per measurement (default 3000)")
+    args = ap.parse_args(argv)
+    threads = [int(t) for t in args.threads.split(",")]
+    batches = [int(b) for b in args.batches.split(",")]
+    towers = random_towers(args.images, seed=11)
+    world = Registry().create("world", {"name": "overhang", "physics": "static"})
+    states = [State(g, (1.2,)) for g in random_towers(40, seed=12, min_blocks=2, max_blocks=6)]
+    results = {"images": args.images, "render_and_forward": {}, "predict_legal_actions": {}}
+    for t in threads:
+        torch.set_num_threads(t)
+        for b in batches:
+            model = StabilityModel(args.checkpoint, device="cpu", batch_size=b)
+            chunks = [towers[i:i + b] for i in range(0, len(towers), b)]
+            model.probabilities(chunks[0])
+            start = time.perf_counter()
+            for c in chunks:
+                model.probabilities(c)
+            rate = len(towers) / (time.perf_counter() - start)
+            results["render_and_forward"][f"threads={t},batch={b}"] = rate
+            print(f"threads {t}, batch {b:4d}: {rate:8.0f} images/s (render + forward)")
+        predictor = Registry().create("predictor", {"name": "cnn", "device": "cpu", "cache_size": 0}, world=world)
+        calls = [(s, legal_actions(s.geometry, 1.2, 0.1)) for s in states]
+        predictor.predict(*calls[0], np.random.default_rng(0))
+        start = time.perf_counter()
+        n = 0
+        for s, actions in calls:
+            predictor.predict(s, actions, np.random.default_rng(0))
+            n += len(actions)
+        seconds = time.perf_counter() - start
+        results["predict_legal_actions"][f"threads={t}"] = {"images_per_s": n / seconds,
+                                                            "actions_per_call": n / len(calls),
+                                                            "ms_per_call": 1000 * seconds / len(calls)}
+        print(f"threads {t}: predictor=cnn on {len(calls)} states, {n / len(calls):.0f} actions per call: "
+              f"{n / seconds:8.0f} images/s, {1000 * seconds / len(calls):.1f} ms per call")
+    print(json.dumps(results))
+    return results
+
+
+if __name__ == "__main__":
+    main()

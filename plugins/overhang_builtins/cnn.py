@@ -1,0 +1,76 @@
+"""The visual-heuristic predictor (paper, Models): a CNN maps an image of the tower after an action to
+the probability that it stands.
+
+The model, its renderer and its training live in :mod:`overhang_framework.cnn`; this plugin loads a
+checkpoint and scores all the candidate actions of a state in one batched pass, rendering included.
+Answers are cached by the canonical geometry key, so a search that meets a tower again pays nothing.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import Action
+from overhang_framework.interfaces import Predictor, State, World
+
+
+class CNNPredictor(Predictor):
+    """Stability probabilities from a trained CNN checkpoint.
+
+    ``checkpoint`` is ``default`` (the model shipped with the package, see
+    ``overhang_framework/cnn/checkpoints/default.md``) or a path to a ``.pt``
+    file written by ``python -m overhang_framework.cnn.train``. ``device`` is
+    ``auto`` (a GPU when present), ``cpu`` or ``cuda``; ``threads`` sets
+    torch's CPU threads (``null``: torch's default). ``batch_size`` caps the
+    images of one forward pass; ``cache_size`` the towers remembered (0: no
+    cache). The predictor is deterministic: ``rng`` is not used.
+    """
+
+    def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
+                 threads: Optional[int] = None, batch_size: int = 512, cache_size: int = 200_000):
+        from overhang_framework.cnn.model import StabilityModel
+
+        if isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0:
+            raise ValueError(f"cache_size must be a whole number >= 0, got {cache_size!r}")
+        self.world = world
+        self.model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size)
+        self.cache_size = cache_size
+        self._cache: OrderedDict = OrderedDict()
+        self.counts = {"towers": 0, "cache_hits": 0, "images": 0}
+
+    def probabilities(self, geometries) -> np.ndarray:
+        """Stability probability of each geometry (cached by canonical key)."""
+        out = np.empty(len(geometries))
+        missing, keys = [], []
+        for i, g in enumerate(geometries):
+            key = g.key
+            hit = self._cache.get(key) if self.cache_size else None
+            if hit is None:
+                missing.append(i)
+                keys.append(key)
+            else:
+                out[i] = hit
+        self.counts["towers"] += len(geometries)
+        self.counts["cache_hits"] += len(geometries) - len(missing)
+        if missing:
+            probs = self.model.probabilities([geometries[i] for i in missing])
+            self.counts["images"] += len(missing)
+            out[missing] = probs
+            if self.cache_size:
+                for key, p in zip(keys, probs):
+                    self._cache[key] = float(p)
+                while len(self._cache) > self.cache_size:
+                    self._cache.popitem(last=False)
+        return out
+
+    def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
+        if not len(actions):
+            return np.zeros(0)
+        return self.probabilities([self.world.successor(state, a).geometry for a in actions])
+
+    def stats(self) -> dict:
+        """Towers asked about, cache hits, and images the network scored."""
+        return dict(self.counts)

@@ -1,0 +1,76 @@
+"""The stage-switch hybrid predictor (paper, Fig. 4 discussion): one predictor while the scene is
+simple, another as it grows.
+
+The paper finds the IPE explains human judgements better on sparse early scenes and the visual
+heuristic (the CNN) on larger ones: the IPE's perceptual noise compounds with the height of the stack,
+while the CNN's cost and reliability stay flat. The switch is by the number of blocks of the scene
+being judged, the tower *after* the action, so inside a lookahead the deeper, larger towers go to
+``late`` even when the decision itself is early. ``docs/cnn.md`` justifies the default switch point
+with the accuracy of both predictors against the reference by number of blocks
+(``python -m overhang_framework.analyses.predictor_accuracy``).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+
+from overhang_framework.geometry import Action
+from overhang_framework.interfaces import Predictor, State, World
+
+
+class HybridPredictor(Predictor):
+    """``early`` judges towers of fewer than ``switch`` blocks (after the action), ``late`` the others.
+
+    ``early`` and ``late`` are the registered names of any two predictors,
+    built with ``early_params`` and ``late_params``. Every call goes wholly to
+    one of them: all the candidate actions of a state make towers of the same
+    size. :meth:`stats` counts the calls and actions each one answered.
+    """
+
+    def __init__(self, world: World, early: str = "ipe", late: str = "cnn", switch: int = 4,
+                 early_params: Optional[Mapping[str, Any]] = None,
+                 late_params: Optional[Mapping[str, Any]] = None):
+        from overhang_framework.plugins import Registry
+
+        if isinstance(switch, bool) or not isinstance(switch, int) or switch < 1:
+            raise ValueError(f"switch must be a whole number of blocks >= 1, got {switch!r}")
+        for label, params in (("early_params", early_params), ("late_params", late_params)):
+            if params is not None and not isinstance(params, Mapping):
+                raise ValueError(f"{label} must be a mapping of parameter names to values, got {params!r}")
+        registry = Registry()
+        names = registry.names("predictor")
+        for label, name in (("early", early), ("late", late)):
+            if name == "hybrid":
+                raise ValueError(f"{label} cannot be 'hybrid' itself; allowed: "
+                                 f"{', '.join(n for n in names if n != 'hybrid')}")
+            if name not in names:
+                raise ValueError(f"unknown {label} predictor {name!r}; allowed: "
+                                 f"{', '.join(n for n in names if n != 'hybrid')}")
+        self.world = world
+        self.switch = switch
+        self.names = {"early": early, "late": late}
+        self.early = registry.create("predictor", {"name": early, **dict(early_params or {})}, world=world)
+        self.late = registry.create("predictor", {"name": late, **dict(late_params or {})}, world=world)
+        self.counts = {"early_calls": 0, "late_calls": 0, "early_actions": 0, "late_actions": 0}
+
+    def route(self, state: State) -> str:
+        """``early`` or ``late``: who judges the towers one block larger than ``state``'s."""
+        return "late" if len(state.geometry) + 1 >= self.switch else "early"
+
+    def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
+        which = self.route(state)
+        self.counts[f"{which}_calls"] += 1
+        self.counts[f"{which}_actions"] += len(actions)
+        predictor = self.early if which == "early" else self.late
+        return np.asarray(predictor.predict(state, actions, rng), dtype=float)
+
+    def stats(self) -> dict:
+        """Calls and actions each predictor answered, with the predictors' names and the switch point."""
+        out = {"early": self.names["early"], "late": self.names["late"], "switch": self.switch, **self.counts}
+        for label, predictor in (("early", self.early), ("late", self.late)):
+            inner = getattr(predictor, "stats", None)
+            if callable(inner):
+                out[f"{label}_stats"] = inner()
+        return out
