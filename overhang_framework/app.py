@@ -207,6 +207,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
             "config": header,
             "seed": seed,
             "world_stats": models["world"].stats(),
+            "predictor_stats": getattr(models["predictor"], "stats", dict)(),
         })
         atomic_write_json(metrics_file, summary)
         return summary

@@ -163,3 +163,17 @@ def test_the_headline_command_runs_on_one_task(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["complete"] and metrics["world_stats"]["physics"] == "tiered"
+
+
+def test_a_run_records_which_predictor_answered(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework", "predictor=hybrid", "tasks=custom",
+                           "tasks.sequences=[[1.2,0.6,1.8,0.6]]", "world.physics=static", "progress=false",
+                           f"hydra.run.dir={tmp_path}"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    stats = json.loads((tmp_path / "metrics.json").read_text())["predictor_stats"]
+    # towers of 2 and 3 blocks go to the early predictor, the 4-block one to the late one
+    assert (stats["early_calls"], stats["late_calls"]) == (2, 1)
