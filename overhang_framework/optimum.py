@@ -38,10 +38,6 @@ from overhang_framework.search import Expander, lookahead_value, root_scores
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
 
 
-#: Children of the last placement scored this many at a time, furthest-reaching first
-#: (:meth:`~overhang_framework.search.Expander.best_leaf`); None scores them all at once, which with
-#: prefetching (all siblings' children in one physics call) measured twice as fast.
-LAZY_LEAVES = None
 
 
 class _FinalOverhang:
@@ -96,7 +92,7 @@ class OptimumSearch:
         """The optimum score from ``state`` to the end of its episode."""
         floor = self.greedy(state)
         return lookahead_value(self.expander, self.value, state, len(state.remaining), floor, self.memo,
-                               lazy_leaves=LAZY_LEAVES, prefetch=True)
+                               prefetch=True)
 
     def best_path(self, state: State) -> tuple[float, list]:
         """The optimum score from ``state`` and a sequence of actions that reaches it."""
@@ -110,7 +106,7 @@ class OptimumSearch:
                 if p <= 0:
                     continue
                 v = lookahead_value(self.expander, self.value, child, depth - 1, target / p, self.memo,
-                                    lazy_leaves=LAZY_LEAVES, prefetch=True)
+                                    prefetch=True)
                 if p * v >= target * (1 - 1e-9):
                     path.append(action)
                     state, target = child, v
@@ -123,7 +119,7 @@ class OptimumSearch:
         """The optimum score after each first action (exact for the best ones, below them for the rest)."""
         self.greedy(state)
         return root_scores(self.expander, self.value, state, len(state.remaining), exact_all=False,
-                           memo=self.memo, lazy_leaves=LAZY_LEAVES, prefetch=True)
+                           memo=self.memo, prefetch=True)
 
 
 class _Unlimited(Budget):

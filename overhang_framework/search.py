@@ -189,45 +189,6 @@ class Expander:
         self.stats.nodes_expanded += 1
         return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach)
 
-    def best_leaf(self, state: State, value: Value, threshold: float, chunk: int) -> float:
-        """``max_a p(s, a) * V(child_a)`` over the children of ``state``, predicting lazily.
-
-        Children are taken in order of decreasing ``V`` and scored ``chunk`` at
-        a time; the scan stops once no remaining child can beat the best found
-        (``p <= 1``) or reach ``threshold``. Each chunk is predicted with the
-        state's own generator, so every child gets the probability a single
-        batched call would give it. Exact above ``threshold`` like
-        :func:`lookahead_value`; the children never scored count as pruned.
-        """
-        key = state_key(state)
-        actions = self.world.legal_actions(state, self.resolution)
-        if self.mirror and is_symmetric(state):
-            actions = [a for a in actions if a.x >= 0]
-        if not actions:
-            return 0.0
-        children = [self.world.successor(state, a) for a in actions]
-        values = np.array([value(c) for c in children], dtype=float)
-        order = np.argsort(-values, kind="stable")
-        canonical = canonical_state(state)
-        best, scored = 0.0, 0
-        for start in range(0, len(order), chunk):
-            top = values[order[start]]
-            if top <= best or _below(top, threshold):
-                break
-            if self.budget.exhausted():
-                raise BudgetExhausted
-            idx = order[start:start + chunk]
-            p = np.asarray(self.predictor.predict(canonical, [actions[i] for i in idx], node_rng(self.seed, key)),
-                           dtype=float)
-            self.budget.charge(1)
-            self.stats.predictor_calls += 1
-            self.stats.actions_scored += len(idx)
-            scored += len(idx)
-            best = max(best, float(np.max(p * values[idx])))
-        self.stats.nodes_expanded += 1
-        self.stats.leaves_pruned += len(order) - scored
-        return best
-
 
 def max_reach(world: World, state: State, resolution: Optional[float] = None) -> float:
     """The largest overhang one more legal placement can give (the state's own if none is legal)."""
@@ -266,8 +227,7 @@ def _below(bound: Optional[float], threshold: float) -> bool:
 
 
 def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
-                    threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None,
-                    lazy_leaves: Optional[int] = None, prefetch: bool = False) -> float:
+                    threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None, prefetch: bool = False) -> float:
     """``max`` over action sequences of length ``depth`` of ``prod p * V(leaf)`` from ``state``.
 
     Branch and bound: a child whose score cannot reach ``threshold`` (or the
@@ -278,10 +238,7 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     sequence stops early when the episode ends. ``memo`` carries results
     between calls of one decision. ``beam`` keeps only that many children of
     each inner node, the best by ``p * bound`` (an approximation).
-    ``lazy_leaves`` scores the last level's children that many at a time, best
-    value first, and stops when no other can win (:meth:`Expander.best_leaf`):
-    the same result with far fewer predictions, at the cost of more, smaller
-    predictor calls. ``prefetch`` expands all the children of a node one level
+    ``prefetch`` expands all the children of a node one level
     above the leaves together (:meth:`Expander.expand_many`), which is faster
     when one large physics call costs much less than many small ones, at the
     cost of scoring children that a bound would have skipped.
@@ -296,11 +253,6 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
         result, exact, tried = known
         if exact or threshold >= tried:
             return result
-    if depth == 1 and lazy_leaves:
-        best = expander.best_leaf(state, value, threshold, lazy_leaves)
-        exact = best >= threshold * (1 - TIE) or threshold <= 0
-        memo[key] = (best, exact, threshold)
-        return best
     expansion = expander.expand(state)
     p = expansion.p
     best = 0.0
@@ -320,7 +272,7 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
                 expander.stats.leaves_pruned += 1
                 continue
             child = lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                    floor / p[i], memo, beam, lazy_leaves, prefetch)
+                                    floor / p[i], memo, beam, prefetch)
             best = max(best, float(p[i] * child))
     exact = best >= threshold * (1 - TIE) or threshold <= 0
     memo[key] = (best, exact, threshold)
@@ -341,15 +293,14 @@ def _bound(value: Value, state: State, depth: int) -> float:
 
 def root_scores(expander: Expander, value: Value, state: State, depth: int, exact_all: bool,
                 first: Optional[int] = None, memo: Optional[dict] = None,
-                beam: Optional[int] = None, lazy_leaves: Optional[int] = None,
-                prefetch: bool = False) -> np.ndarray:
+                beam: Optional[int] = None, prefetch: bool = False) -> np.ndarray:
     """The score ``p(s, a) * best continuation`` of every root action, at horizon ``depth``.
 
     With ``exact_all`` every score is exact (what a softmax rule needs);
     otherwise only the best ones are, and the others may be any number below
     the best (enough for argmax, and much cheaper). ``first`` is explored
     first, e.g. the previous iteration's choice, to tighten the bound early.
-    ``beam``, ``lazy_leaves`` and ``prefetch`` are passed on to :func:`lookahead_value`
+    ``beam`` and ``prefetch`` are passed on to :func:`lookahead_value`
     (the root's own children are expanded one by one, so that pruning keeps its
     effect where the subtrees are largest).
     """
@@ -376,7 +327,7 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
             scores[i] = p[i] * bounds[i]
             continue
         scores[i] = p[i] * lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                           floor / p[i], memo, beam, lazy_leaves, prefetch)
+                                           floor / p[i], memo, beam, prefetch)
         best = max(best, scores[i])
     return scores
 
