@@ -71,6 +71,17 @@ def test_each_call_goes_to_the_predictor_of_the_judged_towers_size(constants):
     assert (stats["early"], stats["late"], stats["switch"]) == ("test_low", "test_high", 4)
 
 
+def test_many_requests_are_split_by_size_and_answered_in_order(constants):
+    h = HybridPredictor(static_world(), early="test_low", late="test_high", switch=4)
+    actions = [Action(0.0, 99)]
+    requests = [(tower(n), actions * n) for n in (4, 1, 3, 2)]  # towers after the action: 5, 2, 4, 3
+    answers = h.predict_many(requests, [np.random.default_rng(i) for i in range(4)])
+    assert [a.tolist() for a in answers] == [[0.75] * 4, [0.25], [0.75] * 3, [0.25] * 2]
+    stats = h.stats()
+    assert (stats["early_calls"], stats["late_calls"]) == (2, 2)
+    assert (stats["early_actions"], stats["late_actions"]) == (3, 7)
+
+
 def test_parameters_reach_the_composed_predictors(constants):
     h = HybridPredictor(static_world(), early="test_low", late="test_high", switch=2,
                         early_params={"value": 0.1}, late_params={"value": 0.9})

@@ -101,6 +101,15 @@ class PredictorContract(_WithWorld):
         single = [predictor.predict(state, [a], np.random.default_rng(3))[0] for a in actions]
         np.testing.assert_allclose(batched, single)
 
+    def test_many_requests_equal_one_call_each(self, predictor, world, state):
+        actions = world.legal_actions(state)
+        child = world.successor(state, actions[len(actions) // 2])
+        requests = [(state, actions[::3]), (child, world.legal_actions(child)[::3]), (state, [])]
+        many = predictor.predict_many(requests, [np.random.default_rng(s) for s in (4, 5, 6)])
+        assert len(many) == len(requests)
+        for (s, acts), seed, got in zip(requests, (4, 5, 6), many):
+            np.testing.assert_allclose(got, predictor.predict(s, acts, np.random.default_rng(seed)), rtol=1e-6)
+
 
 class PlannerContract(_WithWorld):
     """Provide ``planner``; ``predictor`` and ``value`` default to the built-in veridical and overhang."""

@@ -71,6 +71,16 @@ class CNNPredictor(Predictor):
             return np.zeros(0)
         return self.probabilities([self.world.successor(state, a).geometry for a in actions])
 
+    def predict_many(self, requests: Sequence[tuple[State, Sequence[Action]]],
+                     rngs: Sequence[np.random.Generator]) -> list[np.ndarray]:
+        """Every request's candidates rendered and scored together: one pass over all the images."""
+        towers, bounds = [], [0]
+        for state, actions in requests:
+            towers.extend(self.world.successor(state, a).geometry for a in actions)
+            bounds.append(len(towers))
+        probs = self.probabilities(towers) if towers else np.zeros(0)
+        return [probs[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+
     def stats(self) -> dict:
         """Towers asked about, cache hits, and images the network scored."""
         return dict(self.counts)

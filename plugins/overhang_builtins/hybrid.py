@@ -66,6 +66,21 @@ class HybridPredictor(Predictor):
         predictor = self.early if which == "early" else self.late
         return np.asarray(predictor.predict(state, actions, rng), dtype=float)
 
+    def predict_many(self, requests: Sequence[tuple[State, Sequence[Action]]],
+                     rngs: Sequence[np.random.Generator]) -> list[np.ndarray]:
+        """The requests split by :meth:`route`, each share served by its predictor's own ``predict_many``."""
+        out: list = [None] * len(requests)
+        for which, predictor in (("early", self.early), ("late", self.late)):
+            rows = [i for i, (state, _) in enumerate(requests) if self.route(state) == which]
+            if not rows:
+                continue
+            self.counts[f"{which}_calls"] += len(rows)
+            self.counts[f"{which}_actions"] += sum(len(requests[i][1]) for i in rows)
+            answers = predictor.predict_many([requests[i] for i in rows], [rngs[i] for i in rows])
+            for i, p in zip(rows, answers):
+                out[i] = np.asarray(p, dtype=float)
+        return out
+
     def stats(self) -> dict:
         """Calls and actions each predictor answered, with the predictors' names and the switch point."""
         out = {"early": self.names["early"], "late": self.names["late"], "switch": self.switch, **self.counts}
