@@ -29,6 +29,8 @@ from overhang_framework.errors import OverhangError, UnknownPluginError, Unknown
 
 #: Config groups the run selects by name.
 GROUPS = ("world", "predictor", "planner", "value", "condition", "tasks")
+#: Groups that choose several of the groups above at once (conf/model, conf/experiment).
+PRESET_GROUPS = ("model", "experiment")
 #: Groups whose keys are the parameters of a registered factory; the registry checks those.
 MODEL_GROUPS = ("world", "predictor", "planner", "value")
 
@@ -209,7 +211,7 @@ def _choices(words: Sequence[str]) -> list[str]:
             ov = _parse(word)
         except Exception:
             continue
-        if (ov.key_or_group in GROUPS or "/" in ov.key_or_group) and not ov.is_sweep_override() \
+        if (ov.key_or_group in GROUPS + PRESET_GROUPS or "/" in ov.key_or_group) and not ov.is_sweep_override() \
                 and not ov.is_delete() and not ov.is_add() and not ov.package:
             out.append(word)
     return out
@@ -369,6 +371,12 @@ def check_command_line(args: Sequence[str], check_config: Optional[Callable] = N
     check_words(words)
     check_group_choices(args)
     multirun = is_multirun(args)
+    from_config, config_sweeps = _config_sweep(words)
+    if from_config and not multirun:  # an experiment config that sweeps (hydra.mode: MULTIRUN)
+        multirun = True
+        words = [*words, *config_sweeps]
+    elif multirun:
+        words = [*words, *config_sweeps]
     configs = [_compose(variant) for variant in _variants(words, multirun)]
     _check_appended(words)
     for cfg in configs:
@@ -381,6 +389,27 @@ def check_command_line(args: Sequence[str], check_config: Optional[Callable] = N
         for cfg in configs:
             check_config(cfg)
     _check_output_dir(configs[0], multirun)
+
+
+def _config_sweep(words: Sequence[str]) -> tuple[bool, list[str]]:
+    """Whether the chosen configs make the command a multirun (``hydra.mode: MULTIRUN``), and the
+    sweeps their ``hydra.sweeper.params`` add (as override words; a key the command line sets wins)."""
+    from omegaconf import OmegaConf
+
+    try:
+        cfg = _base(words)
+        mode = str(OmegaConf.select(cfg, "hydra.mode", default="") or "")
+        params = OmegaConf.select(cfg, "hydra.sweeper.params", default=None) or {}
+    except Exception:
+        return False, []
+    given = set()
+    for word in words:
+        try:
+            given.add(_parse(word).key_or_group)
+        except Exception:
+            continue
+    extra = [f"{key}={value}" for key, value in params.items() if key.lstrip("+") not in given]
+    return mode.endswith("MULTIRUN"), extra
 
 
 def _check_launcher(cfg) -> None:
