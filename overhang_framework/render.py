@@ -114,13 +114,15 @@ class RasterRenderer(Renderer):
     name = "raster"
     BEVEL = 0.5  # the bevel channel is 1 - BEVEL at a block's side faces and 1 at its centre
     TOP = 0.5  # the top channel is 1 - TOP at a block's bottom face and 1 at its top
-    CHUNK = 64  # images rendered per matrix product
+    CHUNK = 256  # images rendered per batch of array operations
 
     def __init__(self, size=(48, 96), x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
         super().__init__(size, x_max, z_max)
         self._col_edges = np.linspace(-self.x_max, self.x_max, self.width + 1)
         self._row_edges = np.linspace(self.z_max, 0.0, self.height + 1)  # top row first
         self._col_centres = (self._col_edges[:-1] + self._col_edges[1:]) / 2
+        self._col_edges32 = self._col_edges.astype(np.float32)
+        self._col_centres32 = self._col_centres.astype(np.float32)
         row_centres = (self._row_edges[:-1] + self._row_edges[1:]) / 2
         # Row coverage of every layer that reaches into the view (H, L), and the same lit from above.
         n_layers = int(np.ceil(self.z_max / BLOCK_HEIGHT - 1e-9))
@@ -140,11 +142,12 @@ class RasterRenderer(Renderer):
         Every block of a layer covers the same rows, so an image is
         ``rows(H, L) @ columns(L, W)``: the column coverage of each layer's
         blocks (they never overlap) times the fixed row coverage of each
-        layer. All images of a batch share one matrix product.
+        layer. The column coverage of every block of a chunk of images is one
+        array operation, gathered into layers by one batched product.
         """
         n, m = widths.shape
         out = self._out(n, out)
-        if n > self.CHUNK:  # small products stay in the CPU's cache
+        if n > self.CHUNK:  # bounded temporaries
             for start in range(0, n, self.CHUNK):
                 stop = min(n, start + self.CHUNK)
                 self.render_arrays(widths[start:stop], xs[start:stop], layers[start:stop], mask[start:stop],
@@ -152,27 +155,22 @@ class RasterRenderer(Renderer):
             return out
         if n == 0:
             return out
-        h, w, n_layers = self.height, self.width, self._rows.shape[1]
-        cols = np.zeros((2, n_layers, n, w), dtype=np.float32)  # fill, bevel
-        px = (2 * self.x_max) / w
-        ce = self._col_edges
-        idx = np.arange(n)
-        for j in range(m):
-            keep = mask[:, j] & (layers[:, j] < n_layers)
-            if not keep.any():
-                continue
-            rows, wj, xj, lj = idx[keep], widths[keep, j], xs[keep, j], layers[keep, j].astype(int)
-            left, right = (xj - wj / 2)[:, None], (xj + wj / 2)[:, None]
-            cov = np.minimum(right, ce[1:]) - np.maximum(left, ce[:-1])
-            cov = np.where(cov > 1e-9, cov / px, 0.0)  # edges that meet up to rounding do not overlap
-            u = np.clip((self._col_centres - left) / wj[:, None], 0, 1)
-            cols[0, lj, rows] += cov
-            cols[1, lj, rows] += cov * (1.0 - self.BEVEL * (2 * u - 1) ** 2)  # symmetric in u: mirror-exact
-        flat = cols.reshape(2, n_layers, n * w)
-        fill = self._rows @ flat[0]  # (H, n*W)
-        out[:, 0] = fill.reshape(h, n, w).transpose(1, 0, 2)
-        out[:, 1] = (self._rows @ flat[1]).reshape(h, n, w).transpose(1, 0, 2)
-        out[:, 2] = (self._lit_rows @ flat[0]).reshape(h, n, w).transpose(1, 0, 2)
+        n_layers = self._rows.shape[1]
+        f32 = np.float32
+        keep = np.asarray(mask, dtype=bool) & (np.asarray(layers) < n_layers)
+        wj = np.where(keep, widths, 1.0).astype(f32)[..., None]  # (n, m, 1)
+        left = xs.astype(f32)[..., None] - wj / 2
+        right = left + wj
+        cov = np.minimum(right, self._col_edges32[1:]) - np.maximum(left, self._col_edges32[:-1])  # (n, m, W)
+        cov = np.where((cov > 1e-6) & keep[..., None], cov * f32(self.width / (2 * self.x_max)), f32(0))
+        u = np.clip((self._col_centres32 - left) / wj, 0, 1)
+        bevel = cov * (1 - f32(self.BEVEL) * (2 * u - 1) ** 2)  # symmetric in u: mirror-exact
+        which = ((np.asarray(layers)[..., None] == np.arange(n_layers)) & keep[..., None]).astype(f32)
+        which = which.transpose(0, 2, 1)  # (n, L, m)
+        fill_cols = which @ cov  # (n, L, W)
+        out[:, 0] = self._rows @ fill_cols
+        out[:, 1] = self._rows @ (which @ bevel)
+        out[:, 2] = self._lit_rows @ fill_cols
         np.clip(out, 0.0, 1.0, out=out)
         return out
 

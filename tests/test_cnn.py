@@ -98,7 +98,7 @@ def test_training_runs_end_to_end_and_resumes_where_it_stopped(tmp_path, monkeyp
     lines = (tmp_path / "a" / "run" / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(line)["epoch"] for line in lines] == [1, 2]
     best = read_checkpoint(tmp_path / "a" / "run" / "best.pt")
-    assert best["renderer"]["size"] == [24, 48] and best["backbone"] == "mobilenetv3_small_100"
+    assert best["renderer"]["size"] == [24, 48] and best["backbone"] == "mobilenetv3_small_050"
 
     # the same training, interrupted during epoch 2, then run again: it resumes after epoch 1
     calls = []

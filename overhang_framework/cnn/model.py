@@ -41,10 +41,21 @@ def check_backbone(backbone: str, size) -> None:
 
 
 def build_model(backbone: str):
-    """A timm ``backbone`` with random weights (``pretrained=False``) and one logit out."""
+    """A timm ``backbone`` with random weights (``pretrained=False``) and one logit out, its weights in
+    channels-last layout (about twice as fast on a CPU for these small inputs, measured for training
+    and inference; feed it :func:`as_input`)."""
     import timm
+    import torch
 
-    return timm.create_model(backbone, pretrained=False, num_classes=1, in_chans=3)
+    net = timm.create_model(backbone, pretrained=False, num_classes=1, in_chans=3)
+    return net.to(memory_format=torch.channels_last)
+
+
+def as_input(images: np.ndarray, device):
+    """``(n, 3, H, W)`` float32 images as the network's input tensor (channels-last, on ``device``)."""
+    import torch
+
+    return torch.from_numpy(images).to(device).contiguous(memory_format=torch.channels_last)
 
 
 def pick_device(device: str = "auto"):
@@ -145,7 +156,7 @@ class StabilityModel:
             images = self.renderer.render_arrays(widths[start:stop], xs[start:stop], layers[start:stop],
                                                  mask[start:stop], out=self._images(stop - start))
             with torch.inference_mode():
-                x = torch.from_numpy(images).to(self.device)
+                x = as_input(images, self.device)
                 out[start:stop] = self.net(x).reshape(-1).float().cpu().numpy()
         return out
 

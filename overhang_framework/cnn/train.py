@@ -93,6 +93,8 @@ def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512) ->
     """Accuracy (overall and near-critical), loss and the probabilities of a loaded data set."""
     import torch
 
+    from overhang_framework.cnn.model import as_input
+
     n = len(data["stable"])
     probs = np.empty(n)
     net.eval()
@@ -101,7 +103,7 @@ def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512) ->
         for start in range(0, n, batch_size):
             idx = np.arange(start, min(n, start + batch_size))
             images = renderer.render_arrays(*_rows(data, idx), out=buf[:len(idx)])
-            logits = net(torch.from_numpy(images).to(device)).reshape(-1).float().cpu().numpy()
+            logits = net(as_input(images, device)).reshape(-1).float().cpu().numpy()
             probs[idx] = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
     return scores(probs, data)
 
@@ -134,7 +136,7 @@ def train(cfg) -> dict:
     from tqdm import tqdm
 
     from overhang_framework.cnn.data import generate, load
-    from overhang_framework.cnn.model import build_model, pick_device, save_checkpoint
+    from overhang_framework.cnn.model import as_input, build_model, pick_device, save_checkpoint
 
     check(cfg)
     if cfg.threads is not None:
@@ -206,7 +208,7 @@ def train(cfg) -> dict:
             widths, xs, layers, mask = _rows(train_data, idx)
             xs = np.where(flips[idx][:, None], -xs, xs)  # mirroring in x keeps the verdict
             images = renderer.render_arrays(widths, xs, layers, mask, out=buf[:len(idx)])
-            x = torch.from_numpy(images).to(device)
+            x = as_input(images, device)
             y = torch.from_numpy(train_data["stable"][idx].astype(np.float32)).to(device)
             loss = torch.nn.functional.binary_cross_entropy_with_logits(net(x).reshape(-1), y)
             opt.zero_grad(set_to_none=True)
