@@ -13,8 +13,10 @@ that finished.
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import queue as queue_module
 import signal
+import sys
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
 
@@ -26,6 +28,12 @@ _TICKS = None
 def _init(config: Mapping[str, Any], ticks) -> None:
     global _MODELS, _TASKS, _TICKS
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    # One compute thread per worker: the workers already fill the cores, and oversubscribed
+    # thread pools (torch's, BLAS's) slow every process down (a model's own `threads` still wins).
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
     from omegaconf import OmegaConf
 
     from overhang_framework.app import build_models
