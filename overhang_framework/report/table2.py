@@ -1,7 +1,7 @@
 """The paper's Table 2 from a sweep: terminal reward per model beside the paper's values.
 
-``experiment=table2`` lists :class:`Table2Callback` among its Hydra callbacks, so
-the table is printed and written to ``table2.md`` in the sweep directory when
+``experiment=table2`` makes :class:`Table2Callback` its sweep callback, so the
+table is printed and written to ``table2.md`` in the sweep directory when
 the sweep ends. It can be made again from the files alone, also for a partial
 sweep:
 
@@ -25,6 +25,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from overhang_framework.report.build import Job, load_jobs, optimum_of
+from overhang_framework.report.callback import SweepResults
 from overhang_framework.results import atomic_write_text
 
 #: The paper's Table 2 (mean ± SEM of terminal reward over its 20 tasks), as printed there.
@@ -150,25 +151,21 @@ def write(root: Path | str) -> tuple[Path, str]:
     return path, text
 
 
-try:
-    from hydra.experimental.callback import Callback
-except ImportError:  # pragma: no cover - Hydra is a dependency
-    Callback = object
-
-
-class Table2Callback(Callback):
-    """Prints Table 2 and writes ``table2.md`` when the sweep of ``experiment=table2`` ends."""
+class Table2Callback(SweepResults):
+    """``results.csv`` as for every sweep, then Table 2 printed and written to ``table2.md`` (also when
+    some jobs failed: the exit status is still 1 then)."""
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
-        if not sweep_dir.is_dir():
-            return
-        try:
-            path, text = write(sweep_dir)
-        except FileNotFoundError:
-            return
-        print(text, end="")
-        print(f"table: {path}")
+        if sweep_dir.is_dir():
+            try:
+                path, text = write(sweep_dir)
+            except FileNotFoundError:
+                path = None
+            if path is not None:
+                print(text, end="")
+                print(f"table: {path}")
+        super().on_multirun_end(config, **kwargs)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
