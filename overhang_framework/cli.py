@@ -10,6 +10,7 @@ from typing import Optional, Sequence
 from overhang_framework.errors import OverhangError
 from overhang_framework.preflight import (
     GROUPS,
+    PRESET_GROUPS,
     check_command_line,
     check_group_choices,
     override_words,
@@ -54,6 +55,7 @@ def help_text() -> str:
         default = defaults[group].get("name")
         listed = ", ".join(f"{n} (default)" if n == default else n for n in names)
         groups.append(f"  {group:<{width}}{listed}")
+    presets = [f"  {group:<{width}}{', '.join(group_options(group))}" for group in PRESET_GROUPS]
     settings = ", ".join(f"{k}={json.dumps(defaults[k])}" for k in defaults if k not in GROUPS)
     return f"""\
 overhang-framework: run the Overhang Tower task with pluggable physics predictors and planners.
@@ -72,6 +74,9 @@ usage:
 config groups (group=name; installed names):
 {chr(10).join(groups)}
 
+presets (a paper model: planner and settings; an experiment: a whole paper result, e.g. Table 2):
+{chr(10).join(presets)}
+
 other settings: {settings}
   any key can be set: world.resolution=0.05, predictor.K=100, world.pybullet.threshold=0.1
 
@@ -80,6 +85,7 @@ examples:
   {PROG} predictor=ipe 'tasks.only=[paper00,paper07]' repeats=5
   {PROG} tasks=custom 'tasks.sequences=[[0.6,1.8,1.2],[1.2,1.2,0.6,1.8]]'
   {PROG} -m predictor=veridical,ipe condition=unconstrained,time_limited hydra/launcher=joblib
+  {PROG} experiment=table2_quick
 
 outputs (in hydra.run.dir, by default outputs/<date>/<time>):
   episodes.jsonl   one JSON object per episode, every placement with its timing and spend
