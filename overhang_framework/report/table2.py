@@ -80,7 +80,8 @@ def rows_of(jobs: list[Job], optima: dict) -> list[dict]:
                      "predictor": job.config.get("predictor", {}).get("name", "?"),
                      "episodes": len(eps), "expected": job.expected, "tasks": tasks, "repeats": repeats,
                      "reward": reward, "sem": sem, "ratio": ratio, "ratio_sem": ratio_sem,
-                     "decision_time": _median([s["decision_time"] for e in eps for s in e["steps"]])})
+                     "decision_time": _median([s["decision_time"] for e in eps for s in e["steps"]]),
+                     **_depths(eps, job.config)})
     order = {name: i for i, name in enumerate(MODEL_ORDER)}
     rows.sort(key=lambda r: (r["condition"], order.get(r["model"], len(order)), r["model"], r["job"]))
     return rows
@@ -98,6 +99,23 @@ def static_optimum(job: Job, episode: dict, optima: dict) -> Optional[float]:
     return None
 
 
+def _depths(episodes: list[dict], config: dict) -> dict:
+    """Over the decisions that could search the planner's full depth (enough blocks left): the mean depth
+    the search completed and the share whose budget ran out."""
+    planner = config.get("planner", {})
+    full = int(planner.get("depth", 1)) if planner.get("name") == "lookahead" else 1
+    depths, ran_out = [], []
+    for e in episodes:
+        n = len(e["sequence"]) - 1
+        for i, step in enumerate(e["steps"]):
+            if n - i >= full:
+                spend = step.get("spend", {})
+                depths.append(float(spend.get("depth_completed", full)))
+                ran_out.append(float(bool(spend.get("budget_exhausted"))))
+    return {"depth": float(np.mean(depths)) if depths else math.nan,
+            "ran_out": float(np.mean(ran_out)) if ran_out else math.nan}
+
+
 def _median(values: list[float]) -> float:
     return float(np.median(values)) if values else math.nan
 
@@ -113,18 +131,23 @@ def _pm(mean: float, sem: float, digits: int = 3) -> str:
 def render(rows: list[dict], root: Path) -> str:
     """The Markdown table: the paper's rows and ours side by side."""
     lines = [f"# Table 2: terminal reward across the tasks ({root})", "",
-             "| model | paper | ours | ours: reward / optimum | condition | episodes | median decision (s) |",
-             "|---|---|---|---|---|---|---|"]
+             "| model | paper | ours | ours: reward / optimum | condition | episodes | median decision (s) | "
+             "depth reached | budget ran out |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name in ("Human (w/ time limit)", "Human (w/o time limit)"):
-        lines.append(f"| {name} | {PAPER[name]} | | | | | |")
+        lines.append(f"| {name} | {PAPER[name]} | | | | | | | |")
     for r in rows:
         paper = PAPER.get(r["model"], "-")
         count = f"{r['episodes']}"
         if r["expected"] and r["expected"] != r["episodes"]:
             count += f" of {r['expected']}"
         lines.append(f"| {r['model']} | {paper} | {_pm(r['reward'], r['sem'])} | {_pm(r['ratio'], r['ratio_sem'])} | "
-                     f"{r['condition']} | {count} | {_pm(r['decision_time'], math.nan, 2)} |")
+                     f"{r['condition']} | {count} | {_pm(r['decision_time'], math.nan, 2)} | "
+                     f"{_pm(r.get('depth', math.nan), math.nan, 2)} | {_share(r.get('ran_out', math.nan))} |")
     missing = [r for r in rows if r["status"] != "complete"]
+    lines.append("")
+    lines.append("Depth reached and budget ran out: over the decisions with at least the planner's depth of "
+                 "blocks left, the mean depth its search completed and the share stopped by the budget.")
     lines.append("")
     lines.append("Mean over all episodes; ± is the SEM across tasks (of each task's mean over its runs). "
                  "Reward / optimum divides by the task's optimum in the shipped optima (found with the static "
@@ -135,6 +158,10 @@ def render(rows: list[dict], root: Path) -> str:
                      + ", ".join(f"{r['job']} ({r['model']}: {r['status']}, {r['episodes']} episodes)"
                                  for r in missing) + ".")
     return "\n".join(lines) + "\n"
+
+
+def _share(value: float) -> str:
+    return "-" if value is None or math.isnan(value) else f"{100 * value:.0f}%"
 
 
 def write(root: Path | str) -> tuple[Path, str]:
