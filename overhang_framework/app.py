@@ -194,6 +194,19 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
             return summary
     rundir.reopen()
 
+    worker_counters: dict = {}
+
+    def run_stats() -> dict:
+        """The models' counters: this process's, or the sum of the workers' when they played."""
+        if worker_counters:
+            from overhang_framework.parallel import merge_stats
+
+            parts = list(worker_counters.values())
+            return {"world_stats": merge_stats([c["world"] for c in parts]),
+                    "predictor_stats": merge_stats([c["predictor"] for c in parts])}
+        return {"world_stats": models["world"].stats(),
+                "predictor_stats": getattr(models["predictor"], "stats", dict)()}
+
     def summary_of(complete: bool, error: Optional[BaseException] = None) -> dict:
         episodes = [done[(i, rep)] for i, _, rep in jobs if (i, rep) in done]
         summary = summarize(episodes)
@@ -206,8 +219,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
             "wall_time": time.perf_counter() - started,
             "config": header,
             "seed": seed,
-            "world_stats": models["world"].stats(),
-            "predictor_stats": getattr(models["predictor"], "stats", dict)(),
+            **run_stats(),
         })
         atomic_write_json(metrics_file, summary)
         return summary
@@ -234,7 +246,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
 
         bar.set_postfix_str(f"{min(checked.jobs, len(todo))} processes")
         records = play_episodes(_params(cfg), todo, seed, time_limit, call_limit, checked.jobs,
-                                on_step=lambda: bar.update(1))
+                                on_step=lambda: bar.update(1), counters=worker_counters)
     else:
         records = serial()
     try:

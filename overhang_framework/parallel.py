@@ -55,14 +55,17 @@ def _play(index: int, repeat: int, seed: int, time_limit: Optional[float], call_
                          episode_rng(seed, index, repeat), time_limit,
                          on_step=lambda step: _TICKS.put(1), call_limit=call_limit)
     record.update({"seed": seed, "repeat": repeat, "task_index": index})
-    return record
+    counters = {"world": m["world"].stats(), "predictor": getattr(m["predictor"], "stats", dict)()}
+    return record, os.getpid(), counters
 
 
 def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], seed: int,
                   time_limit: Optional[float], call_limit: Optional[int], workers: int,
-                  on_step: Callable[[], None]) -> Iterator[dict]:
+                  on_step: Callable[[], None], counters: Optional[dict] = None) -> Iterator[dict]:
     """Yield the record of every ``(task index, repeat)`` in ``todo`` as it finishes, played on
-    ``workers`` processes; ``on_step`` is called once per placement made anywhere."""
+    ``workers`` processes; ``on_step`` is called once per placement made anywhere. ``counters``, when
+    given, receives each worker's latest world and predictor stats by process id (see
+    :func:`merge_stats`)."""
     context = mp.get_context("spawn")
     ticks = context.Queue()
     executor = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init,
@@ -75,7 +78,10 @@ def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], se
             finished, pending = wait(pending, timeout=0.1, return_when=FIRST_COMPLETED)
             _drain(ticks, on_step)
             for future in finished:
-                yield future.result()
+                record, pid, latest = future.result()
+                if counters is not None:
+                    counters[pid] = latest
+                yield record
         _drain(ticks, on_step)
     finally:
         processes = list((getattr(executor, "_processes", None) or {}).values())
@@ -85,6 +91,25 @@ def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], se
         for process in processes:
             if process.is_alive():
                 process.terminate()
+
+
+def merge_stats(parts: Sequence[Any]) -> Any:
+    """Several processes' stats as one: numbers summed, nested dicts merged key by key, anything else
+    kept from the first; a ``hit_rate`` beside ``hits`` and ``misses`` is computed again."""
+    parts = [p for p in parts if p is not None]
+    if not parts:
+        return {}
+    first = parts[0]
+    if isinstance(first, dict):
+        keys = list(dict.fromkeys(k for p in parts if isinstance(p, dict) for k in p))
+        out = {k: merge_stats([p.get(k) for p in parts if isinstance(p, dict)]) for k in keys}
+        if "hit_rate" in out and isinstance(out.get("hits"), int) and isinstance(out.get("misses"), int):
+            asked = out["hits"] + out["misses"]
+            out["hit_rate"] = out["hits"] / asked if asked else 0.0
+        return out
+    if all(isinstance(p, (int, float)) and not isinstance(p, bool) for p in parts):
+        return sum(parts)
+    return first
 
 
 def _drain(ticks, on_step: Callable[[], None]) -> None:

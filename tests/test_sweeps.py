@@ -105,3 +105,17 @@ def test_episodes_spread_over_processes_equal_a_serial_run(tmp_path):
     a = read_episodes(tmp_path / "serial" / "episodes.jsonl")
     b = read_episodes(tmp_path / "parallel" / "episodes.jsonl")
     assert len(a) == 4 and without_timing(a) == without_timing(b)
+    # the workers' counters reach metrics.json: every placement asked the world's physics once
+    placements = sum(len(e["steps"]) for e in a)
+    for run in ("serial", "parallel"):
+        cache = json.loads((tmp_path / run / "metrics.json").read_text())["world_stats"]["cache"]
+        assert cache["hits"] + cache["misses"] == placements, (run, cache)
+
+
+def test_stats_of_several_processes_merge_into_one():
+    from overhang_framework.parallel import merge_stats
+
+    a = {"cache": {"hits": 1, "misses": 3, "hit_rate": 0.25}, "physics": "tiered", "calls": 2}
+    b = {"cache": {"hits": 3, "misses": 1, "hit_rate": 0.75}, "physics": "tiered", "calls": 5, "extra": 1}
+    assert merge_stats([a, b]) == {"cache": {"hits": 4, "misses": 4, "hit_rate": 0.5}, "physics": "tiered",
+                                   "calls": 7, "extra": 1}
