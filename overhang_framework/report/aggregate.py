@@ -119,7 +119,7 @@ def describe(rows: list[dict]) -> str:
     counts: dict[str, int] = {}
     for row in rows:
         counts[row["status"]] = counts.get(row["status"], 0) + 1
-    parts = [f"{len(rows)} jobs"] + [f"{n} {status}" for status, n in sorted(counts.items())]
+    parts = [f"{len(rows)} job{'' if len(rows) == 1 else 's'}"] + [f"{n} {status}" for status, n in sorted(counts.items())]
     failed = [f"{r['job']} ({_overrides_text(r)}): {r['error']}" for r in rows if r["status"] == "failed"]
     line = ", ".join(parts)
     if failed:
