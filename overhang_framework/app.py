@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
-from overhang_framework.episode import episode_rng, run_episode
+from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework.plugins import Registry
@@ -235,11 +235,8 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     def serial() -> Iterator[dict]:
         for i, rep in todo:
             bar.set_postfix_str(f"episode {len(done) + 1}/{len(jobs)} {tasks[i].id}")
-            record = run_episode(tasks[i], models["world"], models["predictor"], models["planner"],
-                                 models["value"], episode_rng(seed, i, rep), time_limit,
-                                 on_step=lambda step: bar.update(1), call_limit=call_limit)
-            record.update({"seed": seed, "repeat": rep, "task_index": i})
-            yield record
+            yield play_run_episode(models, tasks[i], i, rep, seed, time_limit, call_limit,
+                                   on_step=lambda step: bar.update(1))
 
     if checked.jobs > 1 and len(todo) > 1:
         from overhang_framework.parallel import play_episodes

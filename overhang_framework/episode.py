@@ -65,3 +65,14 @@ def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner
         "overhang": world.overhang(state.geometry),
         "reward": world.reward(state.geometry, stable_throughout),
     }
+
+
+def play_run_episode(models: dict, task: Task, index: int, repeat: int, seed: int,
+                     time_limit: Optional[float], call_limit: Optional[int],
+                     on_step: Optional[Callable[[dict], None]] = None) -> dict:
+    """Episode ``(index, repeat)`` of a run, played with the run's built ``models`` and seeded from
+    ``(seed, index, repeat)``; its record carries ``seed``, ``repeat`` and ``task_index``."""
+    record = run_episode(task, models["world"], models["predictor"], models["planner"], models["value"],
+                         episode_rng(seed, index, repeat), time_limit, on_step=on_step, call_limit=call_limit)
+    record.update({"seed": seed, "repeat": repeat, "task_index": index})
+    return record

@@ -48,13 +48,11 @@ def _init(config: Mapping[str, Any], ticks) -> None:
 
 
 def _play(index: int, repeat: int, seed: int, time_limit: Optional[float], call_limit: Optional[int]) -> dict:
-    from overhang_framework.episode import episode_rng, run_episode
+    from overhang_framework.episode import play_run_episode
 
     m = _MODELS
-    record = run_episode(_TASKS[index], m["world"], m["predictor"], m["planner"], m["value"],
-                         episode_rng(seed, index, repeat), time_limit,
-                         on_step=lambda step: _TICKS.put(1), call_limit=call_limit)
-    record.update({"seed": seed, "repeat": repeat, "task_index": index})
+    record = play_run_episode(m, _TASKS[index], index, repeat, seed, time_limit, call_limit,
+                              on_step=lambda step: _TICKS.put(1))
     counters = {"world": m["world"].stats(), "predictor": getattr(m["predictor"], "stats", dict)()}
     return record, os.getpid(), counters
 

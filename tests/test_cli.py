@@ -113,10 +113,11 @@ def test_glob_sweeps_are_left_to_hydra():
 
 def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, capsys, monkeypatch):
     import overhang_framework.app as app
+    import overhang_framework.episode as episode
     from overhang_framework.cli import main
     from overhang_framework.physics.pool import PoolCrashed
 
-    real, calls = app.run_episode, []
+    real, calls = episode.run_episode, []
 
     def crash_on_second(*args, **kwargs):
         calls.append(1)
@@ -124,7 +125,7 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
             raise PoolCrashed("a PyBullet pool worker died while checking a batch of 9 geometries")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(app, "run_episode", crash_on_second)
+    monkeypatch.setattr(episode, "run_episode", crash_on_second)
     with pytest.raises(SystemExit) as exit_info:
         main([*QUICK, f"hydra.run.dir={tmp_path}"])
     assert exit_info.value.code == 1
@@ -308,9 +309,10 @@ def test_a_single_episode_has_no_sem_and_metrics_are_strict_json(tmp_path):
 
 def test_a_model_failing_mid_run_is_one_line_and_keeps_finished_episodes(tmp_path, capsys, monkeypatch):
     import overhang_framework.app as app
+    import overhang_framework.episode as episode
     from overhang_framework.cli import main
 
-    real, calls = app.run_episode, []
+    real, calls = episode.run_episode, []
 
     def fail_on_second(*args, **kwargs):
         calls.append(1)
@@ -318,7 +320,7 @@ def test_a_model_failing_mid_run_is_one_line_and_keeps_finished_episodes(tmp_pat
             raise ZeroDivisionError("a planner bug")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(app, "run_episode", fail_on_second)
+    monkeypatch.setattr(episode, "run_episode", fail_on_second)
     with pytest.raises(SystemExit) as exit_info:
         main([*QUICK, "world.physics=static", f"hydra.run.dir={tmp_path}"])
     assert exit_info.value.code == 1

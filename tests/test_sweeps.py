@@ -54,16 +54,17 @@ def test_a_sweep_writes_results_csv_with_its_overrides_as_columns(tmp_path):
 
 def test_a_failing_job_is_reported_and_the_others_keep_their_results(tmp_path, capsys, monkeypatch):
     import overhang_framework.app as app
+    import overhang_framework.episode as episode
     from overhang_framework.cli import main
 
-    real = app.run_episode
+    real = episode.run_episode
 
     def fail_for_seed_2(task, world, predictor, planner, value, rng, *args, **kwargs):
         if app.HydraConfig.get().job.override_dirname.find("seed=2") >= 0:
             raise RuntimeError("the planner lost its way\nsecond line")
         return real(task, world, predictor, planner, value, rng, *args, **kwargs)
 
-    monkeypatch.setattr(app, "run_episode", fail_for_seed_2)
+    monkeypatch.setattr(episode, "run_episode", fail_for_seed_2)
     with pytest.raises(SystemExit) as exit_info:
         main(["-m", *STATIC, "seed=1,2,3", f"hydra.sweep.dir={tmp_path}"])
     assert exit_info.value.code == 1
