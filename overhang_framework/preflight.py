@@ -370,12 +370,9 @@ def check_command_line(args: Sequence[str], check_config: Optional[Callable] = N
     words = override_words(args)
     check_words(words)
     check_group_choices(args)
-    multirun = is_multirun(args)
     from_config, config_sweeps = _config_sweep(words)
-    if from_config and not multirun:  # an experiment config that sweeps (hydra.mode: MULTIRUN)
-        multirun = True
-        words = [*words, *config_sweeps]
-    elif multirun:
+    multirun = is_multirun(args) or from_config  # an experiment config may sweep (hydra.mode: MULTIRUN)
+    if multirun:
         words = [*words, *config_sweeps]
     configs = [_compose(variant) for variant in _variants(words, multirun)]
     _check_appended(words)
