@@ -60,11 +60,7 @@ class HybridPredictor(Predictor):
         return "late" if len(state.geometry) + 1 >= self.switch else "early"
 
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
-        which = self.route(state)
-        self.counts[f"{which}_calls"] += 1
-        self.counts[f"{which}_actions"] += len(actions)
-        predictor = self.early if which == "early" else self.late
-        return np.asarray(predictor.predict(state, actions, rng), dtype=float)
+        return self.predict_many([(state, actions)], [rng])[0]
 
     def predict_many(self, requests: Sequence[tuple[State, Sequence[Action]]],
                      rngs: Sequence[np.random.Generator]) -> list[np.ndarray]:
