@@ -24,9 +24,9 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.report.build import Job, load_jobs, optimum_of
+from overhang_framework.report.build import Job, _pm, load_jobs, optimum_of
 from overhang_framework.report.callback import SweepResults
-from overhang_framework.results import atomic_write_text
+from overhang_framework.results import atomic_write_text, mean_sem
 
 #: The paper's Table 2 (mean ± SEM of terminal reward over its 20 tasks), as printed there.
 PAPER = {
@@ -58,9 +58,8 @@ def task_sem(episodes: list[dict], values: Sequence[float]) -> tuple[float, floa
         by_task.setdefault(episode["task_id"], []).append(float(v))
     if not by_task:
         return math.nan, math.nan, 0
-    means = np.array([np.mean(v) for v in by_task.values()])
-    sem = float(np.std(means, ddof=1) / math.sqrt(len(means))) if len(means) > 1 else math.nan
-    return float(np.mean(values)), sem, len(means)
+    _, sem = mean_sem(np.mean(v) for v in by_task.values())
+    return float(np.mean(values)), sem, len(by_task)
 
 
 def rows_of(jobs: list[Job], optima: dict) -> list[dict]:
@@ -120,12 +119,8 @@ def _median(values: list[float]) -> float:
     return float(np.median(values)) if values else math.nan
 
 
-def _pm(mean: float, sem: float, digits: int = 3) -> str:
-    if mean is None or math.isnan(mean):
-        return "-"
-    if sem is None or math.isnan(sem):
-        return f"{mean:.{digits}f}"
-    return f"{mean:.{digits}f} ± {sem:.{digits}f}"
+def _two(value: float) -> str:
+    return "-" if value is None or math.isnan(value) else f"{value:.2f}"
 
 
 def render(rows: list[dict], root: Path) -> str:
@@ -141,9 +136,9 @@ def render(rows: list[dict], root: Path) -> str:
         count = f"{r['episodes']}"
         if r["expected"] and r["expected"] != r["episodes"]:
             count += f" of {r['expected']}"
-        lines.append(f"| {r['model']} | {paper} | {_pm(r['reward'], r['sem'])} | {_pm(r['ratio'], r['ratio_sem'])} | "
-                     f"{r['condition']} | {count} | {_pm(r['decision_time'], math.nan, 2)} | "
-                     f"{_pm(r.get('depth', math.nan), math.nan, 2)} | {_share(r.get('ran_out', math.nan))} |")
+        lines.append(f"| {r['model']} | {paper} | {_pm((r['reward'], r['sem']))} | {_pm((r['ratio'], r['ratio_sem']))} | "
+                     f"{r['condition']} | {count} | {_two(r['decision_time'])} | "
+                     f"{_two(r.get('depth', math.nan))} | {_share(r.get('ran_out', math.nan))} |")
     missing = [r for r in rows if r["status"] != "complete"]
     lines.append("")
     lines.append("Depth reached and budget ran out: over the decisions with at least the planner's depth of "
