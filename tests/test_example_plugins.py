@@ -4,15 +4,15 @@ their own tests run there, listed, and run in one multirun beside a built-in, wi
 
 import csv
 import json
-import os
 import re
 import shutil
 import subprocess
-import sys
 import venv
 from pathlib import Path
 
 import pytest
+
+from shell_env import user_env
 
 ROOT = Path(__file__).resolve().parents[1]
 COM_MARGIN = ROOT / "examples" / "com_margin_plugin"
@@ -25,14 +25,6 @@ def doc_files() -> dict[str, str]:
     blocks = re.findall(r"```(?:python|yaml|toml)\n# ([\w./-]+\.(?:py|yaml|toml))\n(.*?)```", DOC.read_text(), re.S)
     return {path: f"# {path}\n{body}" for path, body in blocks}
 
-
-def user_env() -> dict:
-    """A user's shell: no virtual environment of the test run, no test-run settings."""
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("PYTEST", "VIRTUAL_ENV", "PYTHON", "HYDRA", "COV_"))}
-    venv_bin = str(Path(sys.prefix) / "bin")
-    env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep) if p != venv_bin)
-    return env
 
 
 class Installed:

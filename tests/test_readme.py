@@ -6,7 +6,6 @@ so a README edit that breaks them fails here.
 """
 
 import json
-import os
 import re
 import shlex
 import shutil
@@ -15,6 +14,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from shell_env import user_env
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
@@ -41,14 +42,6 @@ def clone_files(dest: Path) -> Path:
             shutil.copy2(src, dest / rel)
     return dest
 
-
-def user_env() -> dict:
-    """The environment of a user's shell: no virtual environment, no test-run settings."""
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("PYTEST", "VIRTUAL_ENV", "PYTHON", "HYDRA", "COV_"))}
-    venv_bin = str(Path(sys.prefix) / "bin")
-    env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep) if p != venv_bin)
-    return env
 
 
 def test_ci_runs_the_readme_test_command():
