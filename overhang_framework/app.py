@@ -127,17 +127,43 @@ class Checked:
     models: dict
 
 
-def check_config(cfg: DictConfig) -> Checked:
+#: Models that the command-line check built, by the config that names them; a run of an equal config
+#: in the same process takes one set instead of building its own again (see :func:`check_config`).
+_kept_models: dict[str, list[dict[str, Any]]] = {}
+
+
+def _models_key(cfg: DictConfig) -> str:
+    return json.dumps([_params(cfg[group]) for group in ("world", "value", "predictor", "planner")],
+                      sort_keys=True, default=str)
+
+
+def forget_kept_models() -> None:
+    """Drop the models kept by earlier checks (a new command starts from none)."""
+    _kept_models.clear()
+
+
+def check_config(cfg: DictConfig, keep: bool = False) -> Checked:
     """Check every value of ``cfg`` and build its models (nothing runs, nothing is written).
+
+    With ``keep``, the built models are kept for the run of an equal config
+    that follows in this process: loading a CNN checkpoint or starting a
+    physics client then happens once per job, not twice. Without it, models
+    kept for an equal config are taken (each set once) instead of built.
 
     Raises :class:`~overhang_framework.errors.OverhangError` with a one-line
     message for the first value refused.
     """
-    return Checked(
+    checked = dict(
         seed=_whole(cfg, "seed", 0), repeats=_whole(cfg, "repeats", 1), time_limit=_time_limit(cfg),
         call_limit=_call_limit(cfg), progress=_flag(cfg, "progress", True),
         overwrite=_flag(cfg, "overwrite", False), jobs=_whole(cfg, "jobs", 1) if "jobs" in cfg else 1,
-        tasks=tasks_from_config(cfg.tasks), models=build_models(cfg))
+        tasks=tasks_from_config(cfg.tasks))
+    key = _models_key(cfg)
+    kept = _kept_models.get(key)
+    models = kept.pop() if kept and not keep else build_models(cfg)
+    if keep:
+        _kept_models.setdefault(key, []).append(models)
+    return Checked(**checked, models=models)
 
 
 class Terminated(Exception):

@@ -149,9 +149,10 @@ def _main(args: list[str]) -> None:
         if "--version" in args:
             print(_version())
             return
-        from overhang_framework.app import check_config
+        from overhang_framework.app import check_config, forget_kept_models
 
-        check_command_line(args, check_config=check_config)
+        forget_kept_models()
+        check_command_line(args, check_config=lambda cfg: check_config(cfg, keep=True))
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

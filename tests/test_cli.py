@@ -328,3 +328,27 @@ def test_a_model_failing_mid_run_is_one_line_and_keeps_finished_episodes(tmp_pat
     assert len(err) == 1 and err[0].startswith("error: ZeroDivisionError: a planner bug (traceback in ")
     assert "Traceback" in (tmp_path / "run.log").read_text()
     assert len(read_episodes(tmp_path / "episodes.jsonl.partial")) == 1
+
+
+@pytest.mark.parametrize("sweep", [False, True])
+def test_each_job_builds_its_models_once(tmp_path, monkeypatch, sweep):
+    import overhang_framework.app as app
+    from overhang_framework.cli import main
+
+    real, built = app.build_models, []
+
+    def counting(cfg, *args, **kwargs):
+        built.append(cfg.seed)
+        return real(cfg, *args, **kwargs)
+
+    monkeypatch.setattr(app, "build_models", counting)
+    if sweep:
+        main(["-m", *QUICK, "world.physics=static", "seed=1,2", f"hydra.sweep.dir={tmp_path}"])
+        assert sorted(built) == [1, 2]  # the check's models run; none is built a second time
+        assert all((tmp_path / job / "metrics.json").exists() for job in ("0", "1"))
+    else:
+        main([*QUICK, "world.physics=static", f"hydra.run.dir={tmp_path}"])
+        assert len(built) == 1
+        assert (tmp_path / "metrics.json").exists()
+
+    assert not app._kept_models or not any(app._kept_models.values())
