@@ -188,3 +188,18 @@ def test_a_run_records_which_predictor_answered(tmp_path):
     stats = json.loads((tmp_path / "metrics.json").read_text())["predictor_stats"]
     # towers of 2 and 3 blocks go to the early predictor, the 4-block one to the late one
     assert (stats["early_calls"], stats["late_calls"]) == (2, 1)
+
+
+def test_the_switch_analysis_scores_each_predictor_by_blocks(tmp_path, capsys):
+    from overhang_framework.analyses.predictor_accuracy import main
+
+    out = main(["--out", str(tmp_path), "--quick", "--predictors", "ipe,veridical", "--max-blocks", "4",
+                "--no-progress"])
+    rows = {(r["predictor"], r["n_blocks"]): r for r in out["summary"]}
+    assert sorted(rows) == [(p, n) for p in ("ipe", "veridical") for n in (2, 3, 4)]
+    # veridical simulates the quick run's static reference, so it is never wrong and the switch is at 2
+    assert all(rows[("veridical", n)]["accuracy"] == 1.0 for n in (2, 3, 4))
+    assert out["meta"]["switch_point"] == 2
+    assert "veridical is at least as accurate as ipe from 2 blocks on" in capsys.readouterr().out
+    assert (tmp_path / "predictor_accuracy.png").read_bytes()[:4] == b"\x89PNG"
+    assert len((tmp_path / "predictor_accuracy.csv").read_text().splitlines()) == 1 + 6

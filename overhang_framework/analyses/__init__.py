@@ -7,4 +7,11 @@ Each module is a command, ``python -m overhang_framework.analyses.<name> --help`
   "Physical Prediction Mechanism Switching").
 * :mod:`~overhang_framework.analyses.bench_ipe` -- the IPE's speed benchmark and
   its sigma -> 0 agreement with the veridical predictor.
+* :mod:`~overhang_framework.analyses.predictor_accuracy` -- each predictor's
+  accuracy against the reference by number of blocks (the hybrid's switch point).
+* :mod:`~overhang_framework.analyses.budget_depth` -- how deep a lookahead gets
+  within a call budget.
+
+:mod:`~overhang_framework.analyses.plots` draws the figure they share (measures
+against the number of blocks).
 """

@@ -40,8 +40,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from overhang_framework.analyses.plots import plot_by_blocks
 from overhang_framework.physics.factory import make_backend
-from overhang_framework.results import atomic_output, atomic_write_json, atomic_write_text, mean_sem
+from overhang_framework.results import atomic_write_json, atomic_write_text, mean_sem
 from overhang_framework.bench.towers import Verdicts, episode_questions
 
 
@@ -82,33 +83,10 @@ def to_csv(rows: list[dict]) -> str:
 
 def plot(summary: list[dict], path: Path, title: str) -> None:
     """Entropy and accuracy against the number of blocks, one line per sigma, saved atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), constrained_layout=True)
-    sigmas = sorted({r["sigma"] for r in summary})
-    colors = plt.cm.viridis(np.linspace(0, 0.9, len(sigmas)))
-    for sigma, color in zip(sigmas, colors):
-        sel = sorted((r for r in summary if r["sigma"] == sigma), key=lambda r: r["n_blocks"])
-        n = [r["n_blocks"] for r in sel]
-        for ax, key in zip(axes, ("entropy", "accuracy")):
-            ax.errorbar(n, [r[key] for r in sel], yerr=[r[f"{key}_sem"] for r in sel], marker="o",
-                        ms=4, capsize=2, color=color, label=f"sigma = {sigma:g}")
-    axes[0].set_ylabel("mean predictive entropy (bits)")
-    axes[1].set_ylabel("accuracy vs reference verdict")
-    for ax in axes:
-        ax.set_xlabel("blocks in the tower after the action")
-        ax.set_xticks(sorted({r["n_blocks"] for r in summary}))
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.suptitle(title, fontsize=9)
-    try:
-        with atomic_output(path) as tmp:
-            fig.savefig(tmp, dpi=150, format="png")
-    finally:
-        plt.close(fig)
+    plot_by_blocks(sorted(summary, key=lambda r: r["sigma"]), path, title, series="sigma",
+                   panels=[("entropy", "mean predictive entropy (bits)"),
+                           ("accuracy", "accuracy vs reference verdict")],
+                   label=lambda sigma: f"sigma = {sigma:g}", colormap="viridis")
 
 
 def chunked(fn: Verdicts, size: int, bar) -> Verdicts:

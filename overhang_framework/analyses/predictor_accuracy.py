@@ -31,9 +31,10 @@ from typing import Optional, Sequence
 import numpy as np
 
 from overhang_framework.analyses.ipe_mechanism import chunked, to_csv
+from overhang_framework.analyses.plots import plot_by_blocks
 from overhang_framework.bench.towers import episode_questions
 from overhang_framework.physics.factory import make_backend
-from overhang_framework.results import atomic_output, atomic_write_json, atomic_write_text, mean_sem
+from overhang_framework.results import atomic_write_json, atomic_write_text, mean_sem
 
 
 def summarize(rows: list[dict], predictors: Sequence[str]) -> list[dict]:
@@ -64,31 +65,10 @@ def switch_point(summary: list[dict], early: str, late: str) -> Optional[int]:
 
 
 def plot(summary: list[dict], path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), constrained_layout=True)
-    for name in dict.fromkeys(r["predictor"] for r in summary):
-        sel = sorted((r for r in summary if r["predictor"] == name), key=lambda r: r["n_blocks"])
-        n = [r["n_blocks"] for r in sel]
-        for ax, key in zip(axes, ("accuracy", "log_likelihood")):
-            ax.errorbar(n, [r[key] for r in sel], yerr=[r[f"{key}_sem"] for r in sel], marker="o", ms=4,
-                        capsize=2, label=name)
-    axes[0].set_ylabel("accuracy vs reference verdict")
-    axes[1].set_ylabel("mean log p(reference verdict)")
-    for ax in axes:
-        ax.set_xlabel("blocks in the tower after the action")
-        ax.set_xticks(sorted({r["n_blocks"] for r in summary}))
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle(title, fontsize=9)
-    try:
-        with atomic_output(path) as tmp:
-            fig.savefig(tmp, dpi=150, format="png")
-    finally:
-        plt.close(fig)
+    """Accuracy and log-likelihood against the number of blocks, one line per predictor."""
+    plot_by_blocks(summary, path, title, series="predictor",
+                   panels=[("accuracy", "accuracy vs reference verdict"),
+                           ("log_likelihood", "mean log p(reference verdict)")])
 
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
