@@ -33,6 +33,9 @@ from overhang_framework.geometry import BLOCK_HEIGHT, GRID_HALF_WIDTH, Geometry
 
 RENDERERS = ("raster", "pybullet")
 DEFAULT_Z_MAX = 8 * BLOCK_HEIGHT  # layers 0-7: a task of up to 8 blocks fits
+#: (height, width) in pixels: 4 rows per layer and 5 cm columns. Stability turns on x, and at the same
+#: pixel count this trains better than 48 x 96 (docs/cnn.md, "Input size").
+DEFAULT_SIZE = (32, 160)
 
 
 def _size(size) -> tuple[int, int]:
@@ -54,7 +57,7 @@ class Renderer(abc.ABC):
 
     name: str = ""
 
-    def __init__(self, size=(48, 96), x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
+    def __init__(self, size=DEFAULT_SIZE, x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
         self.height, self.width = _size(size)
         for label, value in (("x_max", x_max), ("z_max", z_max)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
@@ -116,7 +119,7 @@ class RasterRenderer(Renderer):
     TOP = 0.5  # the top channel is 1 - TOP at a block's bottom face and 1 at its top
     CHUNK = 256  # images rendered per batch of array operations
 
-    def __init__(self, size=(48, 96), x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
+    def __init__(self, size=DEFAULT_SIZE, x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
         super().__init__(size, x_max, z_max)
         self._col_edges = np.linspace(-self.x_max, self.x_max, self.width + 1)
         self._row_edges = np.linspace(self.z_max, 0.0, self.height + 1)  # top row first
@@ -188,7 +191,7 @@ class PyBulletRenderer(Renderer):
 
     name = "pybullet"
 
-    def __init__(self, size=(48, 96), x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX,
+    def __init__(self, size=DEFAULT_SIZE, x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX,
                  depth: float = 0.6):
         super().__init__(size, x_max, z_max)
         self.depth = float(depth)
@@ -243,7 +246,7 @@ class PyBulletRenderer(Renderer):
 
 
 def make_renderer(spec: Optional[Mapping[str, Any]] = None, **overrides) -> Renderer:
-    """The renderer a spec names (``{"name": "raster", "size": [48, 96], ...}``); ``ValueError`` for an
+    """The renderer a spec names (``{"name": "raster", "size": [32, 160], ...}``); ``ValueError`` for an
     unknown name or parameter."""
     params = dict(spec or {"name": "raster"})
     params.update(overrides)
