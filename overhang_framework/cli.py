@@ -138,6 +138,15 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         sys.exit(1)
 
 
+def _runs_here(cfg) -> bool:
+    """Whether Hydra runs this config's job in this process (a single run or the basic launcher's
+    sweep), so that the models its check built can be handed to it; other launchers' jobs build their own."""
+    from omegaconf import OmegaConf
+
+    target = str(OmegaConf.select(cfg, "hydra.launcher._target_", default="") or "")
+    return target.endswith(".BasicLauncher")
+
+
 def _main(args: list[str]) -> None:
     try:
         if args and args[0] == "plugins":
@@ -152,7 +161,7 @@ def _main(args: list[str]) -> None:
         from overhang_framework.app import check_config, forget_kept_models
 
         forget_kept_models()
-        check_command_line(args, check_config=lambda cfg: check_config(cfg, keep=True))
+        check_command_line(args, check_config=lambda cfg: check_config(cfg, keep=_runs_here(cfg)))
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

@@ -330,8 +330,8 @@ def test_a_model_failing_mid_run_is_one_line_and_keeps_finished_episodes(tmp_pat
     assert len(read_episodes(tmp_path / "episodes.jsonl.partial")) == 1
 
 
-@pytest.mark.parametrize("sweep", [False, True])
-def test_each_job_builds_its_models_once(tmp_path, monkeypatch, sweep):
+@pytest.mark.parametrize("launch", ["run", "basic sweep", "joblib sweep"])
+def test_each_job_builds_its_models_once(tmp_path, monkeypatch, launch):
     import overhang_framework.app as app
     from overhang_framework.cli import main
 
@@ -342,13 +342,14 @@ def test_each_job_builds_its_models_once(tmp_path, monkeypatch, sweep):
         return real(cfg, *args, **kwargs)
 
     monkeypatch.setattr(app, "build_models", counting)
-    if sweep:
-        main(["-m", *QUICK, "world.physics=static", "seed=1,2", f"hydra.sweep.dir={tmp_path}"])
-        assert sorted(built) == [1, 2]  # the check's models run; none is built a second time
-        assert all((tmp_path / job / "metrics.json").exists() for job in ("0", "1"))
-    else:
+    if launch == "run":
         main([*QUICK, "world.physics=static", f"hydra.run.dir={tmp_path}"])
-        assert len(built) == 1
+        assert len(built) == 1  # the check's models run
         assert (tmp_path / "metrics.json").exists()
-
-    assert not app._kept_models or not any(app._kept_models.values())
+    else:
+        joblib = ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"] if launch == "joblib sweep" else []
+        main(["-m", *QUICK, "world.physics=static", "seed=1,2", *joblib, f"hydra.sweep.dir={tmp_path}"])
+        # the basic launcher's jobs run here and take the check's models; joblib's workers build their own
+        assert sorted(built) == [1, 2]
+        assert all((tmp_path / job / "metrics.json").exists() for job in ("0", "1"))
+    assert not any(app._kept_models.values())  # nothing is left holding models
