@@ -24,12 +24,19 @@ def command(*args):
     return [sys.executable, "-m", "overhang_framework", *args]
 
 
+def start(*args) -> subprocess.Popen:
+    """The command in a child that Ctrl-C reaches, as at a terminal: a shell without job control (a
+    script's ``cmd &``, nohup) starts its children with SIGINT ignored, and they would inherit that."""
+    return subprocess.Popen(command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
 def run(*args):
     return subprocess.run(command(*args), capture_output=True, text=True, cwd=ROOT)
 
 
 def interrupt_after_first_episode(args, partial: Path) -> subprocess.CompletedProcess:
-    proc = subprocess.Popen(command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = start(*args)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
         if partial.exists() and partial.read_text().count("\n") >= 1:
@@ -135,8 +142,7 @@ def test_two_runs_cannot_write_one_directory_at_once(tmp_path):
 
 def test_sigterm_ends_the_run_like_an_interrupt(tmp_path):
     out = tmp_path / "run"
-    proc = subprocess.Popen(command(*SLOW, f"hydra.run.dir={out}"), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = start(*SLOW, f"hydra.run.dir={out}")
     partial = out / "episodes.jsonl.partial"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not (partial.exists() and partial.read_text().count("\n") >= 1):
@@ -158,8 +164,7 @@ def test_interrupting_an_overwrite_run_says_to_resume_without_overwrite(tmp_path
 
 
 def test_ctrl_c_while_starting_is_one_line(tmp_path):
-    proc = subprocess.Popen(command(*SLOW, f"hydra.run.dir={tmp_path / 'run'}"), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = start(*SLOW, f"hydra.run.dir={tmp_path / 'run'}")
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not (tmp_path / "run" / ".hydra").exists():
         time.sleep(0.01)
