@@ -26,7 +26,6 @@ def doc_files() -> dict[str, str]:
     return {path: f"# {path}\n{body}" for path, body in blocks}
 
 
-
 class Installed:
     def __init__(self, base: Path):
         self.base, self.src, self.env = base, base / "src", user_env()

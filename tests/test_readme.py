@@ -43,7 +43,6 @@ def clone_files(dest: Path) -> Path:
     return dest
 
 
-
 def test_ci_runs_the_readme_test_command():
     _, test = fresh_machine_commands()
     ci = (ROOT / ".ci" / "run").read_text()
