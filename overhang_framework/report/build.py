@@ -115,13 +115,14 @@ def job_table(jobs: list[Job], optima: dict) -> tuple[str, list[dict]]:
                 ratios.append(e["reward"] / best)
         ratio = mean_sem(ratios) if len(ratios) == len(eps) and eps else (math.nan, math.nan)
         count = f"{len(eps)}" + (f" of {job.expected}" if job.expected and job.expected != len(eps) else "")
-        lines.append(f"| {job.name} | {job.label} | {count} | {_pm(reward)} | {_pm(success)} | {_pm(overhang)} | "
-                     f"{_pm(time_)} | {_pm(ratio)} |")
+        lines.append(f"| {job.name} | {job.label} | {count} | {mean_pm(reward)} | {mean_pm(success)} | "
+                     f"{mean_pm(overhang)} | {mean_pm(time_)} | {mean_pm(ratio)} |")
         rows.append({"job": job.name, "label": job.label, "reward": reward, "ratio": ratio, "config": job.config})
     return "\n".join(lines), rows
 
 
-def _pm(pair: tuple[float, float]) -> str:
+def mean_pm(pair: tuple[float, float]) -> str:
+    """``mean ± sem`` with 3 decimals; ``mean`` alone without a SEM; ``-`` without a mean."""
     mean, sem = pair
     if mean is None or (isinstance(mean, float) and math.isnan(mean)):
         return "-"

@@ -24,7 +24,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.report.build import Job, _pm, load_jobs, optimum_of
+from overhang_framework.report.build import Job, load_jobs, mean_pm, optimum_of
 from overhang_framework.report.callback import SweepResults
 from overhang_framework.results import atomic_write_text, mean_sem
 
@@ -136,7 +136,8 @@ def render(rows: list[dict], root: Path) -> str:
         count = f"{r['episodes']}"
         if r["expected"] and r["expected"] != r["episodes"]:
             count += f" of {r['expected']}"
-        lines.append(f"| {r['model']} | {paper} | {_pm((r['reward'], r['sem']))} | {_pm((r['ratio'], r['ratio_sem']))} | "
+        lines.append(f"| {r['model']} | {paper} | {mean_pm((r['reward'], r['sem']))} | "
+                     f"{mean_pm((r['ratio'], r['ratio_sem']))} | "
                      f"{r['condition']} | {count} | {_two(r['decision_time'])} | "
                      f"{_two(r.get('depth', math.nan))} | {_share(r.get('ran_out', math.nan))} |")
     missing = [r for r in rows if r["status"] != "complete"]
