@@ -54,19 +54,19 @@ def candidate_xs(width: float, resolution: float) -> np.ndarray:
     return np.round(np.arange(-k, k + 1) * resolution, 10)
 
 
-def legal_actions(geometry: Geometry, width: float, resolution: float) -> list[Action]:
-    """All legal placements of a block of ``width`` with x on the grid ``k * resolution``.
+def legal_xs(geometry: Geometry, width: float, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """The legal placements of :func:`legal_actions` as arrays ``(xs, layers)``, in the same order.
 
     Vectorised over x: for each candidate layer, a candidate is kept when its
     support length is positive and it overlaps no block of that layer.
     """
     xs = candidate_xs(width, resolution)
     if not geometry.blocks:
-        return []
+        return np.zeros(0), np.zeros(0, dtype=int)
     arr = geometry.as_array()
     lefts, rights, layers = arr[:, 1] - arr[:, 0] / 2, arr[:, 1] + arr[:, 0] / 2, arr[:, 2].astype(int)
     cl, cr = xs - width / 2, xs + width / 2
-    actions: list[Action] = []
+    out_x, out_layer = [], []
     for layer in range(1, min(int(layers.max()) + 1, MAX_LAYER) + 1):
         below = layers == layer - 1
         if not below.any():
@@ -77,8 +77,30 @@ def legal_actions(geometry: Geometry, width: float, resolution: float) -> list[A
         if same.any():
             ov_same = np.minimum(cr[:, None], rights[same][None, :]) - np.maximum(cl[:, None], lefts[same][None, :])
             ok &= ~(ov_same > EPS).any(axis=1)
-        actions.extend(Action(float(x), layer) for x in xs[ok])
-    return actions
+        out_x.append(xs[ok])
+        out_layer.append(np.full(int(ok.sum()), layer))
+    if not out_x:
+        return np.zeros(0), np.zeros(0, dtype=int)
+    return np.concatenate(out_x), np.concatenate(out_layer)
+
+
+def legal_actions(geometry: Geometry, width: float, resolution: float) -> list[Action]:
+    """All legal placements of a block of ``width`` with x on the grid ``k * resolution``, layer by layer."""
+    xs, layers = legal_xs(geometry, width, resolution)
+    return [Action(x, layer) for x, layer in zip(xs.tolist(), layers.tolist())]
+
+
+def random_legal_action(geometry: Geometry, width: float, resolution: float,
+                        rng: np.random.Generator) -> Optional[Action]:
+    """One of :func:`legal_actions`, drawn uniformly with ``rng.integers`` (``None`` when there is none).
+
+    The same draw as ``actions[rng.integers(len(actions))]``, without building every action.
+    """
+    xs, layers = legal_xs(geometry, width, resolution)
+    if not len(xs):
+        return None
+    k = rng.integers(len(xs))
+    return Action(float(xs[k]), int(layers[k]))
 
 
 def place(geometry: Geometry, width: float, action: Action) -> Geometry:

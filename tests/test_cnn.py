@@ -72,6 +72,22 @@ def test_bad_data_settings_are_refused():
         cnn_data.DataSpec(max_blocks=9)
 
 
+def test_margin_verdicts_say_how_far_a_tower_is_from_tipping():
+    # a 0.6 block whose centre is 5 cm inside the right edge of the 1.8 block below it
+    near_edge = Geometry((Block(1.8, 0.0, 0), Block(0.6, 0.85, 1)))
+    beyond = Geometry((Block(1.8, 0.0, 0), Block(0.6, 0.97, 1)))  # 7 cm beyond the edge
+    data = cnn_data.to_arrays([near_edge, beyond])
+    v = cnn_data.margin_verdicts(data, [-0.1, -0.05, 0.0, 0.03, 0.08])
+    assert v.tolist() == [[True, True, True, True, False], [True, False, False, False, False]]
+    # on random questions: stable with a larger margin implies stable with a smaller one
+    shard = cnn_data.generate_shard(TINY, 0)
+    margins = [-0.08, -0.02, 0.0, 0.02, 0.08]
+    v = cnn_data.margin_verdicts(shard, margins)
+    assert (v[:, 1:] <= v[:, :-1]).all()
+    assert 0 < v.mean() < 1
+    assert np.array_equal(cnn_data.margin_verdicts(shard, margins, workers=2), v)
+
+
 # ------------------------------------------------------------------ training
 
 
@@ -130,6 +146,17 @@ def test_training_runs_end_to_end_and_resumes_where_it_stopped(tmp_path, monkeyp
         train.train(train_cfg(tmp_path / "b", "optim.lr=0.1"))
 
 
+def test_training_with_auxiliary_margin_targets_keeps_the_verdict_first(tmp_path):
+    from overhang_framework.cnn import train
+
+    train.train(train_cfg(tmp_path, "aux.margins=[-0.02,0.02]", "epochs=1"))
+    best = read_checkpoint(tmp_path / "run" / "best.pt")
+    assert best["outputs"] == 3 and best["state_dict"]["classifier.weight"].shape[0] == 3
+    model = StabilityModel(str(tmp_path / "run" / "best.pt"), device="cpu")
+    probs = model.probabilities([Geometry((Block(1.8, 0.0, 0), Block(0.6, x, 1))) for x in (0.0, 1.0)])
+    assert probs.shape == (2,) and ((probs > 0) & (probs < 1)).all()
+
+
 def test_bad_training_settings_are_refused(tmp_path):
     from overhang_framework.cnn import train
 
@@ -139,6 +166,10 @@ def test_bad_training_settings_are_refused(tmp_path):
         train.check(train_cfg(tmp_path, "backbone.name=resnet9000"))
     with pytest.raises(ValueError, match="data.val_shards must be"):
         train.check(train_cfg(tmp_path, "data.val_shards=3"))
+    with pytest.raises(ValueError, match=r"aux.margins must be numbers of metres in \(-1, 1\), got 2"):
+        train.check(train_cfg(tmp_path, "aux.margins=[0.01,2]"))
+    with pytest.raises(ValueError, match="aux.weight must be a number >= 0"):
+        train.check(train_cfg(tmp_path, "aux.weight=-1"))
 
 
 def test_the_inception_option_sets_a_large_enough_input(tmp_path):

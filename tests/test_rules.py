@@ -105,6 +105,16 @@ def test_enumeration_is_exactly_the_legal_grid_points(g, w, res):
 
 
 @settings(max_examples=60, deadline=None)
+@given(towers(), st.sampled_from(WIDTHS), st.sampled_from([0.01, 0.1]), st.integers(0, 2**32 - 1))
+def test_a_random_legal_action_is_the_draw_from_the_enumeration(g, w, res, seed):
+    actions = rules.legal_actions(g, w, res)
+    a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+    drawn = rules.random_legal_action(g, w, res, a)
+    assert drawn == actions[b.integers(len(actions))]
+    assert a.random() == b.random()  # the same draws were used
+
+
+@settings(max_examples=60, deadline=None)
 @given(towers())
 def test_canonical_key_ignores_order(g):
     rev = Geometry(tuple(reversed(g.blocks)))

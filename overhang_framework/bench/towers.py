@@ -30,7 +30,7 @@ import numpy as np
 
 from overhang_framework.geometry import EPS, GRID_HALF_WIDTH, WIDTHS, Action, Block, Geometry
 from overhang_framework.interfaces import State
-from overhang_framework.rules import legal_actions, place
+from overhang_framework.rules import place, random_legal_action
 
 Verdicts = Callable[[Sequence[Geometry]], np.ndarray]
 """A batched stability reference: geometries in, boolean array out."""
@@ -53,10 +53,10 @@ def random_tower(rng: np.random.Generator, n_blocks: int, resolution: Optional[f
     geometry = Geometry((Block(width, 0.0, 0),))
     for _ in range(n_blocks - 1):
         width = WIDTHS[rng.integers(len(WIDTHS))]
-        actions = legal_actions(geometry, width, CONTINUOUS if resolution is None else resolution)
-        if not actions:
+        action = random_legal_action(geometry, width, CONTINUOUS if resolution is None else resolution, rng)
+        if action is None:
             raise RuntimeError(f"no legal action for a block of width {width} on {geometry.key}")
-        geometry = place(geometry, width, actions[rng.integers(len(actions))])
+        geometry = place(geometry, width, action)
     return geometry
 
 
@@ -241,9 +241,8 @@ def episode_questions(reference: Verdicts, per_height: int, seed: int = 0, min_b
         states, actions = [], []
         for i in rng.integers(len(pool), size=m):
             width = WIDTHS[rng.integers(len(WIDTHS))]
-            options = legal_actions(pool[i], width, resolution)
             states.append(State(pool[i], (width,)))
-            actions.append(options[rng.integers(len(options))])
+            actions.append(random_legal_action(pool[i], width, resolution, rng))
         towers = [place(s.geometry, s.next_width, a) for s, a in zip(states, actions)]
         verdicts = np.asarray(reference(towers), dtype=bool)
         if progress:

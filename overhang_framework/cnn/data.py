@@ -37,7 +37,7 @@ import numpy as np
 
 from overhang_framework.geometry import WIDTHS, Action, Block, Geometry
 from overhang_framework.results import atomic_output, atomic_write_json
-from overhang_framework.rules import legal_actions, place
+from overhang_framework.rules import place, random_legal_action
 
 FORMAT = 1
 MAX_BLOCKS_STORED = 8
@@ -97,8 +97,7 @@ def _grow(rng: np.random.Generator, towers: list[Geometry], resolution: float) -
     out = []
     for g in towers:
         width = WIDTHS[rng.integers(len(WIDTHS))]
-        actions = legal_actions(g, width, resolution)
-        out.append((g, width, actions[rng.integers(len(actions))]))
+        out.append((g, width, random_legal_action(g, width, resolution, rng)))
     return out
 
 
@@ -184,6 +183,38 @@ def from_arrays(data: dict, rows: Optional[Iterable[int]] = None) -> list[Geomet
         out.append(Geometry(tuple(Block(float(np.round(data["widths"][i, j], 6)), float(data["xs"][i, j]),
                                         int(data["layers"][i, j])) for j in range(k))))
     return out
+
+
+def _margin_job(args) -> np.ndarray:
+    from overhang_framework.physics.static_backend import StaticBackend
+
+    data, margins = args
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    geometries = from_arrays(data)
+    out = np.zeros((len(geometries), len(margins)), dtype=bool)
+    for j, m in enumerate(margins):
+        out[:, j] = np.asarray(StaticBackend(margin=float(m)).stable_batch(geometries), dtype=bool)
+    return out
+
+
+def margin_verdicts(data: dict, margins: Sequence[float], workers: int = 1) -> np.ndarray:
+    """``(n, len(margins))``: the static model's verdict on every question of ``data`` with every contact
+    shrunk by each margin (metres; a negative margin widens them), on ``workers`` processes.
+
+    Stable under margin m means the loads pass at least m inside every edge that holds them, so the
+    verdicts over a range of margins say how far a tower is from tipping, on either side.
+    """
+    n = len(data["n_blocks"])
+    keys = ("widths", "xs", "layers", "n_blocks")
+    parts = [{k: data[k][rows] for k in keys} for rows in np.array_split(np.arange(n), max(1, workers))]
+    if workers > 1 and n > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(workers) as pool:
+            results = pool.map(_margin_job, [(part, list(margins)) for part in parts])
+    else:
+        results = [_margin_job((part, list(margins))) for part in parts]
+    return np.concatenate(results) if results else np.zeros((0, len(margins)), dtype=bool)
 
 
 def shard_seed(seed: int, index: int) -> np.random.SeedSequence:

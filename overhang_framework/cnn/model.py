@@ -40,14 +40,15 @@ def check_backbone(backbone: str, size) -> None:
                          f"{list(size)}; set renderer.size")
 
 
-def build_model(backbone: str):
-    """A timm ``backbone`` with random weights (``pretrained=False``) and one logit out, its weights in
-    channels-last layout (about twice as fast on a CPU for these small inputs, measured for training
-    and inference; feed it :func:`as_input`)."""
+def build_model(backbone: str, outputs: int = 1):
+    """A timm ``backbone`` with random weights (``pretrained=False``) and ``outputs`` logits out, its
+    weights in channels-last layout (about twice as fast on a CPU for these small inputs, measured for
+    training and inference; feed it :func:`as_input`). The first logit is the stability verdict; any
+    others are the training's auxiliary targets."""
     import timm
     import torch
 
-    net = timm.create_model(backbone, pretrained=False, num_classes=1, in_chans=3)
+    net = timm.create_model(backbone, pretrained=False, num_classes=outputs, in_chans=3)
     return net.to(memory_format=torch.channels_last)
 
 
@@ -135,7 +136,7 @@ class StabilityModel:
         self.renderer = make_renderer(payload["renderer"])
         self.device = pick_device(device)
         self.batch_size = batch_size
-        self.net = build_model(self.backbone)
+        self.net = build_model(self.backbone, int(payload.get("outputs", 1)))
         self.net.load_state_dict(payload["state_dict"])
         self.net.eval().to(self.device)
         self._buffer = np.empty((0, *self.renderer.shape), dtype=np.float32)
@@ -157,7 +158,7 @@ class StabilityModel:
                                                  mask[start:stop], out=self._images(stop - start))
             with torch.inference_mode():
                 x = as_input(images, self.device)
-                out[start:stop] = self.net(x).reshape(-1).float().cpu().numpy()
+                out[start:stop] = self.net(x)[:, 0].float().cpu().numpy()
         return out
 
     def probabilities(self, geometries) -> np.ndarray:

@@ -72,6 +72,15 @@ def check(cfg) -> None:
     if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v < cfg.data.shards:
         raise ValueError(f"data.val_shards must be a whole number from 1 to data.shards - 1 "
                          f"({cfg.data.shards - 1}), got {v!r}")
+    margins = cfg.aux.margins
+    if margins is not None and (isinstance(margins, (str, bytes)) or not hasattr(margins, "__iter__")):
+        raise ValueError(f"aux.margins must be a list of numbers of metres, got {margins!r}")
+    for m in margins or []:
+        if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m) or abs(m) >= 1:
+            raise ValueError(f"aux.margins must be numbers of metres in (-1, 1), got {m!r}")
+    v = cfg.aux.weight
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+        raise ValueError(f"aux.weight must be a number >= 0, got {v!r}")
     for name in ("lr", "weight_decay"):
         v = cfg.optim[name]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -103,7 +112,7 @@ def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512) ->
         for start in range(0, n, batch_size):
             idx = np.arange(start, min(n, start + batch_size))
             images = renderer.render_arrays(*_rows(data, idx), out=buf[:len(idx)])
-            logits = net(as_input(images, device)).reshape(-1).float().cpu().numpy()
+            logits = net(as_input(images, device))[:, 0].float().cpu().numpy()
             probs[idx] = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
     return scores(probs, data)
 
@@ -135,7 +144,7 @@ def train(cfg) -> dict:
     import torch
     from tqdm import tqdm
 
-    from overhang_framework.cnn.data import generate, load
+    from overhang_framework.cnn.data import generate, load, margin_verdicts
     from overhang_framework.cnn.model import as_input, build_model, pick_device, save_checkpoint
 
     check(cfg)
@@ -162,10 +171,14 @@ def train(cfg) -> dict:
     train_data = load(cfg.data.dir, [i for i in range(n_shards) if i not in val_ids])
     val_data = load(cfg.data.dir, val_ids)
 
+    margins = [float(m) for m in (cfg.aux.margins or [])]
+    aux_weight = float(cfg.aux.weight)
+    aux = margin_verdicts(train_data, margins, int(cfg.workers)).astype(np.float32) if margins else None
     device = pick_device(cfg.device)
     renderer = renderer_of(cfg)
     torch.manual_seed(int(cfg.seed))
-    net = build_model(cfg.backbone.name).to(device)
+    outputs = 1 + len(margins)
+    net = build_model(cfg.backbone.name, outputs).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=float(cfg.optim.lr), weight_decay=float(cfg.optim.weight_decay))
     n_train = len(train_data["stable"])
     steps_per_epoch = max(1, n_train // int(cfg.batch_size))
@@ -190,7 +203,7 @@ def train(cfg) -> dict:
         log.info("resuming after epoch %d", start_epoch)
         print(f"resuming {out_dir} after epoch {start_epoch}", file=sys.stderr)
 
-    extra_common = {"data": spec.settings(), "data_size": {"train": n_train, "val": len(val_data["stable"])},
+    extra_common = {"outputs": outputs, "data": spec.settings(), "data_size": {"train": n_train, "val": len(val_data["stable"])},
                     "train_config": record}
     train_seconds = sum(h["seconds"] for h in history)
     for epoch in range(start_epoch, int(cfg.epochs)):
@@ -210,7 +223,11 @@ def train(cfg) -> dict:
             images = renderer.render_arrays(widths, xs, layers, mask, out=buf[:len(idx)])
             x = as_input(images, device)
             y = torch.from_numpy(train_data["stable"][idx].astype(np.float32)).to(device)
-            loss = torch.nn.functional.binary_cross_entropy_with_logits(net(x).reshape(-1), y)
+            out = net(x)
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(out[:, 0], y)
+            if aux is not None:
+                loss = loss + aux_weight * torch.nn.functional.binary_cross_entropy_with_logits(
+                    out[:, 1:], torch.from_numpy(aux[idx]).to(device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
