@@ -203,8 +203,8 @@ def train(cfg) -> dict:
         log.info("resuming after epoch %d", start_epoch)
         print(f"resuming {out_dir} after epoch {start_epoch}", file=sys.stderr)
 
-    extra_common = {"outputs": outputs, "data": spec.settings(), "data_size": {"train": n_train, "val": len(val_data["stable"])},
-                    "train_config": record}
+    extra_common = {"outputs": outputs, "data": spec.settings(),
+                    "data_size": {"train": n_train, "val": len(val_data["stable"])}, "train_config": record}
     train_seconds = sum(h["seconds"] for h in history)
     for epoch in range(start_epoch, int(cfg.epochs)):
         t0 = time.perf_counter()
