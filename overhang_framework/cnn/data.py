@@ -214,7 +214,7 @@ def margin_verdicts(data: dict, margins: Sequence[float], workers: int = 1) -> n
             results = pool.map(_margin_job, [(part, list(margins)) for part in parts])
     else:
         results = [_margin_job((part, list(margins))) for part in parts]
-    return np.concatenate(results) if results else np.zeros((0, len(margins)), dtype=bool)
+    return np.concatenate(results)
 
 
 def shard_seed(seed: int, index: int) -> np.random.SeedSequence:

@@ -78,13 +78,10 @@ def check(cfg) -> None:
     for m in margins or []:
         if isinstance(m, bool) or not isinstance(m, (int, float)) or not math.isfinite(m) or abs(m) >= 1:
             raise ValueError(f"aux.margins must be numbers of metres in (-1, 1), got {m!r}")
-    v = cfg.aux.weight
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-        raise ValueError(f"aux.weight must be a number >= 0, got {v!r}")
-    for name in ("lr", "weight_decay"):
-        v = cfg.optim[name]
+    for name, v in (("optim.lr", cfg.optim.lr), ("optim.weight_decay", cfg.optim.weight_decay),
+                    ("aux.weight", cfg.aux.weight)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-            raise ValueError(f"optim.{name} must be a number >= 0, got {v!r}")
+            raise ValueError(f"{name} must be a number >= 0, got {v!r}")
     if cfg.threads is not None and (isinstance(cfg.threads, bool) or not isinstance(cfg.threads, int)
                                     or cfg.threads < 1):
         raise ValueError(f"threads must be a whole number >= 1 or null, got {cfg.threads!r}")
