@@ -11,12 +11,15 @@ Two renderers share one small interface (:class:`Renderer`):
   (``fill``), a bevel darker towards the left and right faces (``bevel``),
   and light from above (``top``). All three are symmetric under x -> -x, so
   mirroring a geometry mirrors its image exactly (the x range is centred on
-  0).
+  0). ``channels`` chooses which are drawn, in order; a fourth kind, ``x``,
+  is the block's coverage times the pixel's position across the view (0 at
+  the left edge, 1 at the right), a coordinate channel that tells the
+  network where a pixel is, as CoordConv does; it is not mirror-symmetric.
 * :class:`PyBulletRenderer` (``pybullet``) -- PyBullet's ``ER_TINY_RENDERER``
   drawing the blocks as 3D boxes in a perspective view, closer to the
   paper's renders; no window and no extra dependency.
 
-``render_batch`` returns ``(n, 3, height, width)`` float32 arrays in [0, 1],
+``render_batch`` returns ``(n, channels, height, width)`` float32 arrays in [0, 1],
 the layout a network takes. :meth:`Renderer.spec` is a plain dict that
 :func:`make_renderer` turns back into the same renderer; a CNN checkpoint
 stores it, so a model is always shown the images it was trained on.
@@ -36,6 +39,9 @@ DEFAULT_Z_MAX = 8 * BLOCK_HEIGHT  # layers 0-7: a task of up to 8 blocks fits
 #: (height, width) in pixels: 4 rows per layer and 5 cm columns. Stability turns on x, and at the same
 #: pixel count this trains better than 48 x 96 (docs/cnn.md, "Input size").
 DEFAULT_SIZE = (32, 160)
+#: What the raster renderer can draw in a channel (see :class:`RasterRenderer`).
+RASTER_CHANNELS = ("fill", "bevel", "top", "x")
+DEFAULT_CHANNELS = ("fill", "bevel", "top")
 
 
 def _size(size) -> tuple[int, int]:
@@ -53,9 +59,10 @@ def _size(size) -> tuple[int, int]:
 
 
 class Renderer(abc.ABC):
-    """Draws towers: ``(n, 3, height, width)`` float32 images in [0, 1]."""
+    """Draws towers: ``(n, channels, height, width)`` float32 images in [0, 1]."""
 
     name: str = ""
+    channels: int = 3
 
     def __init__(self, size=DEFAULT_SIZE, x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
         self.height, self.width = _size(size)
@@ -67,7 +74,7 @@ class Renderer(abc.ABC):
 
     @property
     def shape(self) -> tuple[int, int, int]:
-        return (3, self.height, self.width)
+        return (self.channels, self.height, self.width)
 
     def spec(self) -> dict:
         """Everything :func:`make_renderer` needs to build this renderer again."""
@@ -119,8 +126,17 @@ class RasterRenderer(Renderer):
     TOP = 0.5  # the top channel is 1 - TOP at a block's bottom face and 1 at its top
     CHUNK = 256  # images rendered per batch of array operations
 
-    def __init__(self, size=DEFAULT_SIZE, x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX):
+    def __init__(self, size=DEFAULT_SIZE, x_max: float = GRID_HALF_WIDTH, z_max: float = DEFAULT_Z_MAX,
+                 channels: Sequence[str] = DEFAULT_CHANNELS):
         super().__init__(size, x_max, z_max)
+        if isinstance(channels, str) or not hasattr(channels, "__iter__"):
+            channels = [channels]
+        channels = tuple(channels)
+        if not channels or len(set(channels)) != len(channels) or not set(channels) <= set(RASTER_CHANNELS):
+            raise ValueError(f"channels must be distinct names from {', '.join(RASTER_CHANNELS)}, "
+                             f"got {list(channels)!r}")
+        self.channel_names = channels
+        self.channels = len(channels)
         self._col_edges = np.linspace(-self.x_max, self.x_max, self.width + 1)
         self._row_edges = np.linspace(self.z_max, 0.0, self.height + 1)  # top row first
         self._col_centres = (self._col_edges[:-1] + self._col_edges[1:]) / 2
@@ -137,6 +153,13 @@ class RasterRenderer(Renderer):
         v = np.clip((row_centres[:, None] - bottom) / BLOCK_HEIGHT, 0, 1)
         self._rows = rows.astype(np.float32)
         self._lit_rows = (rows * (1.0 - self.TOP * (1 - v))).astype(np.float32)
+        self._x_ramp = ((self._col_centres + self.x_max) / (2 * self.x_max)).astype(np.float32)
+
+    def spec(self) -> dict:
+        spec = super().spec()
+        if self.channel_names != DEFAULT_CHANNELS:  # older checkpoints have no key: the default channels
+            spec["channels"] = list(self.channel_names)
+        return spec
 
     def render_arrays(self, widths: np.ndarray, xs: np.ndarray, layers: np.ndarray, mask: np.ndarray,
                       out: Optional[np.ndarray] = None) -> np.ndarray:
@@ -171,9 +194,16 @@ class RasterRenderer(Renderer):
         which = ((np.asarray(layers)[..., None] == np.arange(n_layers)) & keep[..., None]).astype(f32)
         which = which.transpose(0, 2, 1)  # (n, L, m)
         fill_cols = which @ cov  # (n, L, W)
-        out[:, 0] = self._rows @ fill_cols
-        out[:, 1] = self._rows @ (which @ bevel)
-        out[:, 2] = self._lit_rows @ fill_cols
+        fill = None
+        for c, name in enumerate(self.channel_names):
+            if name == "fill":
+                out[:, c] = fill = self._rows @ fill_cols
+            elif name == "bevel":
+                out[:, c] = self._rows @ (which @ bevel)
+            elif name == "top":
+                out[:, c] = self._lit_rows @ fill_cols
+            else:  # x
+                out[:, c] = (self._rows @ fill_cols if fill is None else fill) * self._x_ramp
         np.clip(out, 0.0, 1.0, out=out)
         return out
 
@@ -254,7 +284,7 @@ def make_renderer(spec: Optional[Mapping[str, Any]] = None, **overrides) -> Rend
     classes = {"raster": RasterRenderer, "pybullet": PyBulletRenderer}
     if name not in classes:
         raise ValueError(f"unknown renderer {name!r}; allowed: {', '.join(RENDERERS)}")
-    allowed = {"size", "x_max", "z_max"} | ({"depth"} if name == "pybullet" else set())
+    allowed = {"size", "x_max", "z_max"} | ({"depth"} if name == "pybullet" else {"channels"})
     unknown = sorted(set(params) - allowed)
     if unknown:
         raise ValueError(f"unknown parameter(s) {', '.join(unknown)} for renderer {name!r}; "

@@ -117,12 +117,11 @@ def test_training_runs_end_to_end_and_resumes_where_it_stopped(tmp_path, monkeyp
     assert best["renderer"]["size"] == [24, 48] and best["backbone"] == "mobilenetv3_small_050"
 
     # the same training, interrupted during epoch 2, then run again: it resumes after epoch 1
-    calls = []
     original = train.evaluate_arrays
 
     def interrupt_second_epoch(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
+        metrics = tmp_path / "b" / "run" / "metrics.jsonl"
+        if metrics.exists() and len(metrics.read_text().splitlines()) == 1:  # validating epoch 2
             raise KeyboardInterrupt
         return original(*args, **kwargs)
 
@@ -155,6 +154,26 @@ def test_training_with_auxiliary_margin_targets_keeps_the_verdict_first(tmp_path
     model = StabilityModel(str(tmp_path / "run" / "best.pt"), device="cpu")
     probs = model.probabilities([Geometry((Block(1.8, 0.0, 0), Block(0.6, x, 1))) for x in (0.0, 1.0)])
     assert probs.shape == (2,) and ((probs > 0) & (probs < 1)).all()
+
+
+def test_the_renderer_channels_are_recorded_in_the_checkpoint_and_set_the_network_input(tmp_path):
+    from overhang_framework.cnn import train
+
+    train.train(train_cfg(tmp_path, "renderer.channels=[x,fill]", "epochs=1"))
+    best = read_checkpoint(tmp_path / "run" / "best.pt")
+    assert best["renderer"]["channels"] == ["x", "fill"]
+    model = StabilityModel(str(tmp_path / "run" / "best.pt"), device="cpu")
+    assert model.renderer.channel_names == ("x", "fill") and model.renderer.shape == (2, 24, 48)
+    assert model.probabilities([Geometry((Block(1.8, 0.0, 0),))]).shape == (1,)
+
+
+def test_the_renderer_options_compose(tmp_path):
+    from overhang_framework.cnn import train
+
+    cfg = train_cfg(tmp_path, "renderer=pybullet", small_images=False)
+    assert cfg.renderer.name == "pybullet" and "channels" not in cfg.renderer
+    train.check(cfg)
+    assert train.renderer_of(train_cfg(tmp_path)).channel_names == ("fill", "bevel", "x")
 
 
 def test_bad_training_settings_are_refused(tmp_path):
@@ -248,6 +267,26 @@ def test_cnn_predictor_scores_all_candidates_at_once_and_caches():
     assert centred > 0.5 > hanging
 
 
+def test_mirror_averaging_is_the_mean_logit_of_a_tower_and_its_mirror_image():
+    towers = [Geometry((Block(1.8, 0.0, 0), Block(0.6, x, 1), Block(1.2, x + 0.3, 2))) for x in (-0.7, 0.2, 0.8)]
+    mirrored = [Geometry(tuple(Block(b.width, -b.x, b.layer) for b in g.blocks)) for g in towers]
+    plain = StabilityModel("default", device="cpu", mirror=False)
+    both = StabilityModel("default", device="cpu", mirror=True, batch_size=4)  # 2 towers a pass
+    logit = lambda p: np.log(p / (1 - p))  # noqa: E731
+    a, b = logit(plain.probabilities(towers)), logit(plain.probabilities(mirrored))
+    assert not np.allclose(a, b)  # the network alone is not mirror-symmetric
+    np.testing.assert_allclose(logit(both.probabilities(towers)), (a + b) / 2, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(both.probabilities(towers), both.probabilities(mirrored), atol=1e-5)
+    # auto: the shipped model was trained on mirrored images, so it averages
+    assert StabilityModel("default", device="cpu").mirror is True
+    world = static_world()
+    predictor = Registry().create("predictor", {"name": "cnn", "device": "cpu", "mirror": False}, world=world)
+    assert predictor.model.mirror is False
+    state = State(Geometry((Block(1.8, 0.0, 0),)), (1.2,))
+    predictor.predict(state, world.legal_actions(state)[:7], np.random.default_rng(0))
+    assert predictor.stats()["images"] == 7
+
+
 def test_bad_cnn_settings_are_refused():
     world = static_world()
     with pytest.raises(ConfigError, match="no CNN checkpoint at"):
@@ -256,6 +295,8 @@ def test_bad_cnn_settings_are_refused():
         Registry().create("predictor", {"name": "cnn", "device": "abacus"}, world=world)
     with pytest.raises(ConfigError, match="cache_size must be"):
         Registry().create("predictor", {"name": "cnn", "cache_size": -1}, world=world)
+    with pytest.raises(ConfigError, match="mirror must be true, false or auto, got 'sometimes'"):
+        Registry().create("predictor", {"name": "cnn", "mirror": "sometimes"}, world=world)
 
 
 @pytest.mark.slow
@@ -265,7 +306,8 @@ def test_evaluate_app_prints_one_json_line(tmp_path):
                          cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout.strip().splitlines()[-1])
-    assert {"accuracy", "accuracy_near_critical", "n", "images_per_s"} <= set(result)
+    assert {"accuracy", "accuracy_near_critical", "n", "images_per_s", "towers_per_s"} <= set(result)
+    assert result["mirror"] is True and result["images_per_s"] == pytest.approx(2 * result["towers_per_s"])
     assert result["n"] > 0 and 0 <= result["accuracy"] <= 1
 
 
@@ -273,3 +315,16 @@ def test_evaluate_app_refuses_the_training_seed():
     out = subprocess.run([sys.executable, "-m", "overhang_framework.cnn.evaluate", "seed=0"],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert out.returncode == 2 and "seed 0 is the seed of the checkpoint's training data" in out.stderr
+
+
+def test_bench_prints_towers_and_images_per_second(capsys):
+    from overhang_framework.cnn import bench
+
+    both = bench.main(["--threads", "1", "--batches", "16", "--images", "40"])
+    one = bench.main(["--threads", "1", "--batches", "16", "--images", "40", "--mirror", "false"])
+    assert both["mirror"] is True and one["mirror"] is False
+    rate = both["render_and_forward"]["threads=1,batch=16"]
+    assert rate["images_per_s"] == pytest.approx(2 * rate["towers_per_s"])
+    plain = one["predict_legal_actions"]["threads=1"]
+    assert plain["images_per_s"] == pytest.approx(plain["towers_per_s"]) and plain["actions_per_call"] > 1
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["mirror"] is False

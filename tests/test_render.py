@@ -59,6 +59,26 @@ def test_the_channels_shade_the_block_from_its_centre_and_from_above():
     assert np.all(bevel <= fill + 1e-6) and np.all(top <= fill + 1e-6)
 
 
+def test_the_coordinate_channel_is_coverage_times_position_across_the_view():
+    g = Geometry((Block(1.8, 0.0, 0), Block(0.6, -1.5, 1), Block(0.6, 2.25, 1)))
+    r = raster(channels=["fill", "x", "bevel"])
+    img = r.render(g)
+    assert r.shape == (3, 16, 16) and r.spec()["channels"] == ["fill", "x", "bevel"]
+    plain = raster().render(g)
+    np.testing.assert_allclose(img[0], plain[0])
+    np.testing.assert_allclose(img[2], plain[1])
+    centres = (np.arange(16) + 0.5) / 16  # column centres from the left edge of the view, as a fraction
+    np.testing.assert_allclose(img[1], plain[0] * centres[None, :], atol=1e-6)
+    # the block right of the centre is brighter than its mirror image would be: not mirror-symmetric
+    assert img[1, 12, 12] > 0.7 and img[1, 12, 5] > 0 and img[1, 12, 12] > img[1, 12, 5] * 2
+    assert "channels" not in raster().spec()  # the default channels: the spec older checkpoints have
+    assert make_renderer(r.spec()).spec() == r.spec()
+    with pytest.raises(ValueError, match="channels must be distinct names from fill, bevel, top, x"):
+        raster(channels=["fill", "fill"])
+    with pytest.raises(ValueError, match="unknown parameter.*channels"):
+        make_renderer({"name": "pybullet", "channels": ["fill"]})
+
+
 def test_batch_equals_one_by_one_and_reuses_the_buffer():
     towers = [Geometry((Block(1.2, 0.0, 0),)), Geometry((Block(1.8, 0.0, 0), Block(0.6, 0.8, 1))), Geometry()]
     r = RasterRenderer(size=(24, 48))

@@ -9,7 +9,7 @@ renderer; ``images_per_s`` times batched inference, rendering included, over
 the whole set, on ``threads`` torch threads.
 
 The last line printed is one JSON object with ``accuracy``,
-``accuracy_near_critical``, ``n`` and ``images_per_s`` (and more); it is also
+``accuracy_near_critical``, ``n``, ``images_per_s`` and ``towers_per_s`` (and more); it is also
 written to ``out`` when given.
 
 Examples::
@@ -33,7 +33,7 @@ from overhang_framework.results import atomic_write_json
 
 def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard_size: int = 500,
              threads: int = 1, device: str = "cpu", workers: int = 2, data_dir: str = "outputs/cnn/heldout",
-             batch_size: int = 512, progress: bool = True) -> dict:
+             batch_size: int = 512, mirror: str = "auto", progress: bool = True) -> dict:
     """Accuracy of ``checkpoint`` on a fresh held-out set of about ``n`` questions, and its speed."""
     import torch
 
@@ -45,7 +45,11 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
                              ("workers", workers, 1), ("seed", seed, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
-    model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size)
+    choices = {"auto": "auto", "true": True, "false": False}
+    if str(mirror).lower() not in choices:
+        raise ValueError(f"mirror must be auto, true or false, got {mirror!r}")
+    model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size,
+                           mirror=choices[str(mirror).lower()])
     trained = dict(model.info.get("data") or {})
     if trained.get("seed") == seed:
         raise ValueError(f"seed {seed} is the seed of the checkpoint's training data; choose another")
@@ -67,7 +71,8 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
     for k in np.unique(data["n_blocks"]):
         rows = data["n_blocks"] == k
         by_blocks[int(k)] = float(((probs[rows] >= 0.5) == data["stable"][rows]).mean())
-    result.update({"images_per_s": len(probs) / seconds, "threads": threads, "device": str(model.device),
+    result.update({"images_per_s": len(probs) * model.images_per_tower / seconds,
+                   "towers_per_s": len(probs) / seconds, "mirror": model.mirror, "threads": threads, "device": str(model.device),
                    "torch_threads": torch.get_num_threads(), "accuracy_by_blocks": by_blocks,
                    "checkpoint": str(model.path), "seed": seed, "data_dir": str(directory)})
     return result

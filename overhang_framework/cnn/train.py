@@ -95,8 +95,9 @@ def _rows(data: dict, idx: np.ndarray):
     return widths, xs, layers, mask
 
 
-def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512) -> dict:
-    """Accuracy (overall and near-critical), loss and the probabilities of a loaded data set."""
+def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512, mirror: bool = False) -> dict:
+    """Accuracy (overall and near-critical) and loss on a loaded data set; with ``mirror``, of the mean
+    logit of each tower and its mirror image (as :class:`~overhang_framework.cnn.model.StabilityModel`)."""
     import torch
 
     from overhang_framework.cnn.model import as_input
@@ -108,8 +109,12 @@ def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512) ->
     with torch.inference_mode():
         for start in range(0, n, batch_size):
             idx = np.arange(start, min(n, start + batch_size))
-            images = renderer.render_arrays(*_rows(data, idx), out=buf[:len(idx)])
+            widths, xs, layers, mask = _rows(data, idx)
+            images = renderer.render_arrays(widths, xs, layers, mask, out=buf[:len(idx)])
             logits = net(as_input(images, device))[:, 0].float().cpu().numpy()
+            if mirror:
+                images = renderer.render_arrays(widths, -xs, layers, mask, out=buf[:len(idx)])
+                logits = (logits + net(as_input(images, device))[:, 0].float().cpu().numpy()) / 2
             probs[idx] = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
     return scores(probs, data)
 
@@ -175,7 +180,7 @@ def train(cfg) -> dict:
     renderer = renderer_of(cfg)
     torch.manual_seed(int(cfg.seed))
     outputs = 1 + len(margins)
-    net = build_model(cfg.backbone.name, outputs).to(device)
+    net = build_model(cfg.backbone.name, outputs, renderer.channels).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=float(cfg.optim.lr), weight_decay=float(cfg.optim.weight_decay))
     n_train = len(train_data["stable"])
     steps_per_epoch = max(1, n_train // int(cfg.batch_size))
@@ -236,15 +241,24 @@ def train(cfg) -> dict:
         bar.close()
         seconds = time.perf_counter() - t0
         train_seconds += seconds
+        # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
+        # only if it scores higher than a single image; the checkpoint records the choice.
         val = evaluate_arrays(net, renderer, val_data, device)
+        mirror = False
+        if float(cfg.augment.mirror) > 0:
+            both = evaluate_arrays(net, renderer, val_data, device, mirror=True)
+            val["accuracy_single"], val["accuracy_mirror"] = val["accuracy"], both["accuracy"]
+            if both["accuracy"] > val["accuracy"]:
+                val, mirror = {**both, "accuracy_single": val["accuracy"], "accuracy_mirror": both["accuracy"]}, True
         row = {"epoch": epoch + 1, "train_loss": total_loss / max(1, seen), "val_accuracy": val["accuracy"],
                "val_accuracy_near_critical": val["accuracy_near_critical"], "val_loss": val["loss"],
+               "mirror": mirror,
                "lr": opt.param_groups[0]["lr"], "seconds": seconds, "images_per_s": seen / seconds}
         history.append(row)
         with open(out_dir / "metrics.jsonl", "a") as fh:
             fh.write(json.dumps(row) + "\n")
         print(json.dumps(row), flush=True)
-        extra = {**extra_common, "epoch": epoch + 1, "metrics": val, "train_seconds": train_seconds,
+        extra = {**extra_common, "epoch": epoch + 1, "metrics": val, "mirror": mirror, "train_seconds": train_seconds,
                  "data_seconds": data_seconds}
         if best is None or val["accuracy"] > best["val_accuracy"]:
             best = dict(row)

@@ -26,17 +26,21 @@ class CNNPredictor(Predictor):
     ``auto`` (a GPU when present), ``cpu`` or ``cuda``; ``threads`` sets
     torch's CPU threads (``null``: torch's default). ``batch_size`` caps the
     images of one forward pass; ``cache_size`` the towers remembered (0: no
-    cache). The predictor is deterministic: ``rng`` is not used.
+    cache). ``mirror`` averages the answers for each tower and its mirror
+    image (``auto``: when the model was trained on mirrored images, as the
+    shipped one was). The predictor is deterministic: ``rng`` is not used.
     """
 
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
-                 threads: Optional[int] = None, batch_size: int = 512, cache_size: int = 200_000):
+                 threads: Optional[int] = None, batch_size: int = 512, cache_size: int = 200_000,
+                 mirror="auto"):
         from overhang_framework.cnn.model import StabilityModel
 
         if isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0:
             raise ValueError(f"cache_size must be a whole number >= 0, got {cache_size!r}")
         self.world = world
-        self.model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size)
+        self.model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size,
+                                    mirror=mirror)
         self.cache_size = cache_size
         self._cache: OrderedDict = OrderedDict()
         self.counts = {"towers": 0, "cache_hits": 0, "images": 0}
@@ -57,7 +61,7 @@ class CNNPredictor(Predictor):
         self.counts["cache_hits"] += len(geometries) - len(missing)
         if missing:
             probs = self.model.probabilities([geometries[i] for i in missing])
-            self.counts["images"] += len(missing)
+            self.counts["images"] += len(missing) * self.model.images_per_tower
             out[missing] = probs
             if self.cache_size:
                 for key, p in zip(keys, probs):
