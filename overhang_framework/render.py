@@ -32,7 +32,7 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import BLOCK_HEIGHT, GRID_HALF_WIDTH, Geometry
+from overhang_framework.geometry import BLOCK_HEIGHT, GRID_HALF_WIDTH, Block, Geometry
 
 RENDERERS = ("raster", "pybullet")
 DEFAULT_Z_MAX = 8 * BLOCK_HEIGHT  # layers 0-7: a task of up to 8 blocks fits
@@ -81,12 +81,21 @@ class Renderer(abc.ABC):
         return {"name": self.name, "size": [self.height, self.width], "x_max": self.x_max, "z_max": self.z_max}
 
     def render(self, geometry: Geometry) -> np.ndarray:
-        """One ``(3, height, width)`` image."""
+        """One ``(channels, height, width)`` image."""
         return self.render_batch([geometry])[0]
 
     @abc.abstractmethod
     def render_batch(self, geometries: Sequence[Geometry], out: Optional[np.ndarray] = None) -> np.ndarray:
-        """``(n, 3, height, width)`` images, written into ``out`` when given (it must have that shape)."""
+        """``(n, channels, height, width)`` images, written into ``out`` when given (it must have that shape)."""
+
+    def render_arrays(self, widths: np.ndarray, xs: np.ndarray, layers: np.ndarray, mask: np.ndarray,
+                      out: Optional[np.ndarray] = None) -> np.ndarray:
+        """Images of padded block arrays (see :func:`block_arrays`), the form training and inference use.
+        This builds the geometries and draws them; a renderer may draw the arrays directly."""
+        geometries = [Geometry(tuple(Block(float(np.round(w, 6)), float(x), int(layer))
+                                     for w, x, layer, keep in zip(*row) if keep))
+                      for row in zip(widths, xs, layers, mask)]
+        return self.render_batch(geometries, out=out)
 
     def _out(self, n: int, out: Optional[np.ndarray]) -> np.ndarray:
         shape = (n, *self.shape)
@@ -293,6 +302,7 @@ def make_renderer(spec: Optional[Mapping[str, Any]] = None, **overrides) -> Rend
 
 
 def to_uint8(images: np.ndarray) -> np.ndarray:
-    """``(n, 3, H, W)`` or ``(3, H, W)`` floats in [0, 1] as ``(..., H, W, 3)`` uint8, for saving as PNG."""
+    """``(n, 3, H, W)`` or ``(3, H, W)`` floats in [0, 1] as ``(..., H, W, 3)`` uint8, for saving as PNG
+    (three channels, as colours)."""
     arr = np.asarray(images)
     return np.round(np.moveaxis(arr, -3, -1) * 255).astype(np.uint8)

@@ -115,6 +115,11 @@ def test_training_runs_end_to_end_and_resumes_where_it_stopped(tmp_path, monkeyp
     assert [json.loads(line)["epoch"] for line in lines] == [1, 2]
     best = read_checkpoint(tmp_path / "a" / "run" / "best.pt")
     assert best["renderer"]["size"] == [24, 48] and best["backbone"] == "mobilenetv3_small_050"
+    # validation scored a single image and mirror averaging, and the checkpoint records the better one
+    row = json.loads(lines[best["epoch"] - 1])
+    chosen = row["val_accuracy_mirror"] if row["mirror"] else row["val_accuracy_single"]
+    assert row["val_accuracy"] == chosen == best["metrics"]["accuracy"]
+    assert best["mirror"] is row["mirror"] is (row["val_accuracy_mirror"] > row["val_accuracy_single"])
 
     # the same training, interrupted during epoch 2, then run again: it resumes after epoch 1
     original = train.evaluate_arrays
@@ -170,9 +175,13 @@ def test_the_renderer_channels_are_recorded_in_the_checkpoint_and_set_the_networ
 def test_the_renderer_options_compose(tmp_path):
     from overhang_framework.cnn import train
 
-    cfg = train_cfg(tmp_path, "renderer=pybullet", small_images=False)
+    cfg = train_cfg(tmp_path / "pb", "renderer=pybullet", "renderer.size=[24,48]", "epochs=1", "data.shard_size=8",
+                    small_images=False)
     assert cfg.renderer.name == "pybullet" and "channels" not in cfg.renderer
-    train.check(cfg)
+    train.train(cfg)  # trains on PyBullet's images, and the checkpoint loads with its renderer
+    model = StabilityModel(str(tmp_path / "pb" / "run" / "best.pt"), device="cpu")
+    assert model.renderer.name == "pybullet"
+    assert model.probabilities([Geometry((Block(1.8, 0.0, 0),))]).shape == (1,)
     assert train.renderer_of(train_cfg(tmp_path)).channel_names == ("fill", "bevel", "x")
 
 
@@ -277,8 +286,15 @@ def test_mirror_averaging_is_the_mean_logit_of_a_tower_and_its_mirror_image():
     assert not np.allclose(a, b)  # the network alone is not mirror-symmetric
     np.testing.assert_allclose(logit(both.probabilities(towers)), (a + b) / 2, rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(both.probabilities(towers), both.probabilities(mirrored), atol=1e-5)
-    # auto: the shipped model was trained on mirrored images, so it averages
-    assert StabilityModel("default", device="cpu").mirror is True
+    # auto follows the checkpoint's record from validation, else whether it trained on mirrored images
+    from overhang_framework.cnn.model import trained_mirrored
+
+    assert trained_mirrored({"mirror": False, "train_config": {"augment": {"mirror": 0.5}}}) is False
+    assert trained_mirrored({"mirror": True, "train_config": {"augment": {"mirror": 0.0}}}) is True
+    assert trained_mirrored({"train_config": {"augment": {"mirror": 0.5}}}) is True
+    assert trained_mirrored({"train_config": {"augment": {"mirror": 0.0}}}) is False
+    shipped = read_checkpoint(DEFAULT_CHECKPOINT)
+    assert StabilityModel("default", device="cpu").mirror is trained_mirrored(shipped)
     world = static_world()
     predictor = Registry().create("predictor", {"name": "cnn", "device": "cpu", "mirror": False}, world=world)
     assert predictor.model.mirror is False
@@ -295,14 +311,14 @@ def test_bad_cnn_settings_are_refused():
         Registry().create("predictor", {"name": "cnn", "device": "abacus"}, world=world)
     with pytest.raises(ConfigError, match="cache_size must be"):
         Registry().create("predictor", {"name": "cnn", "cache_size": -1}, world=world)
-    with pytest.raises(ConfigError, match="mirror must be true, false or auto, got 'sometimes'"):
+    with pytest.raises(ConfigError, match="mirror must be auto, true or false, got 'sometimes'"):
         Registry().create("predictor", {"name": "cnn", "mirror": "sometimes"}, world=world)
 
 
 @pytest.mark.slow
 def test_evaluate_app_prints_one_json_line(tmp_path):
     out = subprocess.run([sys.executable, "-m", "overhang_framework.cnn.evaluate", "n=200", "shard_size=100",
-                          "workers=1", f"data_dir={tmp_path}", "progress=false"],
+                          "workers=1", f"data_dir={tmp_path}", "progress=false", "mirror=true"],
                          cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout.strip().splitlines()[-1])
@@ -320,7 +336,7 @@ def test_evaluate_app_refuses_the_training_seed():
 def test_bench_prints_towers_and_images_per_second(capsys):
     from overhang_framework.cnn import bench
 
-    both = bench.main(["--threads", "1", "--batches", "16", "--images", "40"])
+    both = bench.main(["--threads", "1", "--batches", "16", "--images", "40", "--mirror", "true"])
     one = bench.main(["--threads", "1", "--batches", "16", "--images", "40", "--mirror", "false"])
     assert both["mirror"] is True and one["mirror"] is False
     rate = both["render_and_forward"]["threads=1,batch=16"]

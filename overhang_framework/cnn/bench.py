@@ -50,7 +50,8 @@ def main(argv=None) -> dict:
             model = StabilityModel(args.checkpoint, device="cpu", batch_size=b, mirror=mirror)
             k = model.images_per_tower
             results["mirror"] = model.mirror
-            chunks = [towers[i:i + b // k] for i in range(0, len(towers), b // k)]  # b images a pass
+            step = max(1, b // k)  # b images a pass
+            chunks = [towers[i:i + step] for i in range(0, len(towers), step)]
             model.probabilities(chunks[0])
             start = time.perf_counter()
             for c in chunks:

@@ -53,7 +53,7 @@ def build_model(backbone: str, outputs: int = 1, channels: int = 3):
 
 
 def as_input(images: np.ndarray, device):
-    """``(n, 3, H, W)`` float32 images as the network's input tensor (channels-last, on ``device``)."""
+    """``(n, channels, H, W)`` float32 images as the network's input tensor (channels-last, on ``device``)."""
     import torch
 
     return torch.from_numpy(images).to(device).contiguous(memory_format=torch.channels_last)
@@ -114,7 +114,8 @@ class StabilityModel:
     """A loaded checkpoint: renders geometries and returns stability probabilities, batched.
 
     ``threads`` sets torch's CPU threads (``None``: leave torch's setting).
-    ``batch_size`` caps the images of one forward pass; the input buffer is
+    ``batch_size`` caps the images of one forward pass (a pass holds at least
+    one tower: two images with ``mirror``); the input buffer is
     reused between calls of the same or smaller size. ``mirror`` averages the
     network's logits for each tower and its mirror image (x -> -x, which keeps
     the verdict), both in the same forward pass: two images a tower.
@@ -136,7 +137,7 @@ class StabilityModel:
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size must be a whole number >= 1, got {batch_size!r}")
         if mirror != "auto" and not isinstance(mirror, bool):
-            raise ValueError(f"mirror must be true, false or auto, got {mirror!r}")
+            raise ValueError(f"mirror must be auto, true or false, got {mirror!r}")
         self.path = resolve_checkpoint(checkpoint)
         payload = read_checkpoint(self.path)
         self.info = {k: v for k, v in payload.items() if k != "state_dict"}

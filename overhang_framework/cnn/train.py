@@ -252,7 +252,8 @@ def train(cfg) -> dict:
                 val, mirror = {**both, "accuracy_single": val["accuracy"], "accuracy_mirror": both["accuracy"]}, True
         row = {"epoch": epoch + 1, "train_loss": total_loss / max(1, seen), "val_accuracy": val["accuracy"],
                "val_accuracy_near_critical": val["accuracy_near_critical"], "val_loss": val["loss"],
-               "mirror": mirror,
+               "mirror": mirror, "val_accuracy_single": val.get("accuracy_single", val["accuracy"]),
+               "val_accuracy_mirror": val.get("accuracy_mirror"),
                "lr": opt.param_groups[0]["lr"], "seconds": seconds, "images_per_s": seen / seconds}
         history.append(row)
         with open(out_dir / "metrics.jsonl", "a") as fh:

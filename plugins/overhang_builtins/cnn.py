@@ -27,8 +27,9 @@ class CNNPredictor(Predictor):
     torch's CPU threads (``null``: torch's default). ``batch_size`` caps the
     images of one forward pass; ``cache_size`` the towers remembered (0: no
     cache). ``mirror`` averages the answers for each tower and its mirror
-    image (``auto``: when the model was trained on mirrored images, as the
-    shipped one was). The predictor is deterministic: ``rng`` is not used.
+    image; ``auto`` follows the checkpoint, whose training records whether
+    that scored higher on validation. The predictor is deterministic: ``rng``
+    is not used.
     """
 
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
