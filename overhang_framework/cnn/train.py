@@ -96,14 +96,16 @@ def _rows(data: dict, idx: np.ndarray):
 
 
 def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512, mirror: bool = False) -> dict:
-    """Accuracy (overall and near-critical) and loss on a loaded data set; with ``mirror``, of the mean
-    logit of each tower and its mirror image (as :class:`~overhang_framework.cnn.model.StabilityModel`)."""
+    """Accuracy (overall and near-critical) and loss on a loaded data set, from a single image. With
+    ``mirror``, also of the mean logit of each tower and its mirror image (as
+    :class:`~overhang_framework.cnn.model.StabilityModel`), from the same pass: the better of the two
+    is returned, with ``mirror`` saying which, and ``accuracy_single`` and ``accuracy_mirror``."""
     import torch
 
     from overhang_framework.cnn.model import as_input
 
     n = len(data["stable"])
-    probs = np.empty(n)
+    single, mirrored = np.empty(n), np.empty(n)
     net.eval()
     buf = np.empty((batch_size, *renderer.shape), dtype=np.float32)
     with torch.inference_mode():
@@ -111,12 +113,18 @@ def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512, mi
             idx = np.arange(start, min(n, start + batch_size))
             widths, xs, layers, mask = _rows(data, idx)
             images = renderer.render_arrays(widths, xs, layers, mask, out=buf[:len(idx)])
-            logits = net(as_input(images, device))[:, 0].float().cpu().numpy()
+            single[idx] = net(as_input(images, device))[:, 0].float().cpu().numpy()
             if mirror:
                 images = renderer.render_arrays(widths, -xs, layers, mask, out=buf[:len(idx)])
-                logits = (logits + net(as_input(images, device))[:, 0].float().cpu().numpy()) / 2
-            probs[idx] = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
-    return scores(probs, data)
+                mirrored[idx] = (single[idx] + net(as_input(images, device))[:, 0].float().cpu().numpy()) / 2
+    probability = lambda logits: 1.0 / (1.0 + np.exp(-logits))  # noqa: E731
+    result = {**scores(probability(single), data), "mirror": False}
+    if mirror:
+        both = scores(probability(mirrored), data)
+        accuracies = {"accuracy_single": result["accuracy"], "accuracy_mirror": both["accuracy"]}
+        result = {**both, "mirror": True} if both["accuracy"] > result["accuracy"] else result
+        result.update(accuracies)
+    return result
 
 
 def scores(probs: np.ndarray, data: dict) -> dict:
@@ -243,13 +251,8 @@ def train(cfg) -> dict:
         train_seconds += seconds
         # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
         # only if it scores higher than a single image; the checkpoint records the choice.
-        val = evaluate_arrays(net, renderer, val_data, device)
-        mirror = False
-        if float(cfg.augment.mirror) > 0:
-            both = evaluate_arrays(net, renderer, val_data, device, mirror=True)
-            val["accuracy_single"], val["accuracy_mirror"] = val["accuracy"], both["accuracy"]
-            if both["accuracy"] > val["accuracy"]:
-                val, mirror = {**both, "accuracy_single": val["accuracy"], "accuracy_mirror": both["accuracy"]}, True
+        val = evaluate_arrays(net, renderer, val_data, device, mirror=float(cfg.augment.mirror) > 0)
+        mirror = val.pop("mirror")
         row = {"epoch": epoch + 1, "train_loss": total_loss / max(1, seen), "val_accuracy": val["accuracy"],
                "val_accuracy_near_critical": val["accuracy_near_critical"], "val_loss": val["loss"],
                "mirror": mirror, "val_accuracy_single": val.get("accuracy_single", val["accuracy"]),
