@@ -161,6 +161,66 @@ def test_training_with_auxiliary_margin_targets_keeps_the_verdict_first(tmp_path
     assert probs.shape == (2,) and ((probs > 0) & (probs < 1)).all()
 
 
+def test_training_on_two_processes_is_reproducible_and_resumes(tmp_path, capsys):
+    from overhang_framework.cnn import train
+
+    cfg = lambda name, *more: train_cfg(tmp_path / name, "processes=2", f"data.dir={tmp_path / 'data'}", *more)  # noqa: E731
+    full = train.train(cfg("a"))
+    assert full["processes"] == 2 and full["best"]["epoch"] in (1, 2)
+    rows = [json.loads(line) for line in (tmp_path / "a" / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2]
+    last = read_checkpoint(tmp_path / "a" / "run" / "last.pt")
+    n_train = last["data_size"]["train"]
+    assert rows[0]["images_per_s"] * rows[0]["seconds"] == pytest.approx(n_train // 8 * 8)  # both shares counted
+    # the same config in a new out_dir gives the same weights
+    train.train(cfg("b"))
+    again = read_checkpoint(tmp_path / "b" / "run" / "last.pt")
+    for k, v in last["state_dict"].items():
+        assert np.array_equal(v.numpy(), again["state_dict"][k].numpy()), k
+    # rerun in place: both processes load last.pt, find nothing left to do and agree on the best epoch
+    capsys.readouterr()
+    resumed = train.train(cfg("a"))
+    assert resumed["best"] == full["best"]
+    assert read_checkpoint(tmp_path / "a" / "run" / "last.pt")["epoch"] == 2
+    # a batch that does not split evenly is refused before any work
+    with pytest.raises(ValueError, match=r"batch_size \(9\) must be a multiple of processes \(2\)"):
+        train.train(cfg("d", "batch_size=9"))
+
+
+def test_a_failed_training_process_is_one_clear_error(tmp_path):
+    from omegaconf import OmegaConf
+
+    from overhang_framework.cnn import train
+
+    cfg = OmegaConf.to_container(train_cfg(tmp_path, "processes=2"), resolve=True)
+    cfg["backbone"]["name"] = "no_such_backbone"  # past the checks: it fails inside the processes
+    job = {"cfg": cfg, "record": {}, "spec": {}, "train": {}, "val": {}, "aux": None, "data_seconds": 0.0}
+    with pytest.raises(train.TrainingProcessFailed, match="a training process failed .*no_such_backbone.*"
+                                                          "last.pt keeps the finished epochs, rerun to resume"):
+        train.fit_in_processes(2, job)
+
+
+def test_training_can_start_from_a_checkpoint_and_records_it(tmp_path):
+    from overhang_framework.cnn import train
+
+    first = tmp_path / "a" / "run" / "best.pt"
+    train.train(train_cfg(tmp_path / "a", "aux.margins=[0.02]", "epochs=1"))
+    # one step at learning rate 0: the second training's weights are the first's, and it says where from
+    train.train(train_cfg(tmp_path / "b", "aux.margins=[0.02]", "epochs=1", f"init={first}", "optim.lr=0",
+                          "data.shards=2", "data.val_shards=1", "batch_size=64"))
+    a, b = read_checkpoint(first), read_checkpoint(tmp_path / "b" / "run" / "best.pt")
+    for k, v in a["state_dict"].items():
+        if "running" not in k and "num_batches" not in k:  # batch norm statistics still move in training mode
+            assert np.array_equal(v.numpy(), b["state_dict"][k].numpy()), k
+    assert b["init_from"]["path"] == str(first) and b["init_from"]["epoch"] == 1
+    assert b["init_from"]["train_config"]["aux"]["margins"] == [0.02]
+    # a checkpoint made for another network is refused in one line naming what differs
+    with pytest.raises(ValueError, match="init checkpoint .* has outputs 2 but this training has 1"):
+        train.train(train_cfg(tmp_path / "c", "aux.margins=[]", f"init={first}"))
+    with pytest.raises(ValueError, match="init checkpoint .* has renderer"):
+        train.train(train_cfg(tmp_path / "d", "aux.margins=[0.02]", f"init={first}", "renderer.size=[24,64]"))
+
+
 def test_the_renderer_channels_are_recorded_in_the_checkpoint_and_set_the_network_input(tmp_path):
     from overhang_framework.cnn import train
 
@@ -301,6 +361,16 @@ def test_mirror_averaging_is_the_mean_logit_of_a_tower_and_its_mirror_image():
     state = State(Geometry((Block(1.8, 0.0, 0),)), (1.2,))
     predictor.predict(state, world.legal_actions(state)[:7], np.random.default_rng(0))
     assert predictor.stats()["images"] == 7
+
+
+def test_mirror_settings_parse_from_words_and_booleans():
+    from overhang_framework.cnn.model import parse_mirror
+
+    assert [parse_mirror(v) for v in ("auto", "true", "False", " TRUE ", True, False)] == \
+        ["auto", True, False, True, True, False]
+    for bad in ("sometimes", 1, None):
+        with pytest.raises(ValueError, match="mirror must be auto, true or false"):
+            parse_mirror(bad)
 
 
 def test_bad_cnn_settings_are_refused():

@@ -24,7 +24,7 @@ def main(argv=None) -> dict:
     import torch
 
     from overhang_framework.bench.towers import random_towers
-    from overhang_framework.cnn.model import StabilityModel
+    from overhang_framework.cnn.model import StabilityModel, parse_mirror
     from overhang_framework.interfaces import State
     from overhang_framework.plugins import Registry
     from overhang_framework.rules import legal_actions
@@ -42,7 +42,7 @@ def main(argv=None) -> dict:
     towers = random_towers(args.images, seed=11)
     world = Registry().create("world", {"name": "overhang", "physics": "static"})
     states = [State(g, (1.2,)) for g in random_towers(40, seed=12, min_blocks=2, max_blocks=6)]
-    mirror = {"auto": "auto", "true": True, "false": False}[args.mirror]
+    mirror = parse_mirror(args.mirror)
     results = {"towers": args.images, "render_and_forward": {}, "predict_legal_actions": {}}
     for t in threads:
         torch.set_num_threads(t)

@@ -38,18 +38,15 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
     import torch
 
     from overhang_framework.cnn.data import DataSpec, generate, load
-    from overhang_framework.cnn.model import StabilityModel
+    from overhang_framework.cnn.model import StabilityModel, parse_mirror
     from overhang_framework.cnn.train import scores
 
     for name, value, low in (("n", n, 2), ("shard_size", shard_size, 2), ("threads", threads, 1),
                              ("workers", workers, 1), ("seed", seed, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
-    choices = {"auto": "auto", "true": True, "false": False}
-    if str(mirror).lower() not in choices:
-        raise ValueError(f"mirror must be auto, true or false, got {mirror!r}")
     model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size,
-                           mirror=choices[str(mirror).lower()])
+                           mirror=parse_mirror(mirror))
     trained = dict(model.info.get("data") or {})
     if trained.get("seed") == seed:
         raise ValueError(f"seed {seed} is the seed of the checkpoint's training data; choose another")

@@ -136,8 +136,7 @@ class StabilityModel:
             torch.set_num_threads(threads)
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size must be a whole number >= 1, got {batch_size!r}")
-        if mirror != "auto" and not isinstance(mirror, bool):
-            raise ValueError(f"mirror must be auto, true or false, got {mirror!r}")
+        mirror = parse_mirror(mirror)
         self.path = resolve_checkpoint(checkpoint)
         payload = read_checkpoint(self.path)
         self.info = {k: v for k, v in payload.items() if k != "state_dict"}
@@ -163,22 +162,15 @@ class StabilityModel:
     def logits_of_arrays(self, widths, xs, layers, mask) -> np.ndarray:
         """Logits of padded block arrays (see :func:`overhang_framework.render.block_arrays`); with
         ``mirror``, the mean of each tower's and its mirror image's logits."""
-        import torch
-
         n = widths.shape[0]
         out = np.empty(n, dtype=np.float32)
         step = max(1, self.batch_size // self.images_per_tower)
         for start in range(0, n, step):
             stop = min(n, start + step)
-            k = stop - start
-            images = self._images(k * self.images_per_tower)
             rows = (widths[start:stop], xs[start:stop], layers[start:stop], mask[start:stop])
-            self.renderer.render_arrays(*rows, out=images[:k])
-            if self.mirror:
-                self.renderer.render_arrays(rows[0], -rows[1], rows[2], rows[3], out=images[k:])
-            with torch.inference_mode():
-                logits = self.net(as_input(images, self.device))[:, 0].float().cpu().numpy()
-            out[start:stop] = logits[:k] if not self.mirror else (logits[:k] + logits[k:]) / 2
+            single, mirrored = tower_logits(self.net, self.renderer, *rows, self.device,
+                                            self._images((stop - start) * self.images_per_tower), self.mirror)
+            out[start:stop] = single if mirrored is None else (single + mirrored) / 2
         return out
 
     def probabilities(self, geometries) -> np.ndarray:
@@ -189,6 +181,35 @@ class StabilityModel:
             return np.zeros(0)
         logits = self.logits_of_arrays(*block_arrays(geometries))
         return 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
+
+
+def tower_logits(net, renderer, widths, xs, layers, mask, device, images: np.ndarray,
+                 mirror: bool = False) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """The verdict logits of ``net`` (in eval mode) for the towers of padded block arrays, and with
+    ``mirror`` those of their mirror images (x -> -x), from one forward pass. ``images`` is the buffer the
+    towers are drawn into: at least one image a tower, two with ``mirror``. Returns ``(single, mirrored)``,
+    ``mirrored`` being ``None`` without ``mirror``."""
+    import torch
+
+    k = widths.shape[0]
+    images = images[:k * (2 if mirror else 1)]
+    renderer.render_arrays(widths, xs, layers, mask, out=images[:k])
+    if mirror:
+        renderer.render_arrays(widths, -xs, layers, mask, out=images[k:])
+    with torch.inference_mode():
+        logits = net(as_input(images, device))[:, 0].float().cpu().numpy()
+    return logits[:k], (logits[k:] if mirror else None)
+
+
+def parse_mirror(value):
+    """A ``mirror`` setting as ``"auto"``, ``True`` or ``False``: from those, or the words auto, true or
+    false; ``ValueError`` naming what is allowed otherwise."""
+    if value == "auto" or isinstance(value, bool):
+        return value
+    word = str(value).strip().lower()
+    if word in ("auto", "true", "false"):
+        return {"auto": "auto", "true": True, "false": False}[word]
+    raise ValueError(f"mirror must be auto, true or false, got {value!r}")
 
 
 def trained_mirrored(info: Mapping[str, Any]) -> bool:

@@ -82,6 +82,14 @@ def check(cfg) -> None:
                     ("aux.weight", cfg.aux.weight)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ValueError(f"{name} must be a number >= 0, got {v!r}")
+    v = cfg.processes
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"processes must be a whole number >= 1, got {v!r}")
+    if v > 1 and cfg.batch_size % v:
+        raise ValueError(f"batch_size ({cfg.batch_size}) must be a multiple of processes ({v}): each process "
+                         f"takes an equal share of every batch")
+    if v > 1 and pick_device(cfg.device).type != "cpu":
+        raise ValueError(f"processes={v} trains on the CPU's cores; on a GPU use processes=1")
     if cfg.threads is not None and (isinstance(cfg.threads, bool) or not isinstance(cfg.threads, int)
                                     or cfg.threads < 1):
         raise ValueError(f"threads must be a whole number >= 1 or null, got {cfg.threads!r}")
@@ -100,23 +108,19 @@ def evaluate_arrays(net, renderer, data: dict, device, batch_size: int = 512, mi
     ``mirror``, also of the mean logit of each tower and its mirror image (as
     :class:`~overhang_framework.cnn.model.StabilityModel`), from the same pass: the better of the two
     is returned, with ``mirror`` saying which, and ``accuracy_single`` and ``accuracy_mirror``."""
-    import torch
-
-    from overhang_framework.cnn.model import as_input
+    from overhang_framework.cnn.model import tower_logits
 
     n = len(data["stable"])
     single, mirrored = np.empty(n), np.empty(n)
     net.eval()
     buf = np.empty((batch_size, *renderer.shape), dtype=np.float32)
-    with torch.inference_mode():
-        for start in range(0, n, batch_size):
-            idx = np.arange(start, min(n, start + batch_size))
-            widths, xs, layers, mask = _rows(data, idx)
-            images = renderer.render_arrays(widths, xs, layers, mask, out=buf[:len(idx)])
-            single[idx] = net(as_input(images, device))[:, 0].float().cpu().numpy()
-            if mirror:
-                images = renderer.render_arrays(widths, -xs, layers, mask, out=buf[:len(idx)])
-                mirrored[idx] = (single[idx] + net(as_input(images, device))[:, 0].float().cpu().numpy()) / 2
+    step = max(1, batch_size // (2 if mirror else 1))
+    for start in range(0, n, step):
+        idx = np.arange(start, min(n, start + step))
+        one, other = tower_logits(net, renderer, *_rows(data, idx), device, buf, mirror)
+        single[idx] = one
+        if mirror:
+            mirrored[idx] = (one + other) / 2
     probability = lambda logits: 1.0 / (1.0 + np.exp(-logits))  # noqa: E731
     result = {**scores(probability(single), data), "mirror": False}
     if mirror:
@@ -139,6 +143,25 @@ def scores(probs: np.ndarray, data: dict) -> dict:
             "loss": float(loss), "n": int(len(y)), "n_near_critical": int(crit.sum())}
 
 
+def init_weights(init, backbone: str, renderer_spec: dict, outputs: int) -> tuple[dict, dict]:
+    """The weights of checkpoint ``init`` and what made it (its record, without the weights);
+    ``ValueError`` when it was made for another backbone, renderer or number of outputs."""
+    from overhang_framework.cnn.model import read_checkpoint, resolve_checkpoint
+
+    path = resolve_checkpoint(init)
+    payload = read_checkpoint(path)
+    theirs = {"backbone": payload.get("backbone"), "renderer": payload.get("renderer"),
+              "outputs": int(payload.get("outputs", 1))}
+    ours = {"backbone": backbone, "renderer": dict(renderer_spec), "outputs": outputs}
+    for key in ours:
+        if theirs[key] != ours[key]:
+            raise ValueError(f"init checkpoint {path} has {key} {theirs[key]!r} but this training has "
+                             f"{ours[key]!r}; start from a checkpoint made with the same {key}")
+    keep = ("backbone", "epoch", "metrics", "mirror", "train_seconds", "data_seconds", "data", "data_size",
+            "train_config", "init_from")
+    return payload["state_dict"], {"path": str(path), **{k: payload[k] for k in keep if k in payload}}
+
+
 def config_record(cfg) -> dict:
     """The config as plain data, without the settings that do not change the result."""
     from omegaconf import OmegaConf
@@ -150,16 +173,12 @@ def config_record(cfg) -> dict:
 
 
 def train(cfg) -> dict:
-    """Run the training ``cfg`` describes; return the best epoch's metrics."""
-    import torch
-    from tqdm import tqdm
+    """Run the training ``cfg`` describes; return its summary (the best epoch's metrics under ``best``)."""
+    from omegaconf import OmegaConf
 
     from overhang_framework.cnn.data import generate, load, margin_verdicts
-    from overhang_framework.cnn.model import as_input, build_model, pick_device, save_checkpoint
 
     check(cfg)
-    if cfg.threads is not None:
-        torch.set_num_threads(int(cfg.threads))
     out_dir = Path(cfg.out_dir)
     record = config_record(cfg)
     state_file = out_dir / "config.json"
@@ -180,19 +199,94 @@ def train(cfg) -> dict:
     val_ids = list(range(n_shards - int(cfg.data.val_shards), n_shards))
     train_data = load(cfg.data.dir, [i for i in range(n_shards) if i not in val_ids])
     val_data = load(cfg.data.dir, val_ids)
-
     margins = [float(m) for m in (cfg.aux.margins or [])]
-    aux_weight = float(cfg.aux.weight)
     aux = margin_verdicts(train_data, margins, int(cfg.workers)).astype(np.float32) if margins else None
-    device = pick_device(cfg.device)
-    renderer = renderer_of(cfg)
-    torch.manual_seed(int(cfg.seed))
+    init_state, init_from = (init_weights(cfg.init, cfg.backbone.name, renderer_of(cfg).spec(), 1 + len(margins))
+                             if cfg.init else (None, None))
+    job = {"cfg": OmegaConf.to_container(cfg, resolve=True), "record": record, "spec": spec.settings(),
+           "train": train_data, "val": val_data, "aux": aux, "data_seconds": data_seconds,
+           "init_state": init_state, "init_from": init_from}
+    processes = int(cfg.processes)
+    if processes == 1:
+        best, train_seconds, device = fit(0, 1, job)
+    else:
+        best, train_seconds, device = fit_in_processes(processes, job)
+    summary = {"best": best, "train_seconds": train_seconds, "data": manifest, "out_dir": str(out_dir),
+               "device": device, "processes": processes}
+    atomic_write_json(out_dir / "summary.json", summary)
+    return summary
+
+
+class TrainingProcessFailed(RuntimeError):
+    """A process of a data-parallel training failed; the epochs already finished are kept in ``last.pt``."""
+
+
+def fit_in_processes(processes: int, job: dict):
+    """:func:`fit` on ``processes`` CPU processes, data-parallel (``torch.distributed`` over gloo)."""
+    import socket
+
+    import torch.multiprocessing as mp
+    from torch.multiprocessing.spawn import ProcessException
+
+    with socket.socket() as sock:  # a free port on this machine for the processes to meet on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    result = mp.get_context("spawn").SimpleQueue()
+    try:
+        mp.spawn(_fit_process, args=(processes, job, port, result), nprocs=processes, join=True)
+    except ProcessException as err:
+        lines = [line for line in str(err).strip().splitlines() if line.strip()]
+        raise TrainingProcessFailed(f"a training process failed ({lines[-1] if lines else err}); "
+                                    f"{job['cfg']['out_dir']}/last.pt keeps the finished epochs, "
+                                    f"rerun to resume") from err
+    return result.get()
+
+
+def _fit_process(rank: int, processes: int, job: dict, port: int, result) -> None:
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=processes)
+    try:
+        out = fit(rank, processes, job)
+        if rank == 0:
+            result.put(out)
+    finally:
+        dist.destroy_process_group()
+
+
+def fit(rank: int, processes: int, job: dict):
+    """The epochs of a training, as process ``rank`` of ``processes`` (data-parallel when more than one:
+    each process renders and learns from its share of every batch, and their gradients are averaged, so
+    a step sees the whole batch). Process 0 validates and writes the metrics and checkpoints.
+    Returns ``(best epoch's row, training seconds, device name)``."""
+    import torch
+    from tqdm import tqdm
+
+    from overhang_framework.cnn.model import as_input, build_model, pick_device, save_checkpoint
+
+    cfg, record, train_data, val_data, aux = job["cfg"], job["record"], job["train"], job["val"], job["aux"]
+    lead = rank == 0
+    threads = cfg["threads"] if cfg["threads"] is not None else (1 if processes > 1 else None)
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    out_dir = Path(cfg["out_dir"])
+    margins = [float(m) for m in (cfg["aux"]["margins"] or [])]
+    aux_weight = float(cfg["aux"]["weight"])
+    device = pick_device(cfg["device"])
+    from overhang_framework.render import make_renderer
+
+    renderer = make_renderer(cfg["renderer"])
+    backbone, batch_size, epochs = cfg["backbone"]["name"], int(cfg["batch_size"]), int(cfg["epochs"])
+    torch.manual_seed(int(cfg["seed"]))
     outputs = 1 + len(margins)
-    net = build_model(cfg.backbone.name, outputs, renderer.channels).to(device)
-    opt = torch.optim.AdamW(net.parameters(), lr=float(cfg.optim.lr), weight_decay=float(cfg.optim.weight_decay))
+    net = build_model(backbone, outputs, renderer.channels).to(device)
+    if job.get("init_state") is not None:
+        net.load_state_dict(job["init_state"])
+    opt = torch.optim.AdamW(net.parameters(), lr=float(cfg["optim"]["lr"]),
+                            weight_decay=float(cfg["optim"]["weight_decay"]))
     n_train = len(train_data["stable"])
-    steps_per_epoch = max(1, n_train // int(cfg.batch_size))
-    total = steps_per_epoch * int(cfg.epochs)
+    steps_per_epoch = max(1, n_train // batch_size)
+    total = steps_per_epoch * epochs
     warmup = min(steps_per_epoch, total // 10 + 1)
 
     def lr_at(step):
@@ -210,30 +304,37 @@ def train(cfg) -> dict:
         sched.load_state_dict(payload["scheduler"])
         torch.set_rng_state(payload["torch_rng"])
         start_epoch, best, history = payload["epoch"], payload["best"], payload["history"]
-        log.info("resuming after epoch %d", start_epoch)
-        print(f"resuming {out_dir} after epoch {start_epoch}", file=sys.stderr)
+        if lead:
+            log.info("resuming after epoch %d", start_epoch)
+            print(f"resuming {out_dir} after epoch {start_epoch}", file=sys.stderr)
+    model = net
+    if processes > 1:
+        from torch.nn.parallel import DistributedDataParallel
 
-    extra_common = {"outputs": outputs, "data": spec.settings(),
+        model = DistributedDataParallel(net)
+
+    extra_common = {"outputs": outputs, "init_from": job.get("init_from"), "data": job["spec"],
                     "data_size": {"train": n_train, "val": len(val_data["stable"])}, "train_config": record}
     train_seconds = sum(h["seconds"] for h in history)
-    for epoch in range(start_epoch, int(cfg.epochs)):
+    mirror_p = float(cfg["augment"]["mirror"])
+    for epoch in range(start_epoch, epochs):
         t0 = time.perf_counter()
-        net.train()
-        rng = np.random.default_rng(np.random.SeedSequence([int(cfg.seed), epoch]))
+        model.train()
+        rng = np.random.default_rng(np.random.SeedSequence([int(cfg["seed"]), epoch]))
         order = rng.permutation(n_train)
-        flips = rng.random(n_train) < float(cfg.augment.mirror)
-        buf = np.empty((int(cfg.batch_size), *renderer.shape), dtype=np.float32)
-        total_loss, seen = 0.0, 0
-        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch",
-                   disable=not cfg.progress, file=sys.stderr)
+        flips = rng.random(n_train) < mirror_p
+        buf = np.empty((batch_size, *renderer.shape), dtype=np.float32)
+        totals = torch.zeros(2, dtype=torch.float64)  # loss summed over questions, questions
+        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{epochs}", unit="batch",
+                   disable=not (cfg["progress"] and lead), file=sys.stderr)
         for step in bar:
-            idx = order[step * int(cfg.batch_size):(step + 1) * int(cfg.batch_size)]
+            idx = order[step * batch_size:(step + 1) * batch_size][rank::processes]
             widths, xs, layers, mask = _rows(train_data, idx)
             xs = np.where(flips[idx][:, None], -xs, xs)  # mirroring in x keeps the verdict
             images = renderer.render_arrays(widths, xs, layers, mask, out=buf[:len(idx)])
             x = as_input(images, device)
             y = torch.from_numpy(train_data["stable"][idx].astype(np.float32)).to(device)
-            out = net(x)
+            out = model(x)
             loss = torch.nn.functional.binary_cross_entropy_with_logits(out[:, 0], y)
             if aux is not None:
                 loss = loss + aux_weight * torch.nn.functional.binary_cross_entropy_with_logits(
@@ -242,38 +343,80 @@ def train(cfg) -> dict:
             loss.backward()
             opt.step()
             sched.step()
-            total_loss += float(loss.detach()) * len(idx)
-            seen += len(idx)
+            totals += torch.tensor([float(loss.detach()) * len(idx), len(idx)], dtype=torch.float64)
             if step % 20 == 0:
-                bar.set_postfix(loss=f"{total_loss / seen:.4f}")
+                bar.set_postfix(loss=f"{totals[0] / totals[1]:.4f}")
         bar.close()
+        if processes > 1:
+            import torch.distributed as dist
+
+            dist.all_reduce(totals)
         seconds = time.perf_counter() - t0
         train_seconds += seconds
-        # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
-        # only if it scores higher than a single image; the checkpoint records the choice.
-        val = evaluate_arrays(net, renderer, val_data, device, mirror=float(cfg.augment.mirror) > 0)
-        mirror = val.pop("mirror")
-        row = {"epoch": epoch + 1, "train_loss": total_loss / max(1, seen), "val_accuracy": val["accuracy"],
-               "val_accuracy_near_critical": val["accuracy_near_critical"], "val_loss": val["loss"],
-               "mirror": mirror, "val_accuracy_single": val.get("accuracy_single", val["accuracy"]),
-               "val_accuracy_mirror": val.get("accuracy_mirror"),
-               "lr": opt.param_groups[0]["lr"], "seconds": seconds, "images_per_s": seen / seconds}
-        history.append(row)
-        with open(out_dir / "metrics.jsonl", "a") as fh:
-            fh.write(json.dumps(row) + "\n")
-        print(json.dumps(row), flush=True)
-        extra = {**extra_common, "epoch": epoch + 1, "metrics": val, "mirror": mirror, "train_seconds": train_seconds,
-                 "data_seconds": data_seconds}
-        if best is None or val["accuracy"] > best["val_accuracy"]:
-            best = dict(row)
-            save_checkpoint(out_dir / "best.pt", net, renderer.spec(), cfg.backbone.name, **extra)
-        save_checkpoint(last, net, renderer.spec(), cfg.backbone.name, **extra,
-                        optimizer=opt.state_dict(), scheduler=sched.state_dict(),
-                        torch_rng=torch.get_rng_state(), best=best, history=history)
-    summary = {"best": best, "train_seconds": train_seconds, "data": manifest, "out_dir": str(out_dir),
-               "device": str(device)}
-    atomic_write_json(out_dir / "summary.json", summary)
-    return summary
+        if lead:
+            row = _validate_and_save(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt,
+                                     best, train_seconds, job["data_seconds"], extra_common)
+            extra = row.pop("_extra")
+            history.append(row)
+            if best is None or row["val_accuracy"] > best["val_accuracy"]:
+                best = dict(row)
+            save_checkpoint(last, net, renderer.spec(), backbone, **extra,
+                            optimizer=opt.state_dict(), scheduler=sched.state_dict(),
+                            torch_rng=torch.get_rng_state(), best=best, history=history)
+        if processes > 1:
+            dist.barrier()  # the others wait while process 0 validates and saves
+    if processes > 1:
+        _check_in_step(net)
+        best = _broadcast(best)
+    return best, train_seconds, str(device)
+
+
+def _validate_and_save(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt, best,
+                       train_seconds, data_seconds, extra_common) -> dict:
+    """One epoch's metrics row (appended to metrics.jsonl and printed); writes best.pt when it is the best.
+    The row carries the checkpoint's extra record under ``_extra`` for the caller's last.pt."""
+    from overhang_framework.cnn.model import save_checkpoint
+
+    # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
+    # only if it scores higher than a single image; the checkpoint records the choice.
+    val = evaluate_arrays(net, renderer, val_data, device, mirror=float(cfg["augment"]["mirror"]) > 0)
+    mirror = val.pop("mirror")
+    seen = float(totals[1])
+    row = {"epoch": epoch + 1, "train_loss": float(totals[0]) / max(1.0, seen), "val_accuracy": val["accuracy"],
+           "val_accuracy_near_critical": val["accuracy_near_critical"], "val_loss": val["loss"],
+           "mirror": mirror, "val_accuracy_single": val.get("accuracy_single", val["accuracy"]),
+           "val_accuracy_mirror": val.get("accuracy_mirror"),
+           "lr": opt.param_groups[0]["lr"], "seconds": seconds, "images_per_s": seen / seconds}
+    with open(Path(cfg["out_dir"]) / "metrics.jsonl", "a") as fh:
+        fh.write(json.dumps(row) + "\n")
+    print(json.dumps(row), flush=True)
+    extra = {**extra_common, "epoch": epoch + 1, "metrics": val, "mirror": mirror, "train_seconds": train_seconds,
+             "data_seconds": data_seconds}
+    if best is None or val["accuracy"] > best["val_accuracy"]:
+        save_checkpoint(Path(cfg["out_dir"]) / "best.pt", net, renderer.spec(), cfg["backbone"]["name"], **extra)
+    return {**row, "_extra": extra}
+
+
+def _check_in_step(net) -> None:
+    """``TrainingProcessFailed`` when the processes' weights have drifted apart (they must stay equal)."""
+    import torch
+    import torch.distributed as dist
+
+    total = torch.stack([p.detach().double().sum() for p in net.parameters()]).sum().reshape(1)
+    low, high = total.clone(), total.clone()
+    dist.all_reduce(low, op=dist.ReduceOp.MIN)
+    dist.all_reduce(high, op=dist.ReduceOp.MAX)
+    if float(high - low) > 1e-6 * max(1.0, float(abs(high))):
+        raise TrainingProcessFailed(f"the training processes' weights differ ({float(low)} against {float(high)})")
+
+
+def _broadcast(value):
+    """Process 0's ``value`` in every process."""
+    import torch.distributed as dist
+
+    box = [value]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
 
 
 def main() -> None:
@@ -283,7 +426,7 @@ def main() -> None:
     def _main(cfg) -> None:
         try:
             summary = train(cfg)
-        except (ValueError, FileNotFoundError) as err:
+        except (ValueError, FileNotFoundError, TrainingProcessFailed) as err:
             print(f"error: {err}", file=sys.stderr)
             sys.exit(2)
         print(json.dumps({"best": summary["best"], "out_dir": summary["out_dir"]}))
