@@ -260,9 +260,11 @@ def fit(rank: int, processes: int, job: dict):
     a step sees the whole batch). Process 0 validates and writes the metrics and checkpoints.
     Returns ``(best epoch's row, training seconds, device name)``."""
     import torch
+    import torch.distributed as dist
     from tqdm import tqdm
 
     from overhang_framework.cnn.model import as_input, build_model, pick_device, save_checkpoint
+    from overhang_framework.render import make_renderer
 
     cfg, record, train_data, val_data, aux = job["cfg"], job["record"], job["train"], job["val"], job["aux"]
     lead = rank == 0
@@ -273,8 +275,6 @@ def fit(rank: int, processes: int, job: dict):
     margins = [float(m) for m in (cfg["aux"]["margins"] or [])]
     aux_weight = float(cfg["aux"]["weight"])
     device = pick_device(cfg["device"])
-    from overhang_framework.render import make_renderer
-
     renderer = make_renderer(cfg["renderer"])
     backbone, batch_size, epochs = cfg["backbone"]["name"], int(cfg["batch_size"]), int(cfg["epochs"])
     torch.manual_seed(int(cfg["seed"]))
@@ -348,8 +348,6 @@ def fit(rank: int, processes: int, job: dict):
                 bar.set_postfix(loss=f"{totals[0] / totals[1]:.4f}")
         bar.close()
         if processes > 1:
-            import torch.distributed as dist
-
             dist.all_reduce(totals)
         seconds = time.perf_counter() - t0
         train_seconds += seconds
