@@ -352,12 +352,12 @@ def fit(rank: int, processes: int, job: dict):
         seconds = time.perf_counter() - t0
         train_seconds += seconds
         if lead:
-            row = _validate_and_save(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt,
-                                     best, train_seconds, job["data_seconds"], extra_common)
-            extra = row.pop("_extra")
+            row, extra = _validate(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt,
+                                   train_seconds, job["data_seconds"], extra_common)
             history.append(row)
             if best is None or row["val_accuracy"] > best["val_accuracy"]:
                 best = dict(row)
+                save_checkpoint(out_dir / "best.pt", net, renderer.spec(), backbone, **extra)
             save_checkpoint(last, net, renderer.spec(), backbone, **extra,
                             optimizer=opt.state_dict(), scheduler=sched.state_dict(),
                             torch_rng=torch.get_rng_state(), best=best, history=history)
@@ -365,16 +365,12 @@ def fit(rank: int, processes: int, job: dict):
             dist.barrier()  # the others wait while process 0 validates and saves
     if processes > 1:
         _check_in_step(net)
-        best = _broadcast(best)
     return best, train_seconds, str(device)
 
 
-def _validate_and_save(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt, best,
-                       train_seconds, data_seconds, extra_common) -> dict:
-    """One epoch's metrics row (appended to metrics.jsonl and printed); writes best.pt when it is the best.
-    The row carries the checkpoint's extra record under ``_extra`` for the caller's last.pt."""
-    from overhang_framework.cnn.model import save_checkpoint
-
+def _validate(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt, train_seconds, data_seconds,
+              extra_common) -> tuple[dict, dict]:
+    """One epoch's metrics row (appended to metrics.jsonl and printed) and the record its checkpoints carry."""
     # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
     # only if it scores higher than a single image; the checkpoint records the choice.
     val = evaluate_arrays(net, renderer, val_data, device, mirror=float(cfg["augment"]["mirror"]) > 0)
@@ -390,9 +386,7 @@ def _validate_and_save(net, renderer, val_data, device, cfg, epoch, totals, seco
     print(json.dumps(row), flush=True)
     extra = {**extra_common, "epoch": epoch + 1, "metrics": val, "mirror": mirror, "train_seconds": train_seconds,
              "data_seconds": data_seconds}
-    if best is None or val["accuracy"] > best["val_accuracy"]:
-        save_checkpoint(Path(cfg["out_dir"]) / "best.pt", net, renderer.spec(), cfg["backbone"]["name"], **extra)
-    return {**row, "_extra": extra}
+    return row, extra
 
 
 def _check_in_step(net) -> None:
@@ -406,15 +400,6 @@ def _check_in_step(net) -> None:
     dist.all_reduce(high, op=dist.ReduceOp.MAX)
     if float(high - low) > 1e-6 * max(1.0, float(abs(high))):
         raise TrainingProcessFailed(f"the training processes' weights differ ({float(low)} against {float(high)})")
-
-
-def _broadcast(value):
-    """Process 0's ``value`` in every process."""
-    import torch.distributed as dist
-
-    box = [value]
-    dist.broadcast_object_list(box, src=0)
-    return box[0]
 
 
 def main() -> None:
