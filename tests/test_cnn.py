@@ -161,6 +161,43 @@ def test_training_with_auxiliary_margin_targets_keeps_the_verdict_first(tmp_path
     assert probs.shape == (2,) and ((probs > 0) & (probs < 1)).all()
 
 
+def test_training_keeps_a_moving_average_of_the_weights_and_resumes_it(tmp_path, monkeypatch):
+    from overhang_framework.cnn import train
+
+    train.train(train_cfg(tmp_path / "a", "ema=0.9", "epochs=1"))
+    row = json.loads((tmp_path / "a" / "run" / "metrics.jsonl").read_text())
+    best, last = (read_checkpoint(tmp_path / "a" / "run" / name) for name in ("best.pt", "last.pt"))
+    averaged = {k[len("module."):]: v for k, v in last["ema_state"].items() if k.startswith("module.")}
+    assert averaged.keys() == last["state_dict"].keys()
+    assert any(not np.allclose(v.numpy(), last["state_dict"][k].numpy()) for k, v in averaged.items())
+    # validation scored both sets of weights, and best.pt keeps the better one and says which
+    assert row["weights"] == best["weights"] == ("ema" if row["val_accuracy_ema"] > row["val_accuracy_trained"]
+                                                 else "trained")
+    assert row["val_accuracy"] == max(row["val_accuracy_ema"], row["val_accuracy_trained"])
+    kept = averaged if best["weights"] == "ema" else last["state_dict"]
+    for k, v in best["state_dict"].items():
+        assert np.array_equal(v.numpy(), kept[k].numpy()), k
+
+    # interrupted while validating epoch 2 and run again, it resumes the average too
+    train.train(train_cfg(tmp_path / "c", "ema=0.9"))
+    original = train.evaluate_arrays
+
+    def interrupt_second_epoch(*args, **kwargs):
+        metrics = tmp_path / "b" / "run" / "metrics.jsonl"
+        if metrics.exists() and len(metrics.read_text().splitlines()) == 1:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(train, "evaluate_arrays", interrupt_second_epoch)
+    with pytest.raises(KeyboardInterrupt):
+        train.train(train_cfg(tmp_path / "b", "ema=0.9"))
+    monkeypatch.setattr(train, "evaluate_arrays", original)
+    train.train(train_cfg(tmp_path / "b", "ema=0.9"))
+    whole, resumed = (read_checkpoint(tmp_path / d / "run" / "last.pt")["ema_state"] for d in ("c", "b"))
+    for k, v in whole.items():
+        assert np.allclose(v.numpy(), resumed[k].numpy(), atol=1e-5), k
+
+
 def test_training_on_two_processes_is_reproducible_and_resumes(tmp_path, capsys):
     from overhang_framework.cnn import train
 
@@ -258,6 +295,9 @@ def test_bad_training_settings_are_refused(tmp_path):
         train.check(train_cfg(tmp_path, "aux.margins=[0.01,2]"))
     with pytest.raises(ValueError, match="aux.weight must be a number >= 0"):
         train.check(train_cfg(tmp_path, "aux.weight=-1"))
+    for bad in ("1.5", "0", "true"):
+        with pytest.raises(ValueError, match="ema must be null or a decay between 0 and 1"):
+            train.check(train_cfg(tmp_path, f"ema={bad}"))
 
 
 def test_the_inception_option_sets_a_large_enough_input(tmp_path):

@@ -90,6 +90,9 @@ def check(cfg) -> None:
                          f"takes an equal share of every batch")
     if v > 1 and pick_device(cfg.device).type != "cpu":
         raise ValueError(f"processes={v} trains on the CPU's cores; on a GPU use processes=1")
+    v = cfg.ema
+    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1):
+        raise ValueError(f"ema must be null or a decay between 0 and 1 (e.g. 0.999), got {v!r}")
     if cfg.threads is not None and (isinstance(cfg.threads, bool) or not isinstance(cfg.threads, int)
                                     or cfg.threads < 1):
         raise ValueError(f"threads must be a whole number >= 1 or null, got {cfg.threads!r}")
@@ -157,8 +160,8 @@ def init_weights(init, backbone: str, renderer_spec: dict, outputs: int) -> tupl
         if theirs[key] != ours[key]:
             raise ValueError(f"init checkpoint {path} has {key} {theirs[key]!r} but this training has "
                              f"{ours[key]!r}; start from a checkpoint made with the same {key}")
-    keep = ("backbone", "epoch", "metrics", "mirror", "train_seconds", "data_seconds", "data", "data_size",
-            "train_config", "init_from")
+    keep = ("backbone", "epoch", "metrics", "mirror", "weights", "train_seconds", "data_seconds", "data",
+            "data_size", "train_config", "init_from")
     return payload["state_dict"], {"path": str(path), **{k: payload[k] for k in keep if k in payload}}
 
 
@@ -295,6 +298,11 @@ def fit(rank: int, processes: int, job: dict):
         return 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, total - warmup)))
 
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_at)
+    ema = None
+    if cfg["ema"] is not None and lead:
+        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+        ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(float(cfg["ema"])), use_buffers=True)
     start_epoch, best, history = 0, None, []
     last = out_dir / "last.pt"
     if last.exists():
@@ -304,6 +312,8 @@ def fit(rank: int, processes: int, job: dict):
         sched.load_state_dict(payload["scheduler"])
         torch.set_rng_state(payload["torch_rng"])
         start_epoch, best, history = payload["epoch"], payload["best"], payload["history"]
+        if ema is not None:
+            ema.load_state_dict(payload["ema_state"])
         if lead:
             log.info("resuming after epoch %d", start_epoch)
             print(f"resuming {out_dir} after epoch {start_epoch}", file=sys.stderr)
@@ -343,6 +353,8 @@ def fit(rank: int, processes: int, job: dict):
             loss.backward()
             opt.step()
             sched.step()
+            if ema is not None:
+                ema.update_parameters(net)
             totals += torch.tensor([float(loss.detach()) * len(idx), len(idx)], dtype=torch.float64)
             if step % 20 == 0:
                 bar.set_postfix(loss=f"{totals[0] / totals[1]:.4f}")
@@ -352,15 +364,16 @@ def fit(rank: int, processes: int, job: dict):
         seconds = time.perf_counter() - t0
         train_seconds += seconds
         if lead:
-            row, extra = _validate(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt,
-                                   train_seconds, job["data_seconds"], extra_common)
+            row, extra, chosen = _validate(net, ema, renderer, val_data, device, cfg, epoch, totals, seconds,
+                                           opt, train_seconds, job["data_seconds"], extra_common)
             history.append(row)
             if best is None or row["val_accuracy"] > best["val_accuracy"]:
                 best = dict(row)
-                save_checkpoint(out_dir / "best.pt", net, renderer.spec(), backbone, **extra)
+                save_checkpoint(out_dir / "best.pt", chosen, renderer.spec(), backbone, **extra)
             save_checkpoint(last, net, renderer.spec(), backbone, **extra,
                             optimizer=opt.state_dict(), scheduler=sched.state_dict(),
-                            torch_rng=torch.get_rng_state(), best=best, history=history)
+                            torch_rng=torch.get_rng_state(), best=best, history=history,
+                            **({"ema_state": ema.state_dict()} if ema is not None else {}))
         if processes > 1:
             dist.barrier()  # the others wait while process 0 validates and saves
     if processes > 1:
@@ -368,25 +381,34 @@ def fit(rank: int, processes: int, job: dict):
     return best, train_seconds, str(device)
 
 
-def _validate(net, renderer, val_data, device, cfg, epoch, totals, seconds, opt, train_seconds, data_seconds,
-              extra_common) -> tuple[dict, dict]:
-    """One epoch's metrics row (appended to metrics.jsonl and printed) and the record its checkpoints carry."""
+def _validate(net, ema, renderer, val_data, device, cfg, epoch, totals, seconds, opt, train_seconds, data_seconds,
+              extra_common) -> tuple[dict, dict, object]:
+    """One epoch's metrics row (appended to metrics.jsonl and printed), the record its checkpoints carry,
+    and the network whose weights a best checkpoint keeps (``net``, or with ``ema`` its moving average
+    when that scores higher)."""
     # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
     # only if it scores higher than a single image; the checkpoint records the choice.
     val = evaluate_arrays(net, renderer, val_data, device, mirror=float(cfg["augment"]["mirror"]) > 0)
+    chosen, weights, averaged = net, "trained", {}
+    if ema is not None:
+        val_ema = evaluate_arrays(ema.module, renderer, val_data, device,
+                                  mirror=float(cfg["augment"]["mirror"]) > 0)
+        averaged = {"val_accuracy_trained": val["accuracy"], "val_accuracy_ema": val_ema["accuracy"]}
+        if val_ema["accuracy"] > val["accuracy"]:
+            val, chosen, weights = val_ema, ema.module, "ema"
     mirror = val.pop("mirror")
     seen = float(totals[1])
     row = {"epoch": epoch + 1, "train_loss": float(totals[0]) / max(1.0, seen), "val_accuracy": val["accuracy"],
            "val_accuracy_near_critical": val["accuracy_near_critical"], "val_loss": val["loss"],
            "mirror": mirror, "val_accuracy_single": val.get("accuracy_single", val["accuracy"]),
-           "val_accuracy_mirror": val.get("accuracy_mirror"),
+           "val_accuracy_mirror": val.get("accuracy_mirror"), "weights": weights, **averaged,
            "lr": opt.param_groups[0]["lr"], "seconds": seconds, "images_per_s": seen / seconds}
     with open(Path(cfg["out_dir"]) / "metrics.jsonl", "a") as fh:
         fh.write(json.dumps(row) + "\n")
     print(json.dumps(row), flush=True)
-    extra = {**extra_common, "epoch": epoch + 1, "metrics": val, "mirror": mirror, "train_seconds": train_seconds,
-             "data_seconds": data_seconds}
-    return row, extra
+    extra = {**extra_common, "epoch": epoch + 1, "metrics": val, "mirror": mirror, "weights": weights,
+             "train_seconds": train_seconds, "data_seconds": data_seconds}
+    return row, extra, chosen
 
 
 def _check_in_step(net) -> None:
