@@ -355,6 +355,9 @@ def format_summary(summary: dict) -> str:
     ]
     for label, key in rows:
         lines.append(f"{label:<24}{_number(summary[key + '_mean']):>10}{_number(summary[key + '_sem']):>10}")
+    if "decision_time_median" in summary:
+        lines.append(f"{'decision time median':<24}{_number(summary['decision_time_median']):>10}"
+                     f"   (max {_number(summary['decision_time_max'])})")
     cache = summary.get("world_stats", {}).get("cache")
     if cache:
         lines.append(f"physics cache: {cache['hits']} hits, {cache['misses']} misses "

@@ -137,7 +137,8 @@ def mean_sem(values: Iterable[float]) -> tuple[float, float]:
 
 
 def summarize(episodes: list[dict]) -> dict:
-    """The summary of a run: reward, stability, overhang of successes and decision time (mean, SEM)."""
+    """The summary of a run: reward, stability, overhang of successes and decision time (mean and SEM of
+    each; the decision time's median and maximum too)."""
     rewards = [e["reward"] for e in episodes]
     placements = [s["stable"] for e in episodes for s in e["steps"]]
     succ_overhang = [e["overhang"] for e in episodes if e["stable_throughout"]]
@@ -152,6 +153,8 @@ def summarize(episodes: list[dict]) -> dict:
     ):
         mean, sem = mean_sem(values)
         out[f"{key}_mean"], out[f"{key}_sem"] = mean, sem
+    out["decision_time_median"] = float(np.median(times)) if times else math.nan
+    out["decision_time_max"] = max(times) if times else math.nan
     out["over_time_limit"] = int(sum(s["over_time_limit"] for e in episodes for s in e["steps"]))
     return out
 

@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from overhang_framework.results import read_episodes, without_timing
@@ -34,6 +35,10 @@ def test_main_job_writes_episodes_and_metrics(tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["episodes"] == 2
     assert metrics["reward_mean"] == pytest.approx(sum(e["reward"] for e in episodes) / 2)
+    times = [s["decision_time"] for e in episodes for s in e["steps"]]
+    assert metrics["decision_time_median"] == pytest.approx(float(np.median(times)))
+    assert metrics["decision_time_max"] == pytest.approx(max(times))
+    assert f"{'decision time median':<24}{metrics['decision_time_median']:>10.3f}" in proc.stdout
     assert not (out / "episodes.jsonl.partial").exists()
 
 
