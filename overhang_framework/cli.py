@@ -89,7 +89,7 @@ examples:
 
 outputs (in hydra.run.dir, by default outputs/<date>/<time>):
   episodes.jsonl   one JSON object per episode, every placement with its timing and spend
-  metrics.json     mean and SEM of reward, stability, overhang and decision time
+  metrics.json     mean and SEM of reward, stability, overhang and decision time (and its median, max)
   run.json         the config the episodes belong to (rerunning into the directory resumes)
   run.log          one line per episode, and how the run ended
   .hydra/          the composed config and the overrides
