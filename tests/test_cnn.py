@@ -443,6 +443,17 @@ def test_evaluate_app_refuses_the_training_seed():
     assert out.returncode == 2 and "seed 0 is the seed of the checkpoint's training data" in out.stderr
 
 
+def test_evaluate_app_explains_itself(capsys):
+    from overhang_framework.cnn import evaluate
+
+    evaluate.main(["--help"])
+    text = capsys.readouterr().out
+    assert text.startswith("Score a CNN checkpoint") and "seed=1000" in text and "mirror=auto" in text
+    with pytest.raises(SystemExit) as stop:
+        evaluate.main(["sead=3"])
+    assert stop.value.code == 2 and "bad argument 'sead=3'" in capsys.readouterr().err
+
+
 def test_bench_prints_towers_and_images_per_second(capsys):
     from overhang_framework.cnn import bench
 

@@ -80,8 +80,13 @@ def main(argv=None) -> None:
     import inspect
 
     params = inspect.signature(evaluate).parameters
+    args = sys.argv[1:] if argv is None else argv
+    if any(arg in ("-h", "--help") for arg in args):
+        defaults = ", ".join(f"{k}={v.default}" for k, v in params.items())
+        print(f"{__doc__.strip()}\n\nSettings and their defaults: {defaults}, out=None (a JSON file for the result).")
+        return
     kwargs, out = {}, None
-    for arg in (sys.argv[1:] if argv is None else argv):
+    for arg in args:
         key, sep, value = arg.partition("=")
         if not sep or (key not in params and key != "out"):
             print(f"error: bad argument {arg!r}; use key=value with key one of: "
