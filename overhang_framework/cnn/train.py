@@ -172,6 +172,8 @@ def config_record(cfg) -> dict:
     d = OmegaConf.to_container(cfg, resolve=True)
     for k in ("out_dir", "overwrite", "threads", "device", "progress", "workers", "hydra"):
         d.pop(k, None)
+    if d.get("ema") is None:  # trainings without an average record the config they had before ema existed
+        d.pop("ema", None)
     return d
 
 
@@ -313,6 +315,9 @@ def fit(rank: int, processes: int, job: dict):
         torch.set_rng_state(payload["torch_rng"])
         start_epoch, best, history = payload["epoch"], payload["best"], payload["history"]
         if ema is not None:
+            if "ema_state" not in payload:
+                raise ValueError(f"{last} holds no moving average of the weights to resume; "
+                                 f"use another out_dir or overwrite=true")
             ema.load_state_dict(payload["ema_state"])
         if lead:
             log.info("resuming after epoch %d", start_epoch)
@@ -388,11 +393,11 @@ def _validate(net, ema, renderer, val_data, device, cfg, epoch, totals, seconds,
     when that scores higher)."""
     # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
     # only if it scores higher than a single image; the checkpoint records the choice.
-    val = evaluate_arrays(net, renderer, val_data, device, mirror=float(cfg["augment"]["mirror"]) > 0)
+    mirror = float(cfg["augment"]["mirror"]) > 0
+    val = evaluate_arrays(net, renderer, val_data, device, mirror=mirror)
     chosen, weights, averaged = net, "trained", {}
     if ema is not None:
-        val_ema = evaluate_arrays(ema.module, renderer, val_data, device,
-                                  mirror=float(cfg["augment"]["mirror"]) > 0)
+        val_ema = evaluate_arrays(ema.module, renderer, val_data, device, mirror=mirror)
         averaged = {"val_accuracy_trained": val["accuracy"], "val_accuracy_ema": val_ema["accuracy"]}
         if val_ema["accuracy"] > val["accuracy"]:
             val, chosen, weights = val_ema, ema.module, "ema"
