@@ -136,6 +136,12 @@ def mean_sem(values: Iterable[float]) -> tuple[float, float]:
     return float(arr.mean()), sem
 
 
+def median(values: Iterable[float]) -> float:
+    """The median (NaN for no values)."""
+    arr = np.asarray(list(values), dtype=float)
+    return float(np.median(arr)) if arr.size else math.nan
+
+
 def summarize(episodes: list[dict]) -> dict:
     """The summary of a run: reward, stability, overhang of successes and decision time (mean and SEM of
     each; the decision time's median and maximum too)."""
@@ -153,7 +159,7 @@ def summarize(episodes: list[dict]) -> dict:
     ):
         mean, sem = mean_sem(values)
         out[f"{key}_mean"], out[f"{key}_sem"] = mean, sem
-    out["decision_time_median"] = float(np.median(times)) if times else math.nan
+    out["decision_time_median"] = median(times)
     out["decision_time_max"] = max(times) if times else math.nan
     out["over_time_limit"] = int(sum(s["over_time_limit"] for e in episodes for s in e["steps"]))
     return out

@@ -106,6 +106,24 @@ def train_cfg(tmp_path, *overrides, small_images=True):
             *(["renderer.size=[24,48]"] if small_images else []), f"out_dir={tmp_path / 'run'}", *overrides])
 
 
+def interrupt_while_validating_epoch_2(monkeypatch, cfg) -> None:
+    """Run the training ``cfg`` until it validates its second epoch, and stop it there with Ctrl-C."""
+    from overhang_framework.cnn import train
+
+    original = train.evaluate_arrays
+    metrics = Path(cfg.out_dir) / "metrics.jsonl"
+
+    def interrupt(*args, **kwargs):
+        if metrics.exists() and len(metrics.read_text().splitlines()) == 1:  # validating epoch 2
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(train, "evaluate_arrays", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        train.train(cfg)
+    monkeypatch.setattr(train, "evaluate_arrays", original)
+
+
 def test_training_runs_end_to_end_and_resumes_where_it_stopped(tmp_path, monkeypatch):
     from overhang_framework.cnn import train
 
@@ -122,18 +140,7 @@ def test_training_runs_end_to_end_and_resumes_where_it_stopped(tmp_path, monkeyp
     assert best["mirror"] is row["mirror"] is (row["val_accuracy_mirror"] > row["val_accuracy_single"])
 
     # the same training, interrupted during epoch 2, then run again: it resumes after epoch 1
-    original = train.evaluate_arrays
-
-    def interrupt_second_epoch(*args, **kwargs):
-        metrics = tmp_path / "b" / "run" / "metrics.jsonl"
-        if metrics.exists() and len(metrics.read_text().splitlines()) == 1:  # validating epoch 2
-            raise KeyboardInterrupt
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(train, "evaluate_arrays", interrupt_second_epoch)
-    with pytest.raises(KeyboardInterrupt):
-        train.train(train_cfg(tmp_path / "b"))
-    monkeypatch.setattr(train, "evaluate_arrays", original)
+    interrupt_while_validating_epoch_2(monkeypatch, train_cfg(tmp_path / "b"))
     lines = (tmp_path / "b" / "run" / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(line)["epoch"] for line in lines] == [1]
     resumed = train.train(train_cfg(tmp_path / "b"))
@@ -194,17 +201,7 @@ def test_training_keeps_a_moving_average_of_the_weights_and_resumes_it(tmp_path,
 
     # interrupted while validating epoch 2 and run again, it resumes the average too
     train.train(train_cfg(tmp_path / "c", "ema=0.9"))
-
-    def interrupt_second_epoch(*args, **kwargs):
-        metrics = tmp_path / "b" / "run" / "metrics.jsonl"
-        if metrics.exists() and len(metrics.read_text().splitlines()) == 1:
-            raise KeyboardInterrupt
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(train, "evaluate_arrays", interrupt_second_epoch)
-    with pytest.raises(KeyboardInterrupt):
-        train.train(train_cfg(tmp_path / "b", "ema=0.9"))
-    monkeypatch.setattr(train, "evaluate_arrays", original)
+    interrupt_while_validating_epoch_2(monkeypatch, train_cfg(tmp_path / "b", "ema=0.9"))
     train.train(train_cfg(tmp_path / "b", "ema=0.9"))
     whole, resumed = (read_checkpoint(tmp_path / d / "run" / "last.pt")["ema_state"] for d in ("c", "b"))
     for k, v in whole.items():

@@ -83,7 +83,8 @@ def main(argv=None) -> None:
     args = sys.argv[1:] if argv is None else argv
     if any(arg in ("-h", "--help") for arg in args):
         defaults = ", ".join(f"{k}={v.default}" for k, v in params.items())
-        print(f"{(__doc__ or '').strip()}\n\nSettings and their defaults: {defaults}, out=None (a JSON file for the result).")
+        print(f"{(__doc__ or '').strip()}\n\nSettings and their defaults: {defaults}, "
+              f"out=None (a JSON file for the result).")
         return
     kwargs, out = {}, None
     for arg in args:

@@ -393,11 +393,11 @@ def _validate(net, ema, renderer, val_data, device, cfg, epoch, totals, seconds,
     when that scores higher)."""
     # Validation picks how the model is used: mirror averaging (when it trained on mirrored images)
     # only if it scores higher than a single image; the checkpoint records the choice.
-    mirror = float(cfg["augment"]["mirror"]) > 0
-    val = evaluate_arrays(net, renderer, val_data, device, mirror=mirror)
+    try_mirror = float(cfg["augment"]["mirror"]) > 0
+    val = evaluate_arrays(net, renderer, val_data, device, mirror=try_mirror)
     chosen, weights, averaged = net, "trained", {}
     if ema is not None:
-        val_ema = evaluate_arrays(ema.module, renderer, val_data, device, mirror=mirror)
+        val_ema = evaluate_arrays(ema.module, renderer, val_data, device, mirror=try_mirror)
         averaged = {"val_accuracy_trained": val["accuracy"], "val_accuracy_ema": val_ema["accuracy"]}
         if val_ema["accuracy"] > val["accuracy"]:
             val, chosen, weights = val_ema, ema.module, "ema"

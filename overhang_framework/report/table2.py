@@ -26,7 +26,7 @@ import numpy as np
 
 from overhang_framework.report.build import Job, load_jobs, mean_pm, optimum_of
 from overhang_framework.report.callback import SweepResults
-from overhang_framework.results import atomic_write_text, mean_sem
+from overhang_framework.results import atomic_write_text, mean_sem, median
 
 #: The paper's Table 2 (mean ± SEM of terminal reward over its 20 tasks), as printed there.
 PAPER = {
@@ -79,7 +79,7 @@ def rows_of(jobs: list[Job], optima: dict) -> list[dict]:
                      "predictor": job.config.get("predictor", {}).get("name", "?"),
                      "episodes": len(eps), "expected": job.expected, "tasks": tasks, "repeats": repeats,
                      "reward": reward, "sem": sem, "ratio": ratio, "ratio_sem": ratio_sem,
-                     "decision_time": _median([s["decision_time"] for e in eps for s in e["steps"]]),
+                     "decision_time": median([s["decision_time"] for e in eps for s in e["steps"]]),
                      **_depths(eps, job.config)})
     order = {name: i for i, name in enumerate(MODEL_ORDER)}
     rows.sort(key=lambda r: (r["condition"], order.get(r["model"], len(order)), r["model"], r["job"]))
@@ -113,10 +113,6 @@ def _depths(episodes: list[dict], config: dict) -> dict:
                 ran_out.append(float(bool(spend.get("budget_exhausted"))))
     return {"depth": float(np.mean(depths)) if depths else math.nan,
             "ran_out": float(np.mean(ran_out)) if ran_out else math.nan}
-
-
-def _median(values: list[float]) -> float:
-    return float(np.median(values)) if values else math.nan
 
 
 def _two(value: float) -> str:
