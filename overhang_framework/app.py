@@ -16,12 +16,14 @@ from typing import Any, Iterator, Optional
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
-from tqdm import tqdm
 
+from overhang_framework.advice import run_notes
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
 from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.parallel import merge_stats
 from overhang_framework.physics.pool import PoolCrashed
+from overhang_framework.progress import progress
 from overhang_framework.plugins import Registry
 from overhang_framework.results import EpisodeLog, atomic_write_json, readable, summarize
 from overhang_framework.rundir import RunDir, finished_jobs, result_config
@@ -166,6 +168,49 @@ def check_config(cfg: DictConfig, keep: bool = False) -> Checked:
     return Checked(**checked, models=models)
 
 
+class DecisionWatch:
+    """Shows a decision's progress on the run's bar while it is under way.
+
+    ``charged`` is the decisions' budget observer: at most every ``seconds``
+    it puts the decision's predictor calls and time so far beside ``label``
+    (on a terminal the bar redraws; off one, the bar writes a line now and
+    then). ``placed`` moves the bar by one placement.
+    """
+
+    def __init__(self, bar, label: str, seconds: float = 0.5):
+        self.bar, self.label, self.seconds = bar, label, seconds
+        self.placement = 1
+        self.shown = time.monotonic()
+
+    def charged(self, budget) -> None:
+        now = time.monotonic()
+        if now - self.shown >= self.seconds:
+            self.shown = now
+            self.bar.set_postfix_str(f"{self.label}, placement {self.placement}: "
+                                     f"{budget.calls_used:,} predictor calls, {budget.elapsed():.0f} s")
+
+    def placed(self, step: dict) -> None:
+        self.placement += 1
+        self.bar.set_postfix_str(self.label)
+        self.bar.update(1)
+
+
+def _earlier_session(metrics_file: Path) -> dict:
+    """What the earlier sessions of a resumed run counted (``wall_time``, ``world_stats``,
+    ``predictor_stats``), from the metrics.json they left; nothing when it is missing or unreadable."""
+    try:
+        earlier = json.loads(metrics_file.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(earlier, dict):
+        return {}
+    wall = earlier.get("wall_time")
+    kept = {k: earlier[k] for k in ("world_stats", "predictor_stats") if isinstance(earlier.get(k), dict)}
+    if isinstance(wall, (int, float)) and not isinstance(wall, bool) and wall >= 0:
+        kept["wall_time"] = float(wall)
+    return kept
+
+
 class Terminated(Exception):
     """The process was asked to stop (SIGTERM, as a cluster scheduler does at a time limit)."""
 
@@ -200,6 +245,9 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     checked = check_config(cfg)
     seed, repeats, time_limit, call_limit = checked.seed, checked.repeats, checked.time_limit, checked.call_limit
     tasks, models = checked.tasks, checked.models
+    for note in run_notes(cfg, tasks, models):
+        log.warning("note: %s", note)
+        print(f"note: {note}", file=sys.stderr)
     rundir = RunDir(out_dir)
     done = finished_jobs(rundir.prepare(result_config(_params(cfg)), overwrite=checked.overwrite))
     resumed = len(done)
@@ -218,23 +266,26 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
             log.info("every episode was already finished; results unchanged")
             summary["episodes_resumed"] = resumed
             return summary
+    earlier = _earlier_session(metrics_file) if resumed else {}
     rundir.reopen()
 
     worker_counters: dict = {}
 
     def run_stats() -> dict:
-        """The models' counters: this process's, or the sum of the workers' when they played."""
+        """The models' counters: this process's, or the sum of the workers' when they played, plus
+        those of the earlier sessions that finished episodes in this directory."""
         if worker_counters:
-            from overhang_framework.parallel import merge_stats
-
             parts = list(worker_counters.values())
-            return {"world_stats": merge_stats([c["world"] for c in parts]),
-                    "predictor_stats": merge_stats([c["predictor"] for c in parts])}
-        return {"world_stats": models["world"].stats(),
-                "predictor_stats": getattr(models["predictor"], "stats", dict)()}
+            world, predictor = (merge_stats([c["world"] for c in parts]),
+                                merge_stats([c["predictor"] for c in parts]))
+        else:
+            world, predictor = models["world"].stats(), getattr(models["predictor"], "stats", dict)()
+        return {"world_stats": merge_stats([world, earlier.get("world_stats")]),
+                "predictor_stats": merge_stats([predictor, earlier.get("predictor_stats")])}
 
     def summary_of(complete: bool, error: Optional[BaseException] = None) -> dict:
         episodes = [done[(i, rep)] for i, _, rep in jobs if (i, rep) in done]
+        session = time.perf_counter() - started
         summary = summarize(episodes)
         summary.update({
             "complete": complete,
@@ -242,7 +293,8 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
             "error": "" if error is None else _first_line(error),
             "episodes_expected": len(jobs),
             "episodes_resumed": resumed,
-            "wall_time": time.perf_counter() - started,
+            "wall_time": earlier.get("wall_time", 0.0) + session,
+            "wall_time_session": session,
             "config": header,
             "seed": seed,
             **run_stats(),
@@ -251,18 +303,19 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
         return summary
 
     placements = [len(task.sequence) - 1 for _, task, _ in jobs]
-    bar = tqdm(total=sum(placements), desc="placements", unit="pl", disable=not checked.progress,
-               miniters=1, mininterval=0,
-               file=sys.stderr, dynamic_ncols=True,
-               initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
+    bar = progress(total=sum(placements), desc="placements", unit="pl", disable=not checked.progress,
+                   miniters=1, mininterval=0.5, dynamic_ncols=True,
+                   initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
     length = {(i, rep): n for (i, _, rep), n in zip(jobs, placements)}
     todo = [(i, rep) for i, _, rep in jobs if (i, rep) not in done]
 
     def serial() -> Iterator[dict]:
         for i, rep in todo:
-            bar.set_postfix_str(f"episode {len(done) + 1}/{len(jobs)} {tasks[i].id}")
+            label = f"episode {len(done) + 1}/{len(jobs)} {tasks[i].id}"
+            bar.set_postfix_str(label)
+            watch = DecisionWatch(bar, label)
             yield play_run_episode(models, tasks[i], i, rep, seed, time_limit, call_limit,
-                                   on_step=lambda step: bar.update(1))
+                                   on_step=watch.placed, on_charge=watch.charged)
 
     if checked.jobs > 1 and len(todo) > 1:
         from overhang_framework.parallel import play_episodes

@@ -93,7 +93,7 @@ outputs (in hydra.run.dir, by default outputs/<date>/<time>):
   run.json         the config the episodes belong to (rerunning into the directory resumes)
   run.log          one line per episode, and how the run ended
   .hydra/          the composed config and the overrides
-  .run.lock        held while a run writes the directory
+  .run.lock        exists while a run writes the directory
 
 An interrupted run keeps every finished episode: rerun the same command with the
 same hydra.run.dir to continue; overwrite=true starts the directory afresh.

@@ -18,20 +18,22 @@ def episode_rng(seed: int, task_index: int, repeat: int) -> np.random.Generator:
 
 def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner, value: Value,
                 rng: np.random.Generator, time_limit: Optional[float] = None,
-                on_step: Optional[Callable[[dict], None]] = None, call_limit: Optional[int] = None) -> dict:
+                on_step: Optional[Callable[[dict], None]] = None, call_limit: Optional[int] = None,
+                on_charge: Optional[Callable[[Budget], None]] = None) -> dict:
     """Play ``task`` to its end and return the episode record (plain JSON-able data).
 
     The episode ends at the first collapse; the reward is the final overhang if
     the tower was stable after every placement and 0 otherwise. ``on_step`` is
     called with each placement's record as soon as it is made. Each decision
     gets a fresh :class:`Budget` of ``time_limit`` seconds and ``call_limit``
-    predictor calls (``None``: no limit).
+    predictor calls (``None``: no limit), observed by ``on_charge`` (see
+    :attr:`Budget.observer`).
     """
     state = world.initial_state(task)
     steps = []
     stable_throughout = True
     while not state.done:
-        budget = Budget(seconds=time_limit, predictor_calls=call_limit)
+        budget = Budget(seconds=time_limit, predictor_calls=call_limit, observer=on_charge)
         started = time.perf_counter()
         decision = planner.plan(state, predictor, value, budget, rng)
         decision_time = time.perf_counter() - started
@@ -69,10 +71,12 @@ def run_episode(task: Task, world: World, predictor: Predictor, planner: Planner
 
 def play_run_episode(models: dict, task: Task, index: int, repeat: int, seed: int,
                      time_limit: Optional[float], call_limit: Optional[int],
-                     on_step: Optional[Callable[[dict], None]] = None) -> dict:
+                     on_step: Optional[Callable[[dict], None]] = None,
+                     on_charge: Optional[Callable[[Budget], None]] = None) -> dict:
     """Episode ``(index, repeat)`` of a run, played with the run's built ``models`` and seeded from
     ``(seed, index, repeat)``; its record carries ``seed``, ``repeat`` and ``task_index``."""
     record = run_episode(task, models["world"], models["predictor"], models["planner"], models["value"],
-                         episode_rng(seed, index, repeat), time_limit, on_step=on_step, call_limit=call_limit)
+                         episode_rng(seed, index, repeat), time_limit, on_step=on_step, call_limit=call_limit,
+                         on_charge=on_charge)
     record.update({"seed": seed, "repeat": repeat, "task_index": index})
     return record

@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
+import difflib
 from typing import Sequence
+
+
+def closest(word: str, choices: Sequence[str]) -> list[str]:
+    """The choice closest to ``word``, ignoring case (``k`` finds ``K``): one, or none when none is close."""
+    by_lower: dict[str, str] = {}
+    for choice in choices:
+        by_lower.setdefault(choice.lower(), choice)
+    return [by_lower[m] for m in difflib.get_close_matches(word.lower(), list(by_lower), n=1)]
 
 
 class OverhangError(Exception):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import abc
 import time
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -48,13 +48,15 @@ class Budget:
     ``seconds`` is wall-clock time; ``predictor_calls`` is a machine-independent
     budget of batched predictor calls (one call scores all the children of one
     state), which keeps budgeted runs reproducible by seed. A planner records
-    each call with :meth:`charge`.
+    each call with :meth:`charge`. ``observer``, when set, is called with the
+    budget after each charge: how the run shows a long decision's progress.
     """
 
     seconds: Optional[float] = None
     predictor_calls: Optional[int] = None
     started: float = field(default_factory=time.perf_counter, repr=False)
     calls_used: int = 0
+    observer: Optional[Callable[["Budget"], None]] = field(default=None, repr=False, compare=False)
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
@@ -62,6 +64,8 @@ class Budget:
     def charge(self, calls: int = 1) -> None:
         """Record ``calls`` predictor calls."""
         self.calls_used += calls
+        if self.observer is not None:
+            self.observer(self)
 
     def exhausted(self) -> bool:
         return (self.seconds is not None and self.elapsed() >= self.seconds) or (

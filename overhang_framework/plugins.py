@@ -10,7 +10,7 @@ from typing import Any, Callable, Mapping, Optional
 import pluggy
 
 from overhang_framework import hookspecs
-from overhang_framework.errors import ConfigError, UnknownPluginError
+from overhang_framework.errors import ConfigError, UnknownPluginError, closest
 
 KINDS = ("world", "predictor", "planner", "value")
 _HOOKS = {
@@ -87,8 +87,11 @@ class Registry:
         if allowed is not None:
             unknown = sorted(set(params) - allowed)
             if unknown:
-                listing = ", ".join(sorted(allowed - set(deps))) or "(none)"
-                raise ConfigError(f"{kind} {name!r} has no parameter {', '.join(unknown)}; its parameters: {listing}")
+                known = sorted(allowed - set(deps))
+                hints = [c[0] for u in unknown if (c := closest(u, known))]
+                hint = f" (did you mean {', '.join(hints)}?)" if hints else ""
+                raise ConfigError(f"{kind} {name!r} has no parameter {', '.join(unknown)}{hint}; "
+                                  f"its parameters: {', '.join(known) or '(none)'}")
         try:
             return factory(**deps, **params)
         except (ValueError, TypeError) as err:

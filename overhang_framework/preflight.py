@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from overhang_framework.errors import OverhangError, UnknownPluginError, UnknownPluginsError
+from overhang_framework.errors import OverhangError, UnknownPluginError, UnknownPluginsError, closest
 
 #: Config groups the run selects by name.
 GROUPS = ("world", "predictor", "planner", "value", "condition", "tasks")
@@ -237,7 +237,7 @@ def _key_error(full_key: str, cfg, problem: str = "unknown config key") -> str:
         where = f"keys of {parent_path} {node.get('name')!r}"
     hidden = {"hydra"} if not parent_path else set()
     keys = sorted(str(k) for k in node.keys() if k not in hidden) if hasattr(node, "keys") else []
-    close = [k for k in difflib.get_close_matches(leaf, keys, n=1) if k != leaf]
+    close = [k for k in closest(leaf, keys) if k != leaf]
     hint = f" (did you mean '{(parent_path + '.') if parent_path else ''}{close[0]}'?)" if close else ""
     return f"{problem} '{full_key}'{hint}; {where}: {', '.join(keys) if keys else '(none)'}"
 

@@ -32,6 +32,14 @@ RESULT_FILES = (EPISODES, EPISODES + ".partial", "metrics.json", RUN_FILE)
 PRESENTATION_KEYS = ("progress", "overwrite", "jobs")
 
 
+def _same_file(fh, path: Path) -> bool:
+    """Whether the open file ``fh`` is still the file at ``path``."""
+    try:
+        return os.path.samestat(os.fstat(fh.fileno()), os.stat(path))
+    except FileNotFoundError:
+        return False
+
+
 class RunDirError(OverhangError):
     """A run directory that holds results this run may not continue or replace."""
 
@@ -104,14 +112,31 @@ class RunDir:
 
     @contextlib.contextmanager
     def lock(self) -> Iterator[None]:
-        """Hold the directory for this run; a second run into it at the same time is refused."""
+        """Hold the directory for this run; a second run into it at the same time is refused.
+
+        The lock file exists only while a run holds it: it is removed, still
+        locked, when the run ends. A run that opened the file just before it
+        was removed finds its lock on a removed file and takes a new one.
+        """
         self.path.mkdir(parents=True, exist_ok=True)
-        with open(self.path / LOCK_FILE, "a") as fh:
-            self._take(fh)
+        lock_file = self.path / LOCK_FILE
+        while True:
+            fh = open(lock_file, "a")
             try:
-                yield
-            finally:
-                fcntl.flock(fh, fcntl.LOCK_UN)
+                self._take(fh)
+            except BaseException:
+                fh.close()
+                raise
+            if _same_file(fh, lock_file):
+                break
+            fh.close()  # locked a file that its holder removed as it finished; lock the new one
+        try:
+            yield
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                lock_file.unlink()
+            fcntl.flock(fh, fcntl.LOCK_UN)
+            fh.close()
 
     def _take(self, fh) -> None:
         try:
@@ -130,9 +155,11 @@ class RunDir:
 
     def check_free(self) -> None:
         """Raise when another run holds the directory."""
-        if not (self.path / LOCK_FILE).exists():
+        try:
+            fh = open(self.path / LOCK_FILE)
+        except FileNotFoundError:
             return
-        with open(self.path / LOCK_FILE, "a") as fh:
+        with fh:
             self._take(fh)
             fcntl.flock(fh, fcntl.LOCK_UN)
 

@@ -157,6 +157,10 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     (["overwrite=yes please"], "error: overwrite must be true or false, got 'yes please'"),
     (["predictor=ipe", "predictor.K=abc"], "error: predictor 'ipe': K must be a whole number >= 1, got 'abc'"),
     (["predictor=ipe", "predictor.sigma=abc"], "error: predictor 'ipe': sigma must be a number >= 0, got 'abc'"),
+    (["predictor=ipe", "predictor.k=100"],
+     "error: unknown config key 'predictor.k' (did you mean 'predictor.K'?); keys of predictor 'ipe': K, backend,"),
+    (["predictor=ipe", "+predictor.k=100"],
+     "error: predictor 'ipe' has no parameter k (did you mean K?); its parameters: K, backend,"),
     (["seed=[1"], "error: cannot read the override 'seed=[1': no viable alternative at input '[1'; overrides are"),
     (["seed=1,2"], "error: 'seed=1,2' gives several values: add -m (--multirun) to sweep over them, or write "
                    "seed=[...] for a list"),
@@ -242,13 +246,59 @@ def test_help_is_the_projects_own_page(capsys):
         assert needed in page
 
 
-def test_progress_moves_per_placement_and_output_is_clean(tmp_path):
-    proc = run_cli("tasks=custom", "tasks.sequences=[[1.2,0.6,1.8,0.6]]", "progress=true",
-                   f"hydra.run.dir={tmp_path}")
-    assert proc.returncode == 0, proc.stderr
-    frames = proc.stderr.replace("\r", "\n")
+def test_progress_moves_per_placement_on_a_terminal(tmp_path):
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
+
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))  # a terminal 120 wide
+    try:
+        proc = subprocess.run([sys.executable, "-m", "overhang_framework", "tasks=custom",
+                               "tasks.sequences=[[1.2,0.6,1.8,0.6]]", "progress=true", f"hydra.run.dir={tmp_path}"],
+                              stdout=subprocess.PIPE, stderr=follower, text=True)
+        os.close(follower)
+        chunks = []
+        while True:
+            try:
+                chunk = os.read(leader, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            chunks.append(chunk)
+    finally:
+        os.close(leader)
+    assert proc.returncode == 0
+    frames = b"".join(chunks).decode(errors="replace")
+    assert "\r" in frames
+    frames = frames.replace("\r", "\n")
     assert "placements:" in frames and "1/3 [" in frames and "3/3 [" in frames
-    assert "build time" not in proc.stderr + proc.stdout
+    assert "build time" not in frames + proc.stdout
+
+
+def test_progress_off_a_terminal_writes_whole_lines_now_and_then(tmp_path):
+    import os
+
+    args = ("tasks=custom", "tasks.sequences=[[1.2,0.6,1.8,0.6],[0.6,1.2,0.6]]", "progress=true")
+    proc = run_cli(*args, f"hydra.run.dir={tmp_path / 'a'}")
+    assert proc.returncode == 0, proc.stderr
+    assert "\r" not in proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("placements:")]
+    assert len(lines) == 1 and "5/5 [" in lines[0]  # a short run: only the closing line
+    env = {**os.environ, "OVERHANG_PROGRESS_SECONDS": "0.000001"}
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework", *args, f"hydra.run.dir={tmp_path / 'b'}"],
+                          capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "\r" not in proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("placements:")]
+    assert any("1/5 [" in line for line in lines) and "5/5 [" in lines[-1]
+    env["OVERHANG_PROGRESS_SECONDS"] = "0"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework", *args, f"hydra.run.dir={tmp_path / 'c'}"],
+                          capture_output=True, text=True, env=env)
+    assert proc.returncode == 0 and "placements" not in proc.stderr
 
 
 def test_results_hold_readable_numbers_and_the_log_is_written(tmp_path):
@@ -358,3 +408,45 @@ def test_each_job_builds_its_models_once(tmp_path, monkeypatch, launch):
         assert sorted(built) == [1, 2]
         assert all((tmp_path / job / "metrics.json").exists() for job in ("0", "1"))
     assert not any(app._kept_models.values())  # nothing is left holding models
+
+
+@pytest.mark.parametrize("overrides, said", [
+    (["planner=lookahead", "planner.depth=9"],
+     "planner.depth=9 is more than the 5 placements of the longest task: each decision searches to the end of "
+     "its episode, which is what planner.depth=5 does"),
+    (["planner=optimal"], "planner=optimal proves each decision by exhaustive search over every remaining "
+                          "placement: with predictor=veridical and world.physics=tiered, one 6-block decision ran"),
+    (["planner=optimal", "tasks=custom", "tasks.sequences=[[1.2,0.6,1.8]]", "world.physics=static"],
+     "one task's optimum took from 13 s to 16 min to prove"),
+    (["planner=mcts", "planner.iterations=400"], "planner=mcts planner.iterations=400"),
+])
+def test_settings_known_to_be_slow_or_to_mean_less_are_said_before_the_run(overrides, said):
+    from overhang_framework.advice import run_notes
+    from overhang_framework.app import build_models
+    from overhang_framework.config import compose_config
+    from overhang_framework.tasks import tasks_from_config
+
+    cfg = compose_config(overrides)
+    notes = run_notes(cfg, tasks_from_config(cfg.tasks), build_models(cfg))
+    assert len(notes) == 1 and said in notes[0]
+
+
+@pytest.mark.parametrize("overrides", [
+    ["planner=lookahead", "planner.depth=5"], ["planner=optimal", "world.physics=static"], ["planner=mcts"],
+    ["predictor=hybrid", "planner=lookahead", "planner.depth=3"]])
+def test_ordinary_settings_get_no_note(overrides):
+    from overhang_framework.advice import run_notes
+    from overhang_framework.app import build_models
+    from overhang_framework.config import compose_config
+    from overhang_framework.tasks import tasks_from_config
+
+    cfg = compose_config([*overrides, "world.physics=static"] if "world.physics=static" not in overrides else overrides)
+    assert run_notes(cfg, tasks_from_config(cfg.tasks), build_models(cfg)) == []
+
+
+def test_a_note_is_said_once_on_stderr_and_the_run_goes_on(tmp_path):
+    proc = run_cli("tasks=custom", "tasks.sequences=[[1.2,0.6,1.8]]", "planner=lookahead", "planner.depth=4",
+                   "world.physics=static", "progress=false", f"hydra.run.dir={tmp_path}")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("note: planner.depth=4 is more than the 2 placements of the longest task") == 1
+    assert "note: planner.depth=4" in (tmp_path / "run.log").read_text()

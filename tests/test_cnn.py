@@ -487,3 +487,37 @@ def test_bench_prints_towers_and_images_per_second(capsys):
     plain = one["predict_legal_actions"]["threads=1"]
     assert plain["images_per_s"] == pytest.approx(plain["towers_per_s"]) and plain["actions_per_call"] > 1
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["mirror"] is False
+
+
+def test_bench_measures_the_default_setting_beside_others_with_a_busy_core(capsys):
+    from overhang_framework.cnn import bench
+
+    out = bench.main(["--threads", "default,2", "--batches", "16", "--images", "20", "--busy", "1"])
+    assert out["busy"] == 1
+    assert set(out["predict_legal_actions"]) == {"threads=default (1)", "threads=2"}
+    assert "threads=default (1),batch=16" in out["render_and_forward"]
+    assert "1 other process busy on a core each" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="--threads takes 'default' or whole numbers >= 1, got 'two'"):
+        bench.main(["--threads", "two"])
+
+
+@pytest.mark.parametrize("overrides", [["predictor=cnn"], ["predictor=hybrid"]])
+def test_the_cnn_runs_on_one_torch_thread_by_default(overrides):
+    """Two threads collapse when another job holds a core; the default must be the setting that never does."""
+    import torch
+
+    from overhang_framework.app import build_models
+    from overhang_framework.config import compose_config
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        build_models(compose_config([*overrides, "world.physics=static"]))
+        assert torch.get_num_threads() == 1
+        torch.set_num_threads(2)
+        build_models(compose_config([*overrides, "world.physics=static", "predictor.threads=null"]
+                                    if overrides == ["predictor=cnn"] else
+                                    [*overrides, "world.physics=static", "+predictor.late_params.threads=2"]))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -68,11 +68,22 @@ def test_an_interrupted_run_resumes_and_keeps_every_finished_episode_once(tmp_pa
     assert final.startswith(finished), "the finished episodes are kept byte for byte"
     episodes = read_episodes(out / "episodes.jsonl")
     assert [(e["task_index"], e["repeat"]) for e in episodes] == [(0, 0), (1, 0), (2, 0)]
-    assert json.loads((out / "metrics.json").read_text())["complete"] is True
+    after = json.loads((out / "metrics.json").read_text())
+    assert after["complete"] is True
+    # the wall time and the physics counters cover both sessions, not only the resumed one
+    assert after["wall_time"] == pytest.approx(metrics["wall_time"] + after["wall_time_session"], rel=1e-9)
+    assert after["wall_time_session"] < after["wall_time"]
 
     fresh = run(*SLOW, "progress=false", f"hydra.run.dir={tmp_path / 'fresh'}")
     assert fresh.returncode == 0, fresh.stderr
     assert without_timing(episodes) == without_timing(read_episodes(tmp_path / "fresh" / "episodes.jsonl"))
+    alone = json.loads((tmp_path / "fresh" / "metrics.json").read_text())["world_stats"]["cache"]
+    both = after["world_stats"]["cache"]
+    # the same episodes ask the same questions; both sessions together asked at least as many
+    assert both["hits"] + both["misses"] >= alone["hits"] + alone["misses"]
+    assert both["misses"] >= metrics["world_stats"]["cache"]["misses"]
+    assert both["hit_rate"] == pytest.approx(both["hits"] / (both["hits"] + both["misses"]))
+    assert not (out / ".run.lock").exists() and not (tmp_path / "fresh" / ".run.lock").exists()
 
 
 def test_rerunning_a_finished_run_changes_nothing(tmp_path):
@@ -136,8 +147,33 @@ def test_two_runs_cannot_write_one_directory_at_once(tmp_path):
         with pytest.raises(RunDirError, match="another run is writing to"):
             with RunDir(tmp_path).lock():
                 pass
+    assert not (tmp_path / ".run.lock").exists(), "a finished run leaves no lock file behind"
     with RunDir(tmp_path).lock():  # released
-        pass
+        assert (tmp_path / ".run.lock").exists()
+        with pytest.raises(RunDirError, match="another run is writing to"):
+            RunDir(tmp_path).check_free()
+    RunDir(tmp_path).check_free()
+    assert not (tmp_path / ".run.lock").exists()
+
+
+def test_a_lock_taken_on_a_file_its_holder_removed_is_taken_again_on_the_new_file(tmp_path, monkeypatch):
+    import fcntl
+
+    take = RunDir._take
+    calls = []
+
+    def take_then_lose_the_race(self, fh):
+        take(self, fh)
+        calls.append(fh.name)
+        if len(calls) == 1:  # the run that held the file removes it as it ends, just after we locked it
+            (tmp_path / ".run.lock").unlink()
+
+    monkeypatch.setattr(RunDir, "_take", take_then_lose_the_race)
+    with RunDir(tmp_path).lock():
+        assert len(calls) == 2, "the lock on the removed file does not count; the new file is locked"
+        with open(tmp_path / ".run.lock") as fh, pytest.raises(OSError):
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    assert not (tmp_path / ".run.lock").exists()
 
 
 def test_sigterm_ends_the_run_like_an_interrupt(tmp_path):

@@ -24,7 +24,10 @@ class CNNPredictor(Predictor):
     ``overhang_framework/cnn/checkpoints/default.md``) or a path to a ``.pt``
     file written by ``python -m overhang_framework.cnn.train``. ``device`` is
     ``auto`` (a GPU when present), ``cpu`` or ``cuda``; ``threads`` sets
-    torch's CPU threads (``null``: torch's default). ``batch_size`` caps the
+    torch's CPU threads for the process, 1 by default: with more, torch's
+    threads wait on each other, and on a machine where another job holds a
+    core a forward pass becomes tens of times slower (``null``: torch's
+    default of one thread per core; docs/cnn.md says when that pays). ``batch_size`` caps the
     images of one forward pass; ``cache_size`` the towers remembered (0: no
     cache). ``mirror`` averages the answers for each tower and its mirror
     image; ``auto`` follows the checkpoint, whose training records whether
@@ -33,7 +36,7 @@ class CNNPredictor(Predictor):
     """
 
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
-                 threads: Optional[int] = None, batch_size: int = 512, cache_size: int = 200_000,
+                 threads: Optional[int] = 1, batch_size: int = 512, cache_size: int = 200_000,
                  mirror="auto"):
         from overhang_framework.cnn.model import StabilityModel
 
