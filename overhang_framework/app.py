@@ -23,8 +23,8 @@ from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.parallel import merge_stats
 from overhang_framework.physics.pool import PoolCrashed
-from overhang_framework.progress import progress
 from overhang_framework.plugins import Registry
+from overhang_framework.progress import progress_bar
 from overhang_framework.results import EpisodeLog, atomic_write_json, readable, summarize
 from overhang_framework.rundir import RunDir, finished_jobs, result_config
 from overhang_framework.tasks import tasks_from_config
@@ -303,7 +303,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
         return summary
 
     placements = [len(task.sequence) - 1 for _, task, _ in jobs]
-    bar = progress(total=sum(placements), desc="placements", unit="pl", disable=not checked.progress,
+    bar = progress_bar(total=sum(placements), desc="placements", unit="pl", disable=not checked.progress,
                    miniters=1, mininterval=0.5, dynamic_ncols=True,
                    initial=sum(n for (i, _, rep), n in zip(jobs, placements) if (i, rep) in done))
     length = {(i, rep): n for (i, _, rep), n in zip(jobs, placements)}

@@ -18,7 +18,7 @@ import argparse
 import json
 import math
 import sys
-from typing import Optional, Sequence
+from typing import Any, Callable, Iterable, Optional, Sequence
 
 from overhang_framework.geometry import Block, Geometry, IllegalWidth, check_width
 
@@ -81,58 +81,93 @@ def build_world(overrides: Sequence[str]):
     return Registry().create("world", OmegaConf.to_container(cfg.world, resolve=True))
 
 
+def stable_batch(world, geometries: Sequence[Geometry]) -> list[bool]:
+    """The world's verdict for every geometry: one ``stable_batch`` call when its backend has one."""
+    backend = getattr(world, "backend", None)
+    if backend is not None and hasattr(backend, "stable_batch"):
+        return [bool(v) for v in backend.stable_batch(list(geometries))]
+    return [bool(world.is_stable(g)) for g in geometries]
+
+
 def verdicts(world, towers: Sequence[Geometry], chunk: int = 256, progress: bool = True) -> list[bool]:
     """The world's verdict for every tower, asked in batches of ``chunk``."""
     from tqdm import tqdm
 
-    backend = getattr(world, "backend", None)
     out: list[bool] = []
     with tqdm(total=len(towers), desc="towers", unit="tower", disable=not progress, file=sys.stderr) as bar:
         for start in range(0, len(towers), chunk):
             part = towers[start:start + chunk]
-            if backend is not None and hasattr(backend, "stable_batch"):
-                out.extend(bool(v) for v in backend.stable_batch(part))
-            else:
-                out.extend(bool(world.is_stable(g)) for g in part)
+            out.extend(stable_batch(world, part))
             bar.update(len(part))
     return out
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m overhang_framework.check", description=__doc__.split("\n\n")[0])
+class UsageError(ValueError):
+    """A mistake in a command's input or overrides; the message is the line printed after ``error: ``."""
+
+
+def load(path: str, overrides: Sequence[str]) -> tuple[list[Geometry], Any]:
+    """Every tower of the TOWERS file ``path`` (``-``: standard input), then the world of ``overrides``.
+
+    The whole input is read before the world is built; any mistake raises
+    :class:`UsageError` with its one-line message (``TOWERS line N: ...``,
+    ``TOWERS: cannot read ...``, or the config's own message).
+    """
+    try:
+        if path == "-":
+            towers = read_towers(sys.stdin)
+        else:
+            with open(path, encoding="utf-8") as fh:
+                towers = read_towers(fh)
+    except BadTower as exc:
+        raise UsageError(f"TOWERS {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UsageError(f"TOWERS: cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    try:
+        world = build_world(overrides)
+    except Exception as exc:  # a bad override or parameter: one line, as the main job reports it
+        raise UsageError(" ".join(str(exc).split()) or type(exc).__name__) from None
+    return towers, world
+
+
+Answer = Callable[[Any, list[Geometry], bool], Iterable[dict]]
+"""What a TOWERS command computes: ``(world, towers, quiet)`` to one JSON object per tower."""
+
+
+def tower_command(argv: Optional[Sequence[str]], prog: str, description: str, answer: Answer) -> int:
+    """Run a command of the form ``prog TOWERS [OVERRIDES...] [--quiet]``; the exit status.
+
+    Reads the towers and builds the world (:func:`load`; a mistake prints
+    ``error: ...`` and gives 2), writes one JSON line per object ``answer``
+    returns, and closes the world's backend however the work ends.
+    """
+    ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument("towers", metavar="TOWERS", help="JSON Lines file of towers, or - for standard input")
     ap.add_argument("overrides", nargs="*", metavar="OVERRIDE",
                     help="config overrides, as for the main job (e.g. world.physics=static)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     args = ap.parse_intermixed_args(argv)
-
-    def fail(message: str) -> int:
-        print(f"error: {message}", file=sys.stderr)
+    try:
+        towers, world = load(args.towers, args.overrides)
+    except UsageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
-
     try:
-        if args.towers == "-":
-            towers = read_towers(sys.stdin)
-        else:
-            with open(args.towers, encoding="utf-8") as fh:
-                towers = read_towers(fh)
-    except BadTower as exc:
-        return fail(f"TOWERS {exc}")
-    except (OSError, UnicodeDecodeError) as exc:
-        return fail(f"TOWERS: cannot read {args.towers}: {getattr(exc, 'strerror', None) or exc}")
-    try:
-        world = build_world(args.overrides)
-    except Exception as exc:  # a bad override or parameter: one line, as the main job reports it
-        return fail(" ".join(str(exc).split()) or type(exc).__name__)
-    try:
-        results = verdicts(world, towers, progress=not args.quiet)
+        results = list(answer(world, towers, args.quiet))
     finally:
         close = getattr(getattr(world, "backend", None), "close", None)
         if close is not None:
             close()
-    sys.stdout.write("".join(json.dumps({"stable": v}) + "\n" for v in results))
+    sys.stdout.write("".join(json.dumps(r) + "\n" for r in results))
     sys.stdout.flush()
     return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    def answer(world, towers: list[Geometry], quiet: bool) -> list[dict]:
+        return [{"stable": v} for v in verdicts(world, towers, progress=not quiet)]
+
+    return tower_command(argv, "python -m overhang_framework.check", __doc__.split("\n\n")[0], answer)
 
 
 if __name__ == "__main__":

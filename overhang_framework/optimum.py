@@ -245,7 +245,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     from overhang_framework.app import build_models
     from overhang_framework.config import compose_config
@@ -264,7 +264,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     todo = [i for i, task in enumerate(tasks) if optimum_key(task, world) not in optima]
-    bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc="optima", unit="task", file=sys.stderr)
+    bar = progress_bar(total=len(tasks), initial=len(tasks) - len(todo), desc="optima", unit="task", file=sys.stderr)
     command = "python -m overhang_framework.optimum " + " ".join(args.overrides)
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures = {pool.submit(_solve, list(args.overrides), i): i for i in todo}

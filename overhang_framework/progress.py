@@ -1,6 +1,6 @@
 """Progress for long work: a live bar on a terminal, a plain line now and then anywhere else.
 
-Every long job of the project reports progress through :func:`progress`, which
+Every long job of the project reports progress through :func:`progress_bar`, which
 takes tqdm's arguments. On a terminal it is tqdm's bar. When the stream is not
 a terminal (a Slurm log, a pipe, a file), a bar's carriage-return redraws would
 fill the log with hundreds of updates, so :class:`LogProgress` writes one
@@ -46,7 +46,7 @@ def is_terminal(stream: Optional[TextIO]) -> bool:
         return False
 
 
-def progress(iterable: Optional[Iterable] = None, **kwargs: Any):
+def progress_bar(iterable: Optional[Iterable] = None, **kwargs: Any):
     """tqdm's bar on a terminal, :class:`LogProgress` elsewhere; ``file`` defaults to stderr."""
     kwargs.setdefault("file", sys.stderr)
     if is_terminal(kwargs["file"]):

@@ -4,7 +4,7 @@ import io
 
 import pytest
 
-from overhang_framework.progress import LogProgress, line_seconds, progress
+from overhang_framework.progress import LogProgress, line_seconds, progress_bar
 
 
 class Terminal(io.StringIO):
@@ -36,15 +36,15 @@ def test_off_a_terminal_lines_are_whole_and_rate_limited():
 def test_the_stream_decides_the_kind_of_progress(monkeypatch):
     from tqdm import tqdm
 
-    on_terminal = progress(total=2, file=Terminal())
+    on_terminal = progress_bar(total=2, file=Terminal())
     assert isinstance(on_terminal, tqdm)
     on_terminal.close()
-    elsewhere = progress(range(3), file=io.StringIO(), desc="items")
+    elsewhere = progress_bar(range(3), file=io.StringIO(), desc="items")
     assert isinstance(elsewhere, LogProgress) and list(elsewhere) == [0, 1, 2] and elsewhere.n == 3
 
     monkeypatch.setenv("OVERHANG_PROGRESS_SECONDS", "0")
     out = io.StringIO()
-    with progress(total=2, file=out) as quiet:
+    with progress_bar(total=2, file=out) as quiet:
         quiet.update(2)
     assert out.getvalue() == ""
     monkeypatch.setenv("OVERHANG_PROGRESS_SECONDS", "soon")

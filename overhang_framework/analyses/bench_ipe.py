@@ -105,9 +105,9 @@ def agreement_rows(world, backend, name: str, sets: dict, K: int, tiny_sigma: fl
 
 def tower_sets(n_random: int, n_critical: int, reference, seed: int, desc: str) -> dict:
     """The benchmark's random towers and near-critical towers (flips of ``reference``), with their offsets."""
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
-    with tqdm(desc=f"bisection checks ({desc})", file=sys.stderr) as bar:
+    with progress_bar(desc=f"bisection checks ({desc})", file=sys.stderr) as bar:
         critical = near_critical_towers(n_critical, reference, seed=seed + 2, progress=bar.update) if n_critical > 0 else []
     return {"random": (random_towers(n_random, seed=seed), None),
             "near_critical": ([c.geometry for c in critical], [c.offset for c in critical])}
@@ -140,7 +140,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> dict:
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     from overhang_builtins.simulation import IPEPredictor
     from overhang_framework.plugins import Registry
@@ -156,7 +156,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     states = mid_episode_states(args.states, args.seed)
     speed = []
     ipe_static = IPEPredictor(world, K=args.K, sigma=args.sigma, backend=static)
-    for i, state in enumerate(tqdm(states, desc="static timing", file=sys.stderr)):
+    for i, state in enumerate(progress_bar(states, desc="static timing", file=sys.stderr)):
         actions = world.legal_actions(state)
         rng = np.random.default_rng([args.seed, i])
         ipe_static.predict(state, actions, rng)
@@ -167,7 +167,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     if pool is not None and args.pybullet_states > 0:
         ipe_pb = IPEPredictor(world, K=args.K, sigma=args.sigma, backend=pool)
         ipe_pb.predict(states[0], world.legal_actions(states[0])[:2], np.random.default_rng(0))
-        for i, state in enumerate(tqdm(states[:args.pybullet_states], desc="pybullet timing", file=sys.stderr)):
+        for i, state in enumerate(progress_bar(states[:args.pybullet_states], desc="pybullet timing", file=sys.stderr)):
             actions = world.legal_actions(state)
             (t,) = time_call(lambda: ipe_pb.predict(state, actions, np.random.default_rng([args.seed, i])), 1)
             speed.append({"state": i, "backend": f"pybullet ({args.workers} processes)", "actions": len(actions),

@@ -41,7 +41,7 @@ QUICK_BUDGETS = (1, 4, 16, None)
 def run(overrides: Sequence[str], budgets: Sequence[Optional[int]], depth: int, seed: int,
         quiet: bool = False) -> list[dict]:
     """One row per budget, from every task of the composed config played once with that budget."""
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     from overhang_framework.app import build_models
     from overhang_framework.config import compose_config
@@ -52,7 +52,7 @@ def run(overrides: Sequence[str], budgets: Sequence[Optional[int]], depth: int, 
     models = build_models(cfg)
     tasks = tasks_from_config(cfg.tasks)
     rows = []
-    bar = tqdm(total=len(budgets) * len(tasks), desc="episodes", unit="ep", disable=quiet, file=sys.stderr)
+    bar = progress_bar(total=len(budgets) * len(tasks), desc="episodes", unit="ep", disable=quiet, file=sys.stderr)
     for budget in budgets:
         rewards, depths, calls, truncated = [], [], [], []
         started = time.perf_counter()

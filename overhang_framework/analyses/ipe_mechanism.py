@@ -159,7 +159,7 @@ def predictor_params(sigma: float, channel: str, K: int, backend: str) -> dict:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> dict:
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     from overhang_framework.plugins import Registry
 
@@ -169,7 +169,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     world = registry.create("world", {"name": "overhang", "cache": False})
     reference = make_backend(args.reference, workers=args.workers)
     levels = args.max_blocks - 1
-    with tqdm(total=2 * args.towers * levels, desc=f"reference ({args.reference})", unit="tower",
+    with progress_bar(total=2 * args.towers * levels, desc=f"reference ({args.reference})", unit="tower",
               disable=args.no_progress, file=sys.stderr) as bar:
         questions = episode_questions(chunked(reference.stable_batch, 100, bar), args.towers,
                                       seed=args.seed, min_blocks=args.min_blocks,
@@ -177,7 +177,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     ipe_backend = reference if args.backend == args.reference else make_backend(args.backend, workers=args.workers)
     rows: list[dict] = []
     chunk = 50
-    with tqdm(total=len(args.sigma_list) * len(questions), desc="IPE", unit="question",
+    with progress_bar(total=len(args.sigma_list) * len(questions), desc="IPE", unit="question",
               disable=args.no_progress, file=sys.stderr) as bar:
         for sigma in args.sigma_list:
             params = predictor_params(sigma, args.channel, args.K, args.backend)

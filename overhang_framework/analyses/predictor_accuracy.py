@@ -105,7 +105,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> dict:
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     from overhang_framework.config import compose_config
     from overhang_framework.plugins import Registry
@@ -116,7 +116,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     world = registry.create("world", {"name": "overhang", "physics": "static", "cache": False})
     reference = make_backend(args.reference, workers=args.workers)
     levels = args.max_blocks - 1
-    with tqdm(total=2 * args.towers * levels, desc=f"reference ({args.reference})", unit="tower",
+    with progress_bar(total=2 * args.towers * levels, desc=f"reference ({args.reference})", unit="tower",
               disable=args.no_progress, file=sys.stderr) as bar:
         questions = episode_questions(chunked(reference.stable_batch, 100, bar), args.towers, seed=args.seed,
                                       min_blocks=args.min_blocks, max_blocks=args.max_blocks,
@@ -131,7 +131,7 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
         params = dict(compose_config([f"predictor={name}"]).predictor)
         predictor = registry.create("predictor", params, world=world)
         t0 = time.perf_counter()
-        for row, q in tqdm(list(zip(rows, questions)), desc=name, unit="question", disable=args.no_progress,
+        for row, q in progress_bar(list(zip(rows, questions)), desc=name, unit="question", disable=args.no_progress,
                            file=sys.stderr):
             rng = np.random.default_rng([args.seed, 1, q.n_blocks, q.index])
             row[f"p_{name}"] = float(predictor.predict(q.state, [q.action], rng)[0])

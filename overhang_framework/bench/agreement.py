@@ -48,7 +48,7 @@ from dataclasses import asdict, replace
 from typing import Optional, Sequence
 
 import numpy as np
-from tqdm import tqdm
+from overhang_framework.progress import progress_bar
 
 from overhang_framework.bench.towers import FAMILIES, family_towers, find_flips, last_block_interval, with_last_x
 from overhang_framework.bench.workload import planner_workload
@@ -88,7 +88,7 @@ class Reference:
                 todo.setdefault(g.key, g)
         items = list(todo.values())
         step = 256
-        with tqdm(total=len(items), desc="reference runs", disable=self.quiet or len(items) < step,
+        with progress_bar(total=len(items), desc="reference runs", disable=self.quiet or len(items) < step,
                   leave=False, file=sys.stderr) as bar:
             for k in range(0, len(items), step):
                 part = items[k:k + step]
@@ -180,14 +180,14 @@ def throughput(decisions: Sequence[Sequence[Geometry]], tiered: TieredParams, qu
     backend = TieredBackend(tiered)
     n = sum(len(d) for d in decisions)
     t = time.perf_counter()
-    for d in tqdm(decisions, desc="tiered", disable=quiet, leave=False, file=sys.stderr):
+    for d in progress_bar(decisions, desc="tiered", disable=quiet, leave=False, file=sys.stderr):
         backend.stable_batch(d)
     tiered_s = time.perf_counter() - t
     stats = backend.stats()
     sim = PyBulletSimulator(PyBulletParams(early_stop=True))
     t = time.perf_counter()
     early_steps = 0
-    for d in tqdm(decisions, desc="early stop", disable=quiet, leave=False, file=sys.stderr):
+    for d in progress_bar(decisions, desc="early stop", disable=quiet, leave=False, file=sys.stderr):
         for g in d:
             early_steps += sim.check(g).steps
     early_s = time.perf_counter() - t

@@ -38,7 +38,7 @@ from dataclasses import replace
 from typing import Optional, Sequence
 
 import numpy as np
-from tqdm import tqdm
+from overhang_framework.progress import progress_bar
 
 from overhang_framework.geometry import Geometry
 from overhang_framework.physics.pool import PyBulletPool
@@ -67,7 +67,7 @@ def confusion(reference: np.ndarray, verdicts: np.ndarray) -> dict:
 def timed_checks(fn, items: Sequence, desc: str, quiet: bool) -> tuple[list, np.ndarray]:
     """``fn(item)`` for every item with its wall time in seconds."""
     results, times = [], []
-    for item in tqdm(items, desc=desc, disable=quiet, leave=False, file=sys.stderr):
+    for item in progress_bar(items, desc=desc, disable=quiet, leave=False, file=sys.stderr):
         t = time.perf_counter()
         results.append(fn(item))
         times.append(time.perf_counter() - t)
@@ -279,7 +279,7 @@ def run(towers: int = 1000, seed: int = 0, critical: int = 200, workers: int = 2
     if critical > 0:
         say(f"near-critical set: {critical} towers, flips found by bisection with full PyBullet runs on {workers} workers")
         with PyBulletPool(workers, params=pp, early_stop=False) as pool:
-            bar = tqdm(desc="bisection checks", disable=quiet, leave=False, file=sys.stderr)
+            bar = progress_bar(desc="bisection checks", disable=quiet, leave=False, file=sys.stderr)
             crit = near_critical_towers(critical, pool.stable_batch, seed=seed + 2, progress=bar.update)
             bar.close()
             cgeoms = [c.geometry for c in crit]

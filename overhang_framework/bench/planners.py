@@ -50,14 +50,14 @@ def mid_episode_states(overrides: Sequence[str], n: int, placed: int = 2) -> lis
 
 def decisions(overrides: Sequence[str], states: list, predictor: str, depth: int, quiet: bool) -> dict:
     """Time one cold-cache decision per state; count what pruning saved."""
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     from overhang_framework.app import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.interfaces import Budget
 
     seconds, nodes, calls, pruned_work, full_work, hits, lookups = [], [], [], [], [], 0, 0
-    for i, state in enumerate(tqdm(states, desc=f"{predictor} D={depth}", disable=quiet, file=sys.stderr)):
+    for i, state in enumerate(progress_bar(states, desc=f"{predictor} D={depth}", disable=quiet, file=sys.stderr)):
         cfg = compose_config([*overrides, f"predictor={predictor}", "planner=lookahead", f"planner.depth={depth}"])
         models = build_models(cfg)  # a fresh world: a cold physics cache
         world, planner, pred, value = models["world"], models["planner"], models["predictor"], models["value"]

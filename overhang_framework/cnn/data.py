@@ -291,7 +291,7 @@ def generate(spec: DataSpec, directory: Path | str, workers: int = 1, progress: 
     ``workers > 1`` generates shards on a process pool. Raises ``ValueError``
     when ``directory`` holds a set made with other settings.
     """
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -314,7 +314,7 @@ def generate(spec: DataSpec, directory: Path | str, workers: int = 1, progress: 
                 pass
         todo.append(i)
     atomic_write_json(manifest_path, {"settings": settings, "shards": spec.shards, "complete": False})
-    bar = tqdm(total=spec.shards, initial=spec.shards - len(todo), desc="shards", unit="shard",
+    bar = progress_bar(total=spec.shards, initial=spec.shards - len(todo), desc="shards", unit="shard",
                disable=not progress)
     jobs = [(spec, i, directory) for i in todo]
     if workers > 1 and len(jobs) > 1:

@@ -266,7 +266,7 @@ def fit(rank: int, processes: int, job: dict):
     Returns ``(best epoch's row, training seconds, device name)``."""
     import torch
     import torch.distributed as dist
-    from tqdm import tqdm
+    from overhang_framework.progress import progress_bar
 
     from overhang_framework.cnn.model import as_input, build_model, pick_device, save_checkpoint
     from overhang_framework.render import make_renderer
@@ -340,7 +340,7 @@ def fit(rank: int, processes: int, job: dict):
         flips = rng.random(n_train) < mirror_p
         buf = np.empty((batch_size, *renderer.shape), dtype=np.float32)
         totals = torch.zeros(2, dtype=torch.float64)  # loss summed over questions, questions
-        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{epochs}", unit="batch",
+        bar = progress_bar(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{epochs}", unit="batch",
                    disable=not (cfg["progress"] and lead), file=sys.stderr)
         for step in bar:
             idx = order[step * batch_size:(step + 1) * batch_size][rank::processes]
