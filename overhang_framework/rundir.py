@@ -49,11 +49,13 @@ def result_config(cfg: Mapping[str, Any]) -> dict:
     return {k: v for k, v in cfg.items() if k not in PRESENTATION_KEYS}
 
 
-def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested config as one level of dotted keys (``{"world": {"physics": "static"}}`` ->
+    ``{"world.physics": "static"}``)."""
     if isinstance(data, Mapping):
         out: dict[str, Any] = {}
         for key, value in data.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
+            out.update(flatten(value, f"{prefix}{key}."))
         return out
     return {prefix[:-1]: data}
 
@@ -61,7 +63,7 @@ def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
     """``key: old -> new`` for every leaf that differs (added and removed keys included), the
     most telling first: model names and top-level settings, then by depth."""
-    a, b = _flatten(old), _flatten(new)
+    a, b = flatten(old), flatten(new)
     missing = object()
     diffs = []
     # the most telling first: model names and top-level settings, then shallow keys, then the rest

@@ -39,7 +39,7 @@ from typing import Any, Mapping, Optional, Sequence
 from overhang_framework.behaviour.log import LOG_VERSION, describe, to_csv, to_frame, write_log
 from overhang_framework.errors import OverhangError
 from overhang_framework.report.aggregate import job_dirs
-from overhang_framework.rundir import EPISODES, RUN_FILE, result_config
+from overhang_framework.rundir import EPISODES, RUN_FILE, flatten, result_config
 
 #: Fields of an episode's steps that each record keeps as extra fields, where the run has them.
 STEP_EXTRAS = ("predicted_stability", "choice_probability", "choice_rank", "over_time_limit", "spend")
@@ -90,13 +90,9 @@ def model_label(config: Mapping[str, Any]) -> str:
     return f"{predictor}-{planner.get('name', 'unknown')}{'' if depth is None else depth}"
 
 
-def _flatten(data: Any, prefix: str = "") -> dict[str, str]:
-    if isinstance(data, Mapping):
-        out: dict[str, str] = {}
-        for key, value in data.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: data if isinstance(data, str) else json.dumps(data, separators=(",", ":"))}
+def _flatten(data: Any) -> dict[str, str]:
+    """The config as dotted keys, each value as text (strings as they are, the rest as compact JSON)."""
+    return {k: v if isinstance(v, str) else json.dumps(v, separators=(",", ":")) for k, v in flatten(data).items()}
 
 
 def _follows_from_name(key: str, flat: Sequence[Mapping[str, str]], differ: Sequence[str]) -> bool:
