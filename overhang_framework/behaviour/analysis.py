@@ -1,0 +1,318 @@
+"""Every behaviour analysis of a log at once: Table 1, order dependency Γ (Fig. 3b), trajectory flows
+(Fig. 3a) and physical prediction by construction stage (Fig. 4), written as ``report.md``, one CSV per
+table and one PNG per figure (all written atomically).
+
+Groups: a record's group is its ``condition``, except that records whose ``source`` is ``model`` are
+grouped by their model label, the participant id before its first ``/`` (``veridical-myopic/0`` is in
+group ``veridical-myopic``). People, simulated participants and models therefore sit side by side in
+every table and figure. Two groups are compared with permutation tests: ``time_limited`` against
+``unconstrained`` when both are present (or the only two groups, whatever their names), or the pair
+given.
+
+The statistics every analysis shares are here: :func:`mean_sem`, :func:`permutation_p` (SciPy's
+``permutation_test``, independent samples, difference of means, two-sided, seeded) and
+:func:`bootstrap_ci` (participants resampled with replacement, seeded).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+import pandas as pd
+
+from overhang_framework.results import atomic_output, atomic_write_text
+
+ANALYSES = ("table1", "gamma", "flows", "prediction")
+DEFAULT_COMPARE = ("time_limited", "unconstrained")
+GROUP_COLOURS = {"time_limited": "#d98c1f", "unconstrained": "#2f6db5"}
+OTHER_COLOURS = ("#3a9a5b", "#8e5bb5", "#6b6b6b", "#b5875b", "#2aa3a3", "#c2559a")
+
+
+def group_of(source: Any, participant: str, condition: str) -> str:
+    """A record's group: its model label for ``source == "model"`` (participant id before '/'), else its condition."""
+    if source == "model":
+        return str(participant).split("/", 1)[0]
+    return str(condition)
+
+
+def with_groups(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with a ``group`` column (see :func:`group_of`)."""
+    df = df.copy()
+    df["group"] = [group_of(s, p, c) for s, p, c in zip(df["source"], df["participant"], df["condition"])]
+    return df
+
+
+def group_order(groups: Sequence[str], compare: Optional[Sequence[str]]) -> list[str]:
+    """The compared groups first, then the others alphabetically."""
+    first = [g for g in (compare or ()) if g in groups]
+    return first + sorted(g for g in set(groups) if g not in first)
+
+
+def default_compare(groups: Sequence[str]) -> Optional[tuple[str, str]]:
+    """``time_limited`` vs ``unconstrained`` when both are present, else the two groups when there are two."""
+    present = sorted(set(groups))
+    if all(g in present for g in DEFAULT_COMPARE):
+        return DEFAULT_COMPARE
+    if len(present) == 2:
+        return (present[0], present[1])
+    return None
+
+
+def colour(group: str, order: Sequence[str]) -> str:
+    if group in GROUP_COLOURS:
+        return GROUP_COLOURS[group]
+    others = [g for g in order if g not in GROUP_COLOURS]
+    return OTHER_COLOURS[others.index(group) % len(OTHER_COLOURS)] if group in others else OTHER_COLOURS[0]
+
+
+def mean_sem(values) -> tuple[float, float]:
+    """Mean and standard error of the finite ``values`` (NaN for none; SEM NaN for one)."""
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], dtype=float)
+    if v.size == 0:
+        return math.nan, math.nan
+    return float(v.mean()), float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else math.nan
+
+
+def _diff_of_means(x, y, axis):
+    return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+
+
+def permutation_p(a, b, n_resamples: int, seed: int) -> float:
+    """Two-sided p of the difference of means of independent samples ``a`` and ``b``
+    (``scipy.stats.permutation_test``, ``n_resamples`` resamples, seeded); NaN when a side has fewer
+    than two values (SciPy's minimum)."""
+    from scipy.stats import permutation_test
+
+    a = np.asarray([x for x in a if np.isfinite(x)], dtype=float)
+    b = np.asarray([x for x in b if np.isfinite(x)], dtype=float)
+    if a.size < 2 or b.size < 2:
+        return math.nan
+    res = permutation_test((a, b), _diff_of_means, permutation_type="independent", vectorized=True,
+                           n_resamples=n_resamples, alternative="two-sided", random_state=seed)
+    return float(res.pvalue)
+
+
+def bootstrap_ci(sums: np.ndarray, counts: np.ndarray, n_resamples: int, seed: int,
+                 level: float = 0.95) -> tuple[float, float]:
+    """CI of a pooled mean ``sum(sums) / sum(counts)`` by resampling participants (the rows) with replacement.
+
+    ``sums[i]`` and ``counts[i]`` are participant ``i``'s total and number of values. Percentile
+    interval of ``n_resamples`` resamples; NaN when there is no value.
+    """
+    sums, counts = np.asarray(sums, float), np.asarray(counts, float)
+    keep = counts > 0
+    sums, counts = sums[keep], counts[keep]
+    if counts.size == 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    weights = rng.multinomial(counts.size, np.full(counts.size, 1 / counts.size), size=n_resamples)
+    means = (weights @ sums) / (weights @ counts)
+    lo, hi = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def fmt_p(p: float) -> str:
+    """A p-value as the paper writes it: ``.107``, ``<.001``; ``–`` when there is none."""
+    if p is None or not np.isfinite(p):
+        return "–"
+    if p < 0.001:
+        return "<.001"
+    return f"{p:.3f}".lstrip("0")
+
+
+def p_is(p: float) -> str:
+    """``p = .107`` or ``p < .001``."""
+    text = fmt_p(p)
+    return f"p {text[0]} {text[1:]}" if text.startswith("<") else f"p = {text}"
+
+
+def fmt_ms(mean: float, sem: float, digits: int) -> str:
+    if not np.isfinite(mean):
+        return "–"
+    return f"{mean:.{digits}f} ± {sem:.{digits}f}" if np.isfinite(sem) else f"{mean:.{digits}f}"
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    lines = ["| " + " | ".join(map(str, header)) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def write_csv(df: pd.DataFrame, path: Path) -> None:
+    atomic_write_text(path, df.to_csv(index=False, float_format="%.12g"))
+
+
+def save_figure(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=130, bbox_inches="tight", format="png")
+    plt.close(fig)
+
+
+@dataclass
+class Settings:
+    """What every analysis needs besides the log."""
+
+    world_overrides: Sequence[str] = ()
+    compare: Optional[tuple[str, str]] = None
+    n_resamples: int = 10_000
+    bootstrap: int = 1_000
+    seed: int = 0
+    epsilon: float = 1e-3
+    predictors: Sequence[str] = ("veridical", "ipe", "cnn")
+    flow_task: Optional[str] = None
+    only: Sequence[str] = ANALYSES
+    progress: bool = False
+
+
+@dataclass
+class Section:
+    """One analysis's part of the report: markdown, and the files it wrote."""
+
+    title: str
+    text: str
+    files: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def build_world(overrides: Sequence[str]):
+    """The world of the run config composed with ``overrides``, through the plugin registry."""
+    from overhang_framework.check import build_world as build
+
+    return build(list(overrides))
+
+
+def completeness(df: pd.DataFrame) -> list[str]:
+    """What the log lacks, one line each: missing trials, trials that ended early, timeouts, trajectories."""
+    notes = []
+    tasks = df["task_id"].nunique()
+    trials = df.groupby("participant")["trial"].nunique()
+    short = trials[trials < tasks]
+    if len(short):
+        notes.append(f"{len(short)} of {len(trials)} participants did fewer trials than the {tasks} tasks in the log "
+                     f"(fewest: {int(short.min())}); per-participant sums (total reward) cover the trials they did.")
+    last = df.groupby(["participant", "trial"]).tail(1)
+    placed = last["step"] == last["sequence"].map(len) - 1
+    fell = (last["stable"] == False).fillna(False).astype(bool) & placed  # noqa: E712
+    early = (~placed).sum()
+    if early:
+        timeouts = int(last["timed_out"].sum())
+        notes.append(f"{int(early)} of {len(last)} trials ended before their last block "
+                     f"({timeouts} on a timeout, {int(early) - timeouts} on a collapse).")
+    if fell.sum():
+        n = int(fell.sum())
+        notes.append(f"{n} trial{'s' if n != 1 else ''} placed every block but the last placement toppled the tower "
+                     "(they count in Γ, with Γ = 1).")
+    timeouts = int(df["timed_out"].sum())
+    if timeouts:
+        notes.append(f"{timeouts} record{' is a timeout' if timeouts == 1 else 's are timeouts'} (no placement): "
+                     "timeouts count in decision time and end their trial with reward 0; flows and Fig. 4 skip them.")
+    if df["trajectory"].isna().all():
+        notes.append("the log has no mouse trajectories (`trajectory`); no analysis here needs them "
+                     "(the flows are drawn from placements).")
+    elif df["trajectory"].isna().any():
+        notes.append(f"{int(df['trajectory'].isna().sum())} of {len(df)} records have no mouse trajectory; "
+                     "no analysis here needs them.")
+    return notes
+
+
+def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
+        log: Callable[[str], None] = lambda s: None) -> dict[str, Section]:
+    """Read the logs in ``paths``, run the analyses of ``settings.only`` and write everything into ``out``.
+
+    Returns the sections by analysis name; ``report.md`` holds them all.
+    """
+    from overhang_framework.behaviour.log import read_log
+
+    started = time.perf_counter()
+    df = with_groups(read_log(list(paths)))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    groups = list(df["group"].unique())
+    compare = settings.compare or default_compare(groups)
+    if settings.compare:
+        missing = [g for g in settings.compare if g not in groups]
+        if missing:
+            from overhang_framework.errors import OverhangError
+
+            raise OverhangError(f"--compare: no group {' or '.join(map(repr, missing))} in the log; "
+                                f"groups: {', '.join(sorted(groups))}")
+    order = group_order(groups, compare)
+    sections: dict[str, Section] = {}
+    world = None
+    if any(a in settings.only for a in ("gamma", "flows", "prediction")):
+        try:
+            world = build_world(settings.world_overrides)
+        except Exception as exc:  # a bad override or parameter: one line, as the main job reports it
+            from overhang_framework.errors import OverhangError
+
+            raise OverhangError(f"--world: {' '.join(str(exc).split()) or type(exc).__name__}") from None
+    try:
+        for name in ANALYSES:
+            if name not in settings.only:
+                continue
+            t0 = time.perf_counter()
+            log(f"{name}...")
+            if name == "table1":
+                from overhang_framework.behaviour import table1
+
+                sec = table1.section(df, out, order, compare, settings)
+            elif name == "gamma":
+                from overhang_framework.behaviour import gamma
+
+                sec = gamma.section(df, out, order, compare, settings, world)
+            elif name == "flows":
+                from overhang_framework.behaviour import flows
+
+                sec = flows.section(df, out, order, settings, world)
+            else:
+                from overhang_framework.behaviour import prediction
+
+                sec = prediction.section(df, out, order, compare, settings, world)
+            sec.seconds = time.perf_counter() - t0
+            sections[name] = sec
+            log(f"{name}: {sec.seconds:.1f} s")
+    finally:
+        close = getattr(getattr(world, "backend", None), "close", None)
+        if close is not None:
+            close()
+    write_report(df, out, order, compare, settings, sections, paths, time.perf_counter() - started)
+    return sections
+
+
+def write_report(df, out: Path, order, compare, settings: Settings, sections: dict[str, Section],
+                 paths, seconds: float) -> None:
+    from overhang_framework.behaviour.log import describe
+
+    people = df.drop_duplicates("participant")
+    lines = ["# Behaviour analysis", "",
+             f"Logs: {', '.join(str(p) for p in paths)}; {describe(df)}.", "",
+             "Groups (a record's `condition`; records with source `model` by their model label, the participant "
+             "id before '/'):", "",
+             markdown_table(["group", "participants", "trials", "placements"],
+                            [[g, int((people["group"] == g).sum()),
+                              len(df[df["group"] == g].drop_duplicates(["participant", "trial"])),
+                              int(((df["group"] == g) & ~df["timed_out"]).sum())] for g in order]), ""]
+    lines.append(f"Compared groups: {compare[0]} vs {compare[1]}." if compare else
+                 "No two groups to compare (give `--compare A B`): no p-values.")
+    world = " ".join(settings.world_overrides) or "the default world (tiered physics)"
+    lines += ["", f"World: {world}. Seed {settings.seed}.", "", "## What the log lacks", ""]
+    notes = completeness(df)
+    lines += [f"- {n}" for n in notes] if notes else ["Nothing: every participant did every task to its end."]
+    skipped = [a for a in ANALYSES if a not in sections]
+    if skipped:
+        lines += ["", f"Not run (`--only`): {', '.join(skipped)}."]
+    for name, sec in sections.items():
+        lines += ["", f"## {sec.title}", "", sec.text.strip()]
+        if sec.files:
+            lines += ["", "Files: " + ", ".join(f"`{f}`" for f in sec.files) + "."]
+    lines += ["", "## Time", "",
+              markdown_table(["analysis", "seconds"], [[n, f"{s.seconds:.1f}"] for n, s in sections.items()]
+                             + [["total (reading and writing included)", f"{seconds:.1f}"]]), ""]
+    atomic_write_text(out / "report.md", "\n".join(lines))
