@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from overhang_framework.advice import run_notes
-from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
+from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
 from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.parallel import merge_stats
@@ -368,12 +368,6 @@ def _first_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
 
 
-def _in_sweep() -> bool:
-    from hydra.types import RunMode
-
-    return HydraConfig.get().mode == RunMode.MULTIRUN
-
-
 def _job_failed(out_dir: Path, error: BaseException) -> None:
     """In a sweep, a job that fails records why in its metrics.json and lets the other jobs run."""
     metrics = out_dir / "metrics.json"
@@ -426,7 +420,7 @@ def main(cfg: DictConfig) -> dict:
     except OverhangError as err:
         log.error("%s", err)
         print(f"error: {err}", file=sys.stderr)
-        if _in_sweep():
+        if in_sweep():
             _job_failed(out_dir, err)
             return {}
         sys.exit(2)
@@ -446,7 +440,7 @@ def main(cfg: DictConfig) -> dict:
                    f"with hydra.run.dir={out_dir}")
         log.error("%s", message)
         print(message, file=sys.stderr)
-        if _in_sweep():
+        if in_sweep():
             return {}  # metrics.json says failed; the sweep goes on and reports it
         sys.exit(1)
     except KeyboardInterrupt:

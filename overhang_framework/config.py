@@ -45,3 +45,11 @@ def group_options(group: str) -> list[str]:
     GlobalHydra.instance().clear()
     with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
         return sorted(GlobalHydra.instance().config_loader().get_group_options(group))
+
+
+def in_sweep() -> bool:
+    """Whether the running Hydra job is one job of a multirun (``-m``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN

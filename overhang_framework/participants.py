@@ -32,7 +32,7 @@ from overhang_framework.behaviour.participants import (
     participants_csv,
     simulate,
 )
-from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
+from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.plugins import Registry
 from overhang_framework.progress import progress_bar
@@ -109,12 +109,6 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     return {"records": len(sim.records), "participants": len(sim.participants), "conditions": rows}
 
 
-def _in_sweep() -> bool:
-    from hydra.types import RunMode
-
-    return HydraConfig.get().mode == RunMode.MULTIRUN
-
-
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
 def app(cfg: DictConfig) -> Optional[dict]:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -123,7 +117,7 @@ def app(cfg: DictConfig) -> Optional[dict]:
     except OverhangError as err:
         log.error("%s", err)
         print(f"error: {err}", file=sys.stderr)
-        if _in_sweep():
+        if in_sweep():
             return None
         sys.exit(2)
     except KeyboardInterrupt:
