@@ -1,4 +1,7 @@
-"""Episodes of one run spread over worker processes (``jobs=N``), with the results of a serial run.
+"""Work spread over worker processes (``jobs=N``), with the results of a serial run.
+
+:func:`pool_map` runs any function over items on spawned workers, each of which
+builds what it needs once; :func:`play_episodes` plays a run's episodes with it.
 
 Every episode draws its generator from ``(seed, task index, repeat)`` and the
 physics answers do not depend on what ran before (a cache only remembers
@@ -20,13 +23,12 @@ import sys
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
 
-_MODELS: Optional[dict] = None
-_TASKS: Optional[list] = None
+_STATE: Any = None
 _TICKS = None
 
 
-def _init(config: Mapping[str, Any], ticks) -> None:
-    global _MODELS, _TASKS, _TICKS
+def _init(setup: Callable[..., Any], args: tuple, ticks) -> None:
+    global _STATE, _TICKS
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     # One compute thread per worker: the workers already fill the cores, and oversubscribed
     # thread pools (torch's, BLAS's) slow every process down (a model's own `threads` still wins).
@@ -34,27 +36,79 @@ def _init(config: Mapping[str, Any], ticks) -> None:
         os.environ.setdefault(var, "1")
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(1)
+    from overhang_framework.config import enable_plugin_configs
+
+    enable_plugin_configs()
+    _TICKS = ticks
+    _STATE = setup(*args)
+
+
+def tick() -> None:
+    """In a worker of :func:`pool_map`: report one unit of progress to the parent (a no-op elsewhere)."""
+    if _TICKS is not None:
+        _TICKS.put(1)
+
+
+def _call(work: Callable[[Any, Any], Any], item: Any) -> tuple[Any, int]:
+    return work(_STATE, item), os.getpid()
+
+
+def pool_map(setup: Callable[..., Any], args: tuple, work: Callable[[Any, Any], Any], items: Sequence[Any],
+             workers: int, on_tick: Callable[[], None]) -> Iterator[tuple[Any, Any, int]]:
+    """Yield ``(item, work(state, item), process id)`` for every item, as each finishes, computed
+    on ``workers`` spawned processes.
+
+    Each worker runs ``state = setup(*args)`` once, then ``work(state, item)`` for
+    the items it is given; both must be importable module-level functions.
+    ``on_tick`` is called in this process once per :func:`tick` made in any
+    worker. On an error or Ctrl-C the workers are stopped; every result already
+    yielded stays with the caller.
+    """
+    context = mp.get_context("spawn")
+    ticks = context.Queue()
+    executor = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init,
+                                   initargs=(setup, tuple(args), ticks))
+    pending: dict[Future, Any] = {}
+    try:
+        for item in items:
+            pending[executor.submit(_call, work, item)] = item
+        while pending:
+            finished, _ = wait(list(pending), timeout=0.1, return_when=FIRST_COMPLETED)
+            _drain(ticks, on_tick)
+            for future in finished:
+                item = pending.pop(future)
+                result, pid = future.result()
+                yield item, result, pid
+        _drain(ticks, on_tick)
+    finally:
+        processes = list((getattr(executor, "_processes", None) or {}).values())
+        for future in pending:
+            future.cancel()
+        executor.shutdown(wait=not pending, cancel_futures=True)
+        for process in processes:
+            if process.is_alive():
+                process.terminate()
+
+
+def _episode_setup(config: Mapping[str, Any]) -> tuple[dict, list]:
     from omegaconf import OmegaConf
 
     from overhang_framework.app import build_models
-    from overhang_framework.config import enable_plugin_configs
     from overhang_framework.tasks import tasks_from_config
 
-    enable_plugin_configs()
     cfg = OmegaConf.create(dict(config))
-    _MODELS = build_models(cfg)
-    _TASKS = tasks_from_config(cfg.tasks)
-    _TICKS = ticks
+    return build_models(cfg), tasks_from_config(cfg.tasks)
 
 
-def _play(index: int, repeat: int, seed: int, time_limit: Optional[float], call_limit: Optional[int]) -> dict:
+def _episode_play(state: tuple[dict, list], job: tuple) -> tuple[dict, dict]:
     from overhang_framework.episode import play_run_episode
 
-    m = _MODELS
-    record = play_run_episode(m, _TASKS[index], index, repeat, seed, time_limit, call_limit,
-                              on_step=lambda step: _TICKS.put(1))
-    counters = {"world": m["world"].stats(), "predictor": getattr(m["predictor"], "stats", dict)()}
-    return record, os.getpid(), counters
+    models, tasks = state
+    index, repeat, seed, time_limit, call_limit = job
+    record = play_run_episode(models, tasks[index], index, repeat, seed, time_limit, call_limit,
+                              on_step=lambda step: tick())
+    counters = {"world": models["world"].stats(), "predictor": getattr(models["predictor"], "stats", dict)()}
+    return record, counters
 
 
 def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], seed: int,
@@ -64,31 +118,11 @@ def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], se
     ``workers`` processes; ``on_step`` is called once per placement made anywhere. ``counters``, when
     given, receives each worker's latest world and predictor stats by process id (see
     :func:`merge_stats`)."""
-    context = mp.get_context("spawn")
-    ticks = context.Queue()
-    executor = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init,
-                                   initargs=(dict(config), ticks))
-    pending: set[Future] = set()
-    try:
-        for index, repeat in todo:
-            pending.add(executor.submit(_play, index, repeat, seed, time_limit, call_limit))
-        while pending:
-            finished, pending = wait(pending, timeout=0.1, return_when=FIRST_COMPLETED)
-            _drain(ticks, on_step)
-            for future in finished:
-                record, pid, latest = future.result()
-                if counters is not None:
-                    counters[pid] = latest
-                yield record
-        _drain(ticks, on_step)
-    finally:
-        processes = list((getattr(executor, "_processes", None) or {}).values())
-        for future in pending:
-            future.cancel()
-        executor.shutdown(wait=not pending, cancel_futures=True)
-        for process in processes:
-            if process.is_alive():
-                process.terminate()
+    jobs = [(index, repeat, seed, time_limit, call_limit) for index, repeat in todo]
+    for _, (record, latest), pid in pool_map(_episode_setup, (dict(config),), _episode_play, jobs, workers, on_step):
+        if counters is not None:
+            counters[pid] = latest
+        yield record
 
 
 def merge_stats(parts: Sequence[Any]) -> Any:

@@ -12,7 +12,9 @@ every key: ``docs/participants.md``.
 
 from __future__ import annotations
 
+import json
 import logging
+import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,23 +28,29 @@ from overhang_framework.behaviour.log import write_log
 from overhang_framework.behaviour.participants import (
     Agents,
     Cohort,
+    Participant,
     cohort_from_config,
+    cohort_tasks,
     condition_summary,
+    draw_participants,
     format_summary,
     participants_csv,
-    simulate,
+    simulate_participant,
 )
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.plugins import Registry
 from overhang_framework.progress import progress_bar
 from overhang_framework.results import atomic_write_text
+from overhang_framework.rundir import RunDir, result_config
 from overhang_framework.tasks import tasks_from_config
 
 enable_plugin_configs()
 log = logging.getLogger("overhang_framework.participants")
 PROG = "python -m overhang_framework.participants"
 CONFIG_NAME = "participants"
+#: What the run directory gets: the log, the participants' parameters, and (while running) finished participants.
+LOG, CSV, PARTS = "log.jsonl", "participants.csv", "parts"
 
 
 @dataclass
@@ -51,6 +59,7 @@ class Checked:
 
     seed: int
     progress: bool
+    jobs: int
     cohort: Cohort
     tasks: list
     models: dict
@@ -63,15 +72,20 @@ def _plain(node) -> Any:
 
 def check_config(cfg: DictConfig) -> Checked:
     """Check every value of ``cfg`` and build what the run shares (nothing runs); :class:`OverhangError` otherwise."""
-    top = ("world", "predictor", "planner", "value", "tasks", "conditions", "cohort", "seed", "progress")
+    top = ("world", "predictor", "planner", "value", "tasks", "conditions", "cohort", "seed", "progress", "jobs",
+           "overwrite")
     extra = [k for k in cfg if k not in top and k != "hydra"]
     if extra:
         raise ConfigError(f"unknown config key '{extra[0]}'; top-level keys: {', '.join(sorted(top))}")
     seed = cfg.get("seed")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"seed must be a whole number >= 0, got {seed!r}")
-    if not isinstance(cfg.get("progress"), bool):
-        raise ConfigError(f"progress must be true or false, got {cfg.get('progress')!r}")
+    for key in ("progress", "overwrite"):
+        if not isinstance(cfg.get(key), bool):
+            raise ConfigError(f"{key} must be true or false, got {cfg.get(key)!r}")
+    jobs = cfg.get("jobs")
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ConfigError(f"jobs must be a whole number >= 1 (worker processes), got {jobs!r}")
     cohort = cohort_from_config(_plain(cfg.cohort), _plain(cfg.conditions) or {})
     tasks = tasks_from_config(cfg.tasks)
     registry = Registry()
@@ -79,34 +93,103 @@ def check_config(cfg: DictConfig) -> Checked:
     models = {"world": world, "value": registry.create("value", _plain(cfg.value), world=world)}
     agents = Agents(registry, world, _plain(cfg.predictor), _plain(cfg.planner), cohort)
     # build the first participant's agent, so that a value the models refuse stops the command here
-    from overhang_framework.behaviour.participants import draw_participants
-
     agents.build(draw_participants(cohort, seed)[0])
-    return Checked(seed, cfg.progress, cohort, tasks, models, agents)
+    return Checked(seed, cfg.progress, jobs, cohort, tasks, models, agents)
+
+
+def _worker_setup(config: dict) -> Checked:
+    return check_config(OmegaConf.create(config))
+
+
+def _worker_simulate(checked: Checked, index: int) -> list[dict]:
+    from overhang_framework.parallel import tick
+
+    participant = draw_participants(checked.cohort, checked.seed)[index]
+    tasks = cohort_tasks(checked.cohort, checked.tasks)
+    return simulate_participant(participant, checked.cohort, tasks, checked.models, checked.agents, checked.seed,
+                                on_trial=lambda *_: tick())
+
+
+def _read_part(path: Path) -> Optional[list[dict]]:
+    """A finished participant's records from ``path``, or None when the file is not whole."""
+    try:
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError):
+        return None
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict:
-    """Simulate the cohort of ``cfg``; write ``log.jsonl`` and ``participants.csv`` into ``out_dir``."""
+    """Simulate the cohort of ``cfg``; write ``log.jsonl`` and ``participants.csv`` into ``out_dir``.
+
+    Each participant's records are kept in ``out_dir/parts/`` as it finishes, so
+    a run that stops (Ctrl-C, a crash, a time limit) continues where it was
+    when run again into the same directory with the same config; the parts are
+    removed once the log is written.
+    """
     checked = check_config(cfg)
     cohort = checked.cohort
-    n_tasks = len(checked.tasks[: cohort.n_tasks] if cohort.n_tasks else checked.tasks)
-    bar = progress_bar(total=cohort.size * n_tasks, desc="trials", unit="trial", disable=not checked.progress,
-                       miniters=1, mininterval=0.5, dynamic_ncols=True)
+    tasks = cohort_tasks(cohort, checked.tasks)
+    participants = draw_participants(cohort, checked.seed)
+    config = result_config({k: v for k, v in _plain(cfg).items() if k != "hydra"})
+    rundir = RunDir(out_dir)
+    parts = out_dir / PARTS
+    with rundir.lock():
+        rundir.prepare(config, overwrite=cfg.overwrite)
+        if cfg.overwrite:
+            shutil.rmtree(parts, ignore_errors=True)
+            for name in (LOG, CSV):
+                (out_dir / name).unlink(missing_ok=True)
+        done: dict[int, list[dict]] = {}
+        if parts.is_dir():
+            for p in participants:
+                records = _read_part(parts / f"{p.id}.jsonl")
+                if records is not None:
+                    done[p.index] = records
+        if (out_dir / LOG).exists() and not done:
+            records = _read_part(out_dir / LOG)
+            if records is not None:
+                log.info("%s is already complete for this config", out_dir / LOG)
+                return {"records": len(records), "participants": len(participants),
+                        "conditions": condition_summary(records), "resumed": len(participants)}
+        if done:
+            log.info("continuing: %d of %d participants already simulated in %s", len(done), len(participants), parts)
+        todo = [p for p in participants if p.index not in done]
+        bar = progress_bar(total=len(participants) * len(tasks), initial=len(done) * len(tasks), desc="trials",
+                           unit="trial", disable=not checked.progress, miniters=1, mininterval=0.5,
+                           dynamic_ncols=True)
 
-    def on_trial(participant, task) -> None:
-        bar.set_postfix_str(f"{participant.id} {task.id}")
-        bar.update(1)
+        def keep(participant: Participant, records: list[dict]) -> None:
+            parts.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(parts / f"{participant.id}.jsonl",
+                              "".join(json.dumps(r) + "\n" for r in records))
+            done[participant.index] = records
 
-    try:
-        sim = simulate(cohort, checked.tasks, checked.models, checked.agents, checked.seed, on_trial=on_trial)
-    finally:
-        bar.close()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_log(sim.records, out_dir / "log.jsonl")
-    atomic_write_text(out_dir / "participants.csv", participants_csv(sim.participants))
-    rows = condition_summary(sim.records)
-    log.info("wrote %d records of %d participants to %s", len(sim.records), len(sim.participants), out_dir)
-    return {"records": len(sim.records), "participants": len(sim.participants), "conditions": rows}
+        try:
+            if checked.jobs > 1 and len(todo) > 1:
+                from overhang_framework.parallel import pool_map
+
+                by_index = {p.index: p for p in todo}
+                for index, records, _ in pool_map(_worker_setup, (_plain(cfg),), _worker_simulate,
+                                                  [p.index for p in todo], min(checked.jobs, len(todo)),
+                                                  on_tick=lambda: bar.update(1)):
+                    keep(by_index[index], records)
+                    bar.set_postfix_str(f"{len(done)}/{len(participants)} participants")
+            else:
+                def on_trial(participant, task) -> None:
+                    bar.set_postfix_str(f"{participant.id} {task.id}")
+                    bar.update(1)
+
+                for p in todo:
+                    keep(p, simulate_participant(p, cohort, tasks, checked.models, checked.agents, checked.seed,
+                                                 on_trial))
+        finally:
+            bar.close()
+        records = [r for p in participants for r in done[p.index]]
+        write_log(records, out_dir / LOG)
+        atomic_write_text(out_dir / CSV, participants_csv(participants))
+        shutil.rmtree(parts, ignore_errors=True)
+    log.info("wrote %d records of %d participants to %s", len(records), len(participants), out_dir)
+    return {"records": len(records), "participants": len(participants), "conditions": condition_summary(records)}
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
@@ -121,8 +204,8 @@ def app(cfg: DictConfig) -> Optional[dict]:
             return None
         sys.exit(2)
     except KeyboardInterrupt:
-        print(f"interrupted: nothing was written to {out_dir} (the log is written when every trial is done)",
-              file=sys.stderr)
+        print(f"interrupted: the participants already simulated are kept in {out_dir / PARTS}; run the same "
+              f"command into {out_dir} to continue", file=sys.stderr)
         sys.exit(130)
     print(format_summary(summary["conditions"]))
     print(f"{summary['records']} records of {summary['participants']} participants: {out_dir}")

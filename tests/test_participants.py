@@ -192,3 +192,48 @@ def test_every_cohort_composes_and_checks():
         assert checked.cohort.name == name
         sizes[name] = {c.name: c.n for c in checked.cohort.conditions}
     assert sizes["paper"] == {"time_limited": 43, "unconstrained": 38}
+
+
+def test_participants_spread_over_processes_give_the_same_files(tmp_path, default_run):
+    spread = simulate_into(tmp_path, "cohort.motor.sd=0.05", "jobs=2", name="spread")
+    assert (spread / "log.jsonl").read_bytes() == (default_run / "log.jsonl").read_bytes()
+    assert (spread / "participants.csv").read_bytes() == (default_run / "participants.csv").read_bytes()
+    assert not (spread / "parts").exists()
+
+
+def test_a_stopped_run_continues_from_its_finished_participants(tmp_path, default_run, monkeypatch):
+    import overhang_framework.participants as app
+
+    real = app.simulate_participant
+    calls = []
+
+    def stop_at_third(participant, *args, **kwargs):
+        calls.append(participant.id)
+        if len(calls) == 3:
+            raise RuntimeError("the machine went down")
+        return real(participant, *args, **kwargs)
+
+    monkeypatch.setattr(app, "simulate_participant", stop_at_third)
+    with pytest.raises(RuntimeError, match="went down"):
+        simulate_into(tmp_path, "cohort.motor.sd=0.05", name="stopped")
+    out = tmp_path / "stopped"
+    kept = sorted(p.name for p in (out / "parts").iterdir())
+    assert kept == sorted(f"{c}.jsonl" for c in calls[:2]) and not (out / "log.jsonl").exists()
+    calls.clear()
+    simulate_into(tmp_path, "cohort.motor.sd=0.05", name="stopped")
+    assert len(calls) == 2  # only the two participants not yet kept
+    assert (out / "log.jsonl").read_bytes() == (default_run / "log.jsonl").read_bytes()
+    assert not (out / "parts").exists()
+    monkeypatch.setattr(app, "simulate_participant", real)
+    # another config into the same directory is refused, unless it overwrites
+    from overhang_framework.rundir import RunDirError
+
+    with pytest.raises(RunDirError, match=r"different config \(seed: 0 -> 1\)"):
+        simulate_into(tmp_path, "cohort.motor.sd=0.05", "seed=1", name="stopped")
+    simulate_into(tmp_path, "cohort.motor.sd=0.05", "seed=1", "overwrite=true", name="stopped")
+    assert (out / "log.jsonl").read_bytes() != (default_run / "log.jsonl").read_bytes()
+
+
+def test_jobs_must_be_a_whole_number_of_processes(tmp_path):
+    proc = _cli(*TINY, "jobs=0", f"hydra.run.dir={tmp_path / 'run'}")
+    assert proc.returncode == 2 and "jobs must be a whole number >= 1" in proc.stderr, proc.stderr

@@ -435,6 +435,33 @@ class Simulation:
     participants: list[Participant]
 
 
+def cohort_tasks(cohort: Cohort, tasks: Sequence[Task]) -> list[Task]:
+    """The tasks every participant of ``cohort`` does: the first ``cohort.n_tasks`` (all when null)."""
+    return list(tasks)[: cohort.n_tasks] if cohort.n_tasks else list(tasks)
+
+
+def simulate_participant(participant: Participant, cohort: Cohort, tasks: Sequence[Task], models: Mapping[str, Any],
+                         agents: "Agents", seed: int,
+                         on_trial: Optional[Callable[[Participant, Task], None]] = None) -> list[dict]:
+    """The records of one participant doing ``tasks`` (already cut to the cohort's) in an order of its own.
+
+    They depend only on the participant, the models and ``seed``: participants
+    can be simulated in any order, in any process.
+    """
+    specs = {s.name: s for s in cohort.conditions}
+    world, value = models["world"], models["value"]
+    predictor, planner = agents.build(participant)
+    rng = participant_rngs(seed, participant.index)[1]
+    order = rng.permutation(len(tasks))
+    records: list[dict] = []
+    for trial, k in enumerate(order, 1):
+        records.extend(simulate_trial(participant, specs[participant.condition], cohort, tasks[int(k)], trial,
+                                      world, predictor, planner, value, rng))
+        if on_trial is not None:
+            on_trial(participant, tasks[int(k)])
+    return records
+
+
 def simulate(cohort: Cohort, tasks: Sequence[Task], models: Mapping[str, Any], agents: Agents, seed: int,
              on_trial: Optional[Callable[[Participant, Task], None]] = None) -> Simulation:
     """Every participant of ``cohort`` does ``tasks`` (the first ``cohort.n_tasks``) in an order of its own.
@@ -442,20 +469,11 @@ def simulate(cohort: Cohort, tasks: Sequence[Task], models: Mapping[str, Any], a
     ``models`` holds the shared ``world`` and ``value``; ``agents`` builds each
     participant's predictor and planner. ``on_trial`` is called after each trial.
     """
-    tasks = list(tasks)[: cohort.n_tasks] if cohort.n_tasks else list(tasks)
+    tasks = cohort_tasks(cohort, tasks)
     participants = draw_participants(cohort, seed)
-    specs = {s.name: s for s in cohort.conditions}
-    world, value = models["world"], models["value"]
     records: list[dict] = []
     for participant in participants:
-        predictor, planner = agents.build(participant)
-        rng = participant_rngs(seed, participant.index)[1]
-        order = rng.permutation(len(tasks))
-        for trial, k in enumerate(order, 1):
-            records.extend(simulate_trial(participant, specs[participant.condition], cohort, tasks[int(k)], trial,
-                                          world, predictor, planner, value, rng))
-            if on_trial is not None:
-                on_trial(participant, tasks[int(k)])
+        records.extend(simulate_participant(participant, cohort, tasks, models, agents, seed, on_trial))
     return Simulation(records, participants)
 
 
