@@ -79,7 +79,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except OverhangError as exc:
         print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
-    files = sorted({f for s in sections.values() for f in s.files} | {"report.md"})
+    files = sorted({f for s in sections.values() for f in s.files} | {"report.md", "summary.json"})
     print(f"wrote {args.out}/report.md and {len(files) - 1} files: {', '.join(f for f in files if f != 'report.md')}")
     return 0
 

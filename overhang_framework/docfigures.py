@@ -22,7 +22,8 @@ that makes that text from the command's output::
 With ``output: metrics.json`` the command runs with ``hydra.run.dir`` set to a
 fresh directory and the file there is read; ``run:`` gives another command to
 run in place of ``command``, with ``{out}`` for that directory (``file:NAME``
-needs one: ``--out {out}``, ``hydra.sweep.dir={out}``). A template is
+needs one: ``--out {out}``, ``hydra.sweep.dir={out}``) and ``{python}`` for this
+interpreter (inside a ``bash -c`` of several commands). A template is
 Python's ``str.format`` over the output (``{world_stats[cache][hits]}``).
 
 Without ``--run`` (a second): the registry is read and every figure's text and
@@ -82,7 +83,7 @@ class Entry:
     def argv(self, out: Path) -> list[str]:
         """The command to execute, writing into ``out``; ``python`` is this interpreter."""
         if self.run is not None:
-            words = shlex.split(self.run.replace("{out}", str(out)))
+            words = shlex.split(self.run.replace("{out}", str(out)).replace("{python}", shlex.quote(sys.executable)))
         else:
             words = shlex.split(self.command)
             if self.output == "metrics.json":

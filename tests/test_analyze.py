@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -171,6 +172,16 @@ def test_partial_logs_are_reported_and_the_command_writes_its_files(tmp_path, ca
     assert (out / "fig4_loglik.png").read_bytes()[:4] == b"\x89PNG"
     tab = pd.read_csv(out / "table1.csv")
     assert set(tab["group"]) == {"time_limited", "unconstrained"}
+    # the report embeds its figures, and summary.json holds its headline figures
+    assert "![fig4_loglik.png](fig4_loglik.png)" in report and "![fig3b_gamma.png](fig3b_gamma.png)" in report
+    summary = json.loads((out / "summary.json").read_text())
+    row = tab[(tab["metric"] == "decision_time") & (tab["group"] == "unconstrained")].iloc[0]
+    assert summary["table1"]["decision_time"]["unconstrained"]["mean"] == pytest.approx(row["mean"])
+    assert summary["table1"]["decision_time"]["p"] == pytest.approx(row["p"])
+    per = pd.read_csv(out / "fig4_placements.csv")
+    assert summary["fig4"]["time_limited"]["veridical"] == pytest.approx(
+        per[per["group"] == "time_limited"]["ll_veridical"].mean())
+    assert set(summary["seconds"]) == {"table1", "gamma", "flows", "prediction", "total"}
     assert not list(out.glob(".*"))          # no temporary files left behind
     assert "wrote" in capsys.readouterr().out
 

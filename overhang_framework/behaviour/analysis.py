@@ -16,6 +16,8 @@ The statistics every analysis shares are here: :func:`mean_sem`, :func:`permutat
 
 from __future__ import annotations
 
+import json
+
 import math
 import time
 from dataclasses import dataclass, field
@@ -222,6 +224,43 @@ def completeness(df: pd.DataFrame) -> list[str]:
     return notes
 
 
+def _number(value):
+    return None if pd.isna(value) else float(value)
+
+
+def summary(out: Path, sections: dict[str, Section], seconds: float) -> dict:
+    """The report's headline figures as one JSON object (``summary.json``), for scripts and the docs' checks.
+
+    ``table1[metric][group]`` holds ``mean``, ``sem`` and ``n``, ``table1[metric]["p"]`` the test's p;
+    ``gamma[group]`` the mean and SEM across participants and tasks, ``gamma["p"]``;
+    ``fig4[group][predictor]`` the mean log-likelihood of the executed placements; ``seconds`` each
+    analysis's time and ``total``.
+    """
+    data: dict[str, Any] = {"seconds": {n: round(s.seconds, 3) for n, s in sections.items()}}
+    data["seconds"]["total"] = round(seconds, 3)
+    if (out / "table1.csv").exists() and "table1" in sections:
+        table: dict[str, dict] = {}
+        for row in pd.read_csv(out / "table1.csv").itertuples():
+            entry = table.setdefault(row.metric, {"p": _number(row.p)})
+            entry[row.group] = {"mean": _number(row.mean), "sem": _number(row.sem), "n": int(row.n)}
+        data["table1"] = table
+    if (out / "gamma.csv").exists() and "gamma" in sections:
+        gamma: dict[str, Any] = {}
+        for row in pd.read_csv(out / "gamma.csv").itertuples():
+            gamma["p"] = _number(row.p)
+            gamma[row.group] = {"participants_mean": _number(row.gamma_participants_mean),
+                                "participants_sem": _number(row.gamma_participants_sem),
+                                "tasks_mean": _number(row.gamma_tasks_mean), "tasks_sem": _number(row.gamma_tasks_sem),
+                                "towers": int(row.towers)}
+        data["gamma"] = gamma
+    if (out / "fig4_placements.csv").exists() and "prediction" in sections:
+        per = pd.read_csv(out / "fig4_placements.csv")
+        cols = [c for c in per.columns if c.startswith("ll_")]
+        data["fig4"] = {g: {c[3:]: float(v) for c, v in row.items()}
+                        for g, row in per.groupby("group")[cols].mean().iterrows()}
+    return data
+
+
 def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
         log: Callable[[str], None] = lambda s: None) -> dict[str, Section]:
     """Read the logs in ``paths``, run the analyses of ``settings.only`` and write everything into ``out``.
@@ -312,7 +351,9 @@ def write_report(df, out: Path, order, compare, settings: Settings, sections: di
         lines += ["", f"## {sec.title}", "", sec.text.strip()]
         if sec.files:
             lines += ["", "Files: " + ", ".join(f"`{f}`" for f in sec.files) + "."]
+            lines += [line for f in sec.files if f.endswith(".png") for line in ("", f"![{f}]({f})")]
     lines += ["", "## Time", "",
               markdown_table(["analysis", "seconds"], [[n, f"{s.seconds:.1f}"] for n, s in sections.items()]
                              + [["total (reading and writing included)", f"{seconds:.1f}"]]), ""]
     atomic_write_text(out / "report.md", "\n".join(lines))
+    atomic_write_text(out / "summary.json", json.dumps(summary(out, sections, seconds), indent=1, sort_keys=True) + "\n")
