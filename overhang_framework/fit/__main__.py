@@ -1,0 +1,227 @@
+"""Model fitting: ``python -m overhang_framework.fit LOG [LOG ...] --out DIR [OVERRIDES ...]``.
+
+Fits every model of the model space (config ``conf/fit.yaml``: predictor
+families x depths) to every participant of the behaviour logs, and to each
+condition pooled, and writes into ``DIR``: ``fits.csv`` (one row per
+participant x model: parameters, log-likelihood, k, n, BIC, AIC),
+``comparison.md`` / ``comparison.csv`` / ``comparison.png`` (winners, summed BIC,
+random-effects BMS, parameters between conditions) and ``fit.json`` (what was
+fitted). Hydra overrides choose the model space (``depths=[1,2,3]``,
+``models.ipe.sigma=[0.02,0.04]``, ``~models.cnn``); ``-m shard=0,1,2,3 shards=4``
+spreads the participants over the jobs of a multirun (any launcher), which share
+the score cache and leave one ``fits.csv``. docs/fitting.md describes it all.
+
+Examples::
+
+    python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit
+    python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit '~models.hybrid' depths=[1,2,3]
+    python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit -m shard=0,1 shards=2 \\
+        hydra/launcher=joblib hydra.launcher.n_jobs=2
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
+from overhang_framework.errors import ConfigError, OverhangError
+
+enable_plugin_configs()
+log = logging.getLogger("overhang_framework.fit")
+CONFIG_NAME = "fit"
+TOP = ("world", "value", "logs", "out", "models", "depths", "cache", "shard", "shards", "pooled", "progress")
+
+
+def _plain(node) -> Any:
+    return OmegaConf.to_container(node, resolve=True) if node is not None else None
+
+
+def _whole(cfg, key: str, minimum: int) -> int:
+    value = cfg.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
+    return value
+
+
+def check_config(cfg: DictConfig) -> dict:
+    """Every value of ``cfg`` checked, the logs read and the models built (nothing fitted)."""
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.fit.space import model_space
+    from overhang_framework.plugins import Registry
+
+    extra = [k for k in cfg if k not in TOP and k != "hydra"]
+    if extra:
+        raise ConfigError(f"unknown config key '{extra[0]}'; top-level keys: {', '.join(sorted(TOP))}")
+    logs = _plain(cfg.logs) or []
+    if not logs:
+        raise ConfigError("no behaviour log given: python -m overhang_framework.fit LOG [LOG ...] --out DIR")
+    if not cfg.get("out"):
+        raise ConfigError("no results directory given: add --out DIR")
+    shard, shards = _whole(cfg, "shard", 0), _whole(cfg, "shards", 1)
+    if shard >= shards:
+        raise ConfigError(f"shard must be from 0 to shards - 1 = {shards - 1}, got {shard}")
+    for key in ("pooled", "progress"):
+        if not isinstance(cfg.get(key), bool):
+            raise ConfigError(f"{key} must be true or false, got {cfg.get(key)!r}")
+    depths = _plain(cfg.depths)
+    if not isinstance(depths, list):
+        depths = [depths]
+    space = model_space(_plain(cfg.models) or {}, depths)
+    df = read_log([str(p) for p in logs])
+    registry = Registry()
+    world = registry.create("world", _plain(cfg.world))
+    value = registry.create("value", _plain(cfg.value), world=world)
+    for index in space:  # a setting a predictor refuses stops the command here
+        for model in index.variants:
+            registry.create("predictor", dict(model.predictor), world=world)
+    return {"df": df, "space": space, "world": world, "value": value, "registry": registry, "shard": shard,
+            "shards": shards, "logs": [str(Path(p).resolve()) for p in logs]}
+
+
+def run(cfg: DictConfig) -> dict:
+    """Fit this job's share of the units; write its part, and the aggregate when every part is there."""
+    from overhang_framework.fit.compare import comparison
+    from overhang_framework.fit.fitting import log_placements
+    from overhang_framework.fit.run import (aggregate, check_directory, fit_units, units_of, write_part)
+    from overhang_framework.fit.scores import ScoreCache
+    from overhang_framework.progress import progress_bar
+
+    checked = check_config(cfg)
+    out = Path(cfg.out)
+    world, value, space = checked["world"], checked["value"], checked["space"]
+    context = {"world": _plain(cfg.world), "value": _plain(cfg.value)}
+    description = {"logs": checked["logs"], "models": [[m.label, dict(m.predictor)] for i in space for m in i.variants],
+                   "context": context, "pooled": cfg.pooled, "shards": checked["shards"]}
+    check_directory(out, description)
+    units = units_of(log_placements(checked["df"]), cfg.pooled)
+    mine = [u for k, u in enumerate(units) if k % checked["shards"] == checked["shard"]]
+    cache = ScoreCache(cfg.cache)
+    predictors: dict[str, Any] = {}
+
+    def build(config):
+        key = repr(sorted(config.items()))
+        if key not in predictors:
+            predictors[key] = checked["registry"].create("predictor", dict(config), world=world)
+        return predictors[key]
+
+    bar = progress_bar(total=len(mine) * len(space), desc="fits", unit="fit", disable=not cfg.progress,
+                       miniters=1, mininterval=0.5, dynamic_ncols=True)
+
+    def on_unit(label, unit):
+        bar.set_postfix_str(f"{label} {unit.name}")
+        bar.update(1)
+
+    try:
+        result = fit_units(mine, world, value, context, space, cache, build, on_unit)
+    finally:
+        bar.close()
+        cache.close()
+    part = write_part(out, checked["shard"], checked["shards"], result.fits)
+    fits = aggregate(out, checked["shards"])
+    if fits is not None:
+        comparison(fits, out)
+    stats = {label: vars(s) for label, s in result.stats.items()}
+    log.info("fitted %d units x %d models in %.1f s: %s", len(mine), len(space), result.seconds, stats)
+    return {"part": str(part), "complete": fits is not None, "seconds": result.seconds, "tables": stats,
+            "units": len(mine), "models": len(space)}
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
+def app(cfg: DictConfig) -> Optional[dict]:
+    try:
+        summary = run(cfg)
+    except OverhangError as err:
+        log.error("%s", err)
+        print(f"error: {err}", file=sys.stderr)
+        if in_sweep():
+            return None
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print(f"interrupted: the score tables computed so far are kept in {cfg.cache}; run the same command "
+              "to continue from them", file=sys.stderr)
+        sys.exit(130)
+    out = Path(cfg.out)
+    total = sum(t["computed"] for t in summary["tables"].values())
+    cached = sum(t["cached"] for t in summary["tables"].values())
+    print(f"{summary['units']} participants and pooled conditions x {summary['models']} models in "
+          f"{summary['seconds']:.1f} s ({total} score tables computed, {cached} from the cache)")
+    if summary["complete"]:
+        print(f"wrote {out / 'fits.csv'} and {out / 'comparison.md'}")
+    else:
+        print(f"wrote {summary['part']}; fits.csv is written when every shard is done")
+    return summary
+
+
+def command_words(args: Sequence[str]) -> list[str]:
+    """``LOG ... --out DIR OVERRIDES`` as Hydra words: ``logs=[...]``, ``out=DIR``, then the rest."""
+    logs, rest, out = [], [], None
+    it = iter(args)
+    for word in it:
+        if word == "--out":
+            out = next(it, None)
+            if out is None:
+                raise ConfigError("--out needs a directory")
+        elif word.startswith("--out="):
+            out = word.split("=", 1)[1]
+        elif word.startswith("-") or "=" in word or word.startswith("~") or word.startswith("+"):
+            rest.append(word)
+        else:
+            logs.append(word)
+    words = list(rest)
+    if logs:
+        quoted = ",".join("'" + str(Path(p).resolve()).replace("'", "\\'") + "'" for p in logs)
+        words.append(f"logs=[{quoted}]")
+    if out is not None:
+        words.append(f"out='{Path(out).resolve()}'")
+    return words
+
+
+def preflight(words: Sequence[str]) -> None:
+    from overhang_framework.config import compose_config
+    from overhang_framework.preflight import check_flags, split_flags
+
+    check_flags(words)
+    flags, overrides = split_flags(words)
+    if "-m" in flags or "--multirun" in flags:
+        from overhang_framework.participants import _sweep_variants
+
+        variants = _sweep_variants(overrides)
+    else:
+        variants = [list(overrides)]
+    for variant in variants:
+        try:
+            cfg = compose_config(variant, config_name=CONFIG_NAME)
+        except Exception as err:  # Hydra raises several kinds
+            from overhang_framework.participants import _one_line
+
+            raise OverhangError(_one_line(err)) from None
+        check_config(cfg)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    from overhang_framework.preflight import split_flags
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--help" in args or "-h" in args:
+        print(__doc__)
+        return
+    try:
+        words = command_words(args)
+        preflight(words)
+    except OverhangError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    flags, overrides = split_flags(words)
+    sys.argv = [sys.argv[0]] + flags + overrides
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,146 @@
+"""Fitting models to behaviour: ``beta`` and the lapse by optimisation over score tables, ``sigma`` on a grid.
+
+A *model index* is a predictor family and a depth (``ipe/D2``, ``cnn/myopic``).
+Its free parameters are the softmax's ``beta`` and the ``lapse`` (always), and
+the predictor's ``sigma`` when the model space gives a grid of several values
+(``ipe`` by default). For each grid value the tables are fixed, so ``beta`` and
+``lapse`` are fitted by L-BFGS-B (SciPy) from several starts; the grid value
+with the highest likelihood is kept. Each fit reports its log-likelihood, its
+number of parameters ``k`` (2, or 3 with a ``sigma`` grid), the number of
+placements ``n`` it explains, ``BIC = k ln n - 2 LL`` and ``AIC = 2 k - 2 LL``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import minimize
+
+from overhang_framework.fit.likelihood import Decisions, action_index, log_likelihood
+from overhang_framework.fit.scores import Model, ScoreTables
+from overhang_framework.geometry import Block, Geometry, check_width
+from overhang_framework.interfaces import State, World
+
+#: Bounds of the fitted parameters: beta per metre of score, lapse a probability.
+BETA_BOUNDS = (0.0, 200.0)
+LAPSE_BOUNDS = (0.0, 1.0)
+#: Starting points of the optimiser (beta, lapse); the best end point is kept.
+STARTS = ((1.0, 0.05), (10.0, 0.05), (50.0, 0.05), (10.0, 0.3))
+
+
+@dataclass
+class Placement:
+    """One executed placement of a log, as the fit sees it: its decision state and where the block went."""
+
+    participant: str
+    condition: str
+    state: State
+    x: float
+    layer: int
+
+
+def log_placements(df: pd.DataFrame) -> list[Placement]:
+    """The executed placements of a behaviour log (timed-out records left out), in the log's order."""
+    out = []
+    done = df[~df["timed_out"]]
+    for row in done[["participant", "condition", "tower_before", "sequence", "step", "x", "layer"]].itertuples(index=False):
+        geometry = Geometry(tuple(Block(check_width(w), float(bx), int(bl)) for w, bx, bl in row.tower_before))
+        remaining = tuple(float(w) for w in row.sequence[row.step - 1:])
+        out.append(Placement(str(row.participant), str(row.condition), State(geometry, remaining), float(row.x),
+                             int(row.layer)))
+    return out
+
+
+@dataclass
+class Mapped:
+    """Placements mapped onto the world's grid: the decision states and chosen indices, and how many were not."""
+
+    states: list[State]
+    chosen: list[int]
+    unmapped: int
+
+
+def map_placements(world: World, placements: Sequence[Placement]) -> Mapped:
+    states, chosen, unmapped = [], [], 0
+    for p in placements:
+        index = action_index(world, p.state, p.x, p.layer)
+        if index is None:
+            unmapped += 1
+            continue
+        states.append(p.state)
+        chosen.append(index)
+    return Mapped(states, chosen, unmapped)
+
+
+@dataclass
+class SoftmaxFit:
+    beta: float
+    lapse: float
+    loglik: float
+
+
+def fit_softmax(decisions: Decisions) -> SoftmaxFit:
+    """The ``beta`` and ``lapse`` of highest likelihood for fixed score tables."""
+    if len(decisions) == 0:
+        return SoftmaxFit(float("nan"), float("nan"), 0.0)
+
+    def objective(theta):
+        return -log_likelihood(decisions, float(theta[0]), float(theta[1]))
+
+    best = None
+    for start in STARTS:
+        res = minimize(objective, np.array(start), method="L-BFGS-B", bounds=[BETA_BOUNDS, LAPSE_BOUNDS])
+        if best is None or res.fun < best.fun:
+            best = res
+    return SoftmaxFit(float(best.x[0]), float(best.x[1]), -float(best.fun))
+
+
+@dataclass
+class ModelFit:
+    """A model index fitted to one participant (or a pooled group)."""
+
+    participant: str
+    condition: str
+    label: str
+    family: str
+    depth: int
+    sigma: Optional[float]
+    beta: float
+    lapse: float
+    loglik: float
+    k: int
+    n: int
+    unmapped: int
+
+    @property
+    def bic(self) -> float:
+        return self.k * math.log(self.n) - 2 * self.loglik if self.n else float("nan")
+
+    @property
+    def aic(self) -> float:
+        return 2 * self.k - 2 * self.loglik
+
+    def row(self) -> dict:
+        return {"participant": self.participant, "condition": self.condition, "model": self.label,
+                "family": self.family, "depth": self.depth, "sigma": self.sigma, "beta": self.beta,
+                "lapse": self.lapse, "loglik": self.loglik, "k": self.k, "n": self.n, "bic": self.bic,
+                "aic": self.aic, "unmapped": self.unmapped}
+
+
+def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables], mapped: Mapped) -> ModelFit:
+    """Fit one model index, whose ``variants`` are its score tables on the sigma grid (one when not fitted)."""
+    best, best_model = None, None
+    for tables in variants:
+        decisions = Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
+        fit = fit_softmax(decisions)
+        if best is None or fit.loglik > best.loglik + 1e-9:
+            best, best_model = fit, tables.model
+    model = best_model
+    k = 2 + (1 if len(variants) > 1 else 0)
+    return ModelFit(participant, condition, model.label, model.family, model.depth,
+                    model.sigma if len(variants) > 1 or model.sigma is not None else None, best.beta, best.lapse,
+                    best.loglik, k, len(mapped.states), mapped.unmapped)

@@ -1,0 +1,208 @@
+"""Score tables: a model's scores of every legal action in a decision state, computed once and kept on disk.
+
+A *model* of a participant is a physics predictor (any registered one, with its
+settings) and a planning depth ``D`` (1: the myopic planner's ``p(s, a) * r(s, a)``;
+``D >= 2``: the lookahead's ``max_pi prod_k p * V``). Its *score table* in a
+decision state holds the planner's exact score of every legal action of the
+world's grid, in the order of ``world.legal_actions(state)``: what a softmax
+choice needs (:func:`overhang_framework.search.root_scores` with every score exact).
+
+**Common random numbers.** The predictor's draws at every node of the search
+come from :func:`overhang_framework.search.node_rng`, a generator derived from
+the model's *draw seed* and the node's canonical key. The draw seed depends on
+the model's settings other than its noise level (``sigma``), so a table is a
+fixed function of the model and the state: the likelihood surface is
+deterministic, and the tables of neighbouring ``sigma`` share their standard
+normal draws (the IPE scales one set of draws by ``sigma``).
+
+**Reuse.** Within a process, one :class:`~overhang_framework.search.Expander` per
+model keeps the nodes it has expanded (up to ``memo_limit``), so the subtrees
+that the steps of a trial share, and the early states that participants doing
+the same task share, are searched once. Across processes and runs, the tables
+themselves are kept in a :class:`ScoreCache` (an SQLite file) keyed by the
+model's key and the state's canonical key.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+import numpy as np
+
+from overhang_framework.interfaces import Budget, State, World
+from overhang_framework.search import Expander, root_scores, state_key
+
+#: Predictor settings that set a noise level; the draw seed leaves them out (common random numbers).
+NOISE_KEYS = ("sigma", "sigma_position", "sigma_gravity", "sigma_friction")
+
+
+def _digest(data: Any) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _strip_noise(config: Any) -> Any:
+    if isinstance(config, Mapping):
+        return {k: _strip_noise(v) for k, v in config.items() if k not in NOISE_KEYS}
+    return config
+
+
+@dataclass(frozen=True)
+class Model:
+    """One model of the model space: a predictor config (as ``conf/predictor/*.yaml`` gives it) and a depth."""
+
+    predictor: Mapping[str, Any]
+    depth: int
+    family: str = ""
+
+    def __post_init__(self):
+        if isinstance(self.depth, bool) or not isinstance(self.depth, int) or self.depth < 1:
+            raise ValueError(f"depth must be a whole number >= 1, got {self.depth!r}")
+        if not self.family:
+            object.__setattr__(self, "family", str(self.predictor["name"]))
+
+    @property
+    def sigma(self) -> Optional[float]:
+        value = self.predictor.get("sigma")
+        return None if value is None else float(value)
+
+    @property
+    def planner(self) -> str:
+        return "myopic" if self.depth == 1 else f"D{self.depth}"
+
+    @property
+    def label(self) -> str:
+        """``ipe/D2``, ``cnn/myopic``: the model index (family and depth), without its fitted sigma."""
+        return f"{self.family}/{self.planner}"
+
+    def key(self, context: Mapping[str, Any]) -> str:
+        """The key of this model's tables: every setting that changes a score (``context``: world and value)."""
+        return _digest({"predictor": dict(self.predictor), "depth": self.depth, "context": dict(context)})
+
+    def draw_seed(self, context: Mapping[str, Any]) -> int:
+        """The seed of the predictor's draws: the model's settings without its noise levels."""
+        digest = _digest({"predictor": _strip_noise(dict(self.predictor)), "context": dict(context)})
+        return int(digest[:16], 16)
+
+
+class ScoreCache:
+    """Score tables on disk: an SQLite file that several processes (a multirun's jobs) share.
+
+    ``path=None`` keeps nothing. Tables are written as they are computed, so a
+    stopped fit keeps what it computed.
+    """
+
+    def __init__(self, path: Optional[str | Path]):
+        self.path = None if path is None else Path(path).expanduser()
+        self.hits = 0
+        self.misses = 0
+        self._db = None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self._db = sqlite3.connect(str(self.path), timeout=120, isolation_level=None)
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.execute("CREATE TABLE IF NOT EXISTS scores (key TEXT PRIMARY KEY, n INTEGER, scores BLOB)")
+            except sqlite3.DatabaseError as err:
+                raise ValueError(f"score cache {self.path} is not a usable SQLite file ({err}); "
+                                 "move it away or give another fit.cache") from None
+
+    @staticmethod
+    def entry(model_key: str, state: State) -> str:
+        return hashlib.sha256(repr((model_key, state_key(state))).encode()).hexdigest()
+
+    def get(self, key: str) -> Optional[np.ndarray]:
+        if self._db is None:
+            self.misses += 1
+            return None
+        row = self._db.execute("SELECT n, scores FROM scores WHERE key = ?", (key,)).fetchone()
+        if row is None:
+            self.misses += 1
+            return None
+        self.hits += 1
+        return np.frombuffer(row[1], dtype=np.float64, count=row[0]).copy()
+
+    def put(self, key: str, scores: np.ndarray) -> None:
+        if self._db is None:
+            return
+        data = np.ascontiguousarray(scores, dtype=np.float64)
+        self._db.execute("INSERT OR REPLACE INTO scores (key, n, scores) VALUES (?, ?, ?)",
+                         (key, int(data.size), data.tobytes()))
+
+    def __len__(self) -> int:
+        if self._db is None:
+            return 0
+        return int(self._db.execute("SELECT COUNT(*) FROM scores").fetchone()[0])
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+
+@dataclass
+class TableStats:
+    """What computing tables cost: tables asked, computed, found in the cache, predictor calls, seconds."""
+
+    asked: int = 0
+    computed: int = 0
+    cached: int = 0
+    predictor_calls: int = 0
+    seconds: float = 0.0
+
+
+@dataclass
+class ScoreTables:
+    """The score tables of one model on one world and value, computed once per state and cached.
+
+    ``context`` names the world and value settings that change a score (part of
+    the cache key). ``memo_limit`` bounds the nodes kept in memory between
+    tables (the expander is emptied when it holds more).
+    """
+
+    world: World
+    value: Any
+    predictor: Any
+    model: Model
+    context: Mapping[str, Any]
+    cache: Optional[ScoreCache] = None
+    memo_limit: int = 200_000
+    stats: TableStats = field(default_factory=TableStats)
+
+    def __post_init__(self):
+        self.key = self.model.key(self.context)
+        self._expander = self._new_expander()
+        self._tables: dict[tuple, np.ndarray] = {}
+
+    def _new_expander(self) -> Expander:
+        return Expander(self.world, self.predictor, Budget(), seed=self.model.draw_seed(self.context))
+
+    def table(self, state: State) -> np.ndarray:
+        """The model's score of every action of ``world.legal_actions(state)``, in that order."""
+        self.stats.asked += 1
+        skey = state_key(state)
+        known = self._tables.get(skey)
+        if known is not None:
+            return known
+        entry = ScoreCache.entry(self.key, state)
+        scores = self.cache.get(entry) if self.cache is not None else None
+        if scores is not None:
+            self.stats.cached += 1
+        else:
+            started = time.perf_counter()
+            if len(self._expander._memo) > self.memo_limit:
+                self._expander = self._new_expander()
+            calls = self._expander.stats.predictor_calls
+            scores = np.asarray(root_scores(self._expander, self.value, state, self.model.depth, True), dtype=float)
+            self.stats.predictor_calls += self._expander.stats.predictor_calls - calls
+            self.stats.computed += 1
+            self.stats.seconds += time.perf_counter() - started
+            if self.cache is not None:
+                self.cache.put(entry, scores)
+        self._tables[skey] = scores
+        return scores

@@ -1,0 +1,73 @@
+"""The model space of a fit: predictor families (with an optional sigma grid) crossed with planning depths."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+from overhang_framework.errors import ConfigError
+from overhang_framework.fit.scores import Model
+
+#: Depths a model may have (1: myopic).
+MAX_DEPTH = 5
+
+
+@dataclass
+class ModelIndex:
+    """One model index (a family and a depth) and its variants: one model per sigma of the grid, else one."""
+
+    family: str
+    depth: int
+    variants: list[Model]
+
+    @property
+    def label(self) -> str:
+        return self.variants[0].label
+
+
+def _predictor_config(name: str, overrides: Mapping[str, Any]) -> dict:
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config, group_options
+
+    options = group_options("predictor")
+    if name not in options:
+        raise ConfigError(f"fit.models: unknown predictor {name!r}; installed predictors: {', '.join(options)}")
+    base = OmegaConf.to_container(compose_config([f"predictor={name}"]).predictor, resolve=True)
+    unknown = [k for k in overrides if k not in base]
+    if unknown:
+        raise ConfigError(f"fit.models.{name}: predictor {name!r} has no setting {unknown[0]!r}; "
+                          f"settings: {', '.join(sorted(base))}")
+    base.update(overrides)
+    return base
+
+
+def model_space(models: Mapping[str, Any], depths: Sequence[int]) -> list[ModelIndex]:
+    """The model indices of ``models`` (``family: {predictor: name, sigma: [grid], <setting>: value}``) x ``depths``."""
+    if not models:
+        raise ConfigError("fit.models is empty; give at least one predictor family")
+    if not depths:
+        raise ConfigError("fit.depths is empty; give at least one depth (1 is myopic)")
+    for d in depths:
+        if isinstance(d, bool) or not isinstance(d, int) or not 1 <= d <= MAX_DEPTH:
+            raise ConfigError(f"fit.depths: {d!r} is not a depth; allowed: whole numbers from 1 (myopic) to {MAX_DEPTH}")
+    out = []
+    for family, spec in models.items():
+        spec = dict(spec or {})
+        name = spec.pop("predictor", family)
+        grid = spec.pop("sigma", None)
+        if grid is None:
+            sigmas = [None]
+        else:
+            sigmas = list(grid) if isinstance(grid, (list, tuple)) else [grid]
+            if not sigmas or any(isinstance(s, bool) or not isinstance(s, (int, float)) or s < 0 for s in sigmas):
+                raise ConfigError(f"fit.models.{family}.sigma must be a number >= 0 or a list of them, got {grid!r}")
+        configs = []
+        for sigma in sigmas:
+            overrides = dict(spec)
+            if sigma is not None:
+                overrides["sigma"] = float(sigma)
+            configs.append(_predictor_config(str(name), overrides))
+        for depth in depths:
+            out.append(ModelIndex(str(family), int(depth), [Model(c, int(depth), str(family)) for c in configs]))
+    return out
