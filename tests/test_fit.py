@@ -140,3 +140,48 @@ def test_a_malformed_or_unusable_log_fails_with_one_line(tmp_path):
     proc = _cli(str(bad), "--out", str(tmp_path / "out"), "+models.magic={predictor: crystal_ball}")
     assert proc.returncode == 2 and "unknown predictor 'crystal_ball'" in proc.stderr, proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def tiny_log(tmp_path_factory):
+    """A simulated log: 2 + 2 participants, three short tasks, static physics."""
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, run
+
+    out = tmp_path_factory.mktemp("sim")
+    run(compose_config(["tasks=custom", "tasks.sequences=[[1.2,0.6,1.2],[0.6,1.2,0.6,0.6],[1.8,0.6,0.6]]",
+                        "world.physics=static", "predictor.K=10", "progress=false",
+                        "cohort.participants.time_limited=2", "cohort.participants.unconstrained=2",
+                        "cohort.n_tasks=null"], config_name=CONFIG_NAME), out)
+    return out / "log.jsonl"
+
+
+FIT = ["world.physics=static", "~models.cnn", "~models.hybrid", "models.ipe.K=10", "models.ipe.sigma=[0.02,0.06]",
+       "+models.veridical={predictor: veridical}", "progress=false"]
+
+
+def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tmp_path, tiny_log):
+    one = tmp_path / "one"
+    proc = _cli(str(tiny_log), "--out", str(one), *FIT, f"cache={tmp_path / 'scores.sqlite'}")
+    assert proc.returncode == 0, proc.stderr
+    fits = pd.read_csv(one / "fits.csv")
+    models = {"ipe/myopic", "ipe/D2", "veridical/myopic", "veridical/D2"}
+    assert set(fits["model"]) == models
+    assert len(fits) == len(models) * (4 + 2)               # 4 participants and 2 pooled conditions
+    assert set(fits.loc[fits["family"] == "ipe", "sigma"]) <= {0.02, 0.06} and fits["k"].isin([2, 3]).all()
+    row = fits.iloc[0]
+    assert row["bic"] == pytest.approx(row["k"] * math.log(row["n"]) - 2 * row["loglik"])
+    assert row["aic"] == pytest.approx(2 * row["k"] - 2 * row["loglik"])
+    text = (one / "comparison.md").read_text()
+    assert "PXP" in text and "Bayesian omnibus risk" in text and (one / "comparison.png").stat().st_size > 5000
+    # the same fit as a two-job multirun, warm cache: the same fits.csv
+    two = tmp_path / "two"
+    proc = _cli(str(tiny_log), "--out", str(two), *FIT, f"cache={tmp_path / 'scores.sqlite'}", "-m", "shard=0,1",
+                "shards=2")
+    assert proc.returncode == 0, proc.stderr
+    assert "0 score tables computed" in proc.stdout
+    a, b = pd.read_csv(one / "fits.csv"), pd.read_csv(two / "fits.csv")
+    pd.testing.assert_frame_equal(a, b)
+    # another model space into the same directory is refused
+    proc = _cli(str(tiny_log), "--out", str(one), *FIT, "depths=[1]", f"cache={tmp_path / 'scores.sqlite'}")
+    assert proc.returncode == 2 and "holds fits of another" in proc.stderr, proc.stderr

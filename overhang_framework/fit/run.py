@@ -24,7 +24,7 @@ from overhang_framework.errors import OverhangError
 from overhang_framework.fit.fitting import ModelFit, Placement, fit_index, log_placements, map_placements
 from overhang_framework.fit.scores import ScoreCache, ScoreTables, TableStats
 from overhang_framework.fit.space import ModelIndex
-from overhang_framework.results import atomic_write_json, atomic_write_text
+from overhang_framework.results import atomic_write_json, atomic_write_text, readable
 
 PARTS = "parts"
 FITS = "fits.csv"
@@ -110,7 +110,8 @@ def check_directory(out: Path, description: Mapping[str, Any]) -> None:
                 previous = json.loads(path.read_text())
             except ValueError:
                 raise OverhangError(f"{path} is not a fit description; move it away or use another --out") from None
-            if previous != json.loads(json.dumps(description)):
+            description = json.loads(json.dumps(readable(dict(description))))  # as the file holds it
+            if previous != description:
                 keys = sorted(k for k in set(previous) | set(description) if previous.get(k) != description.get(k))
                 raise OverhangError(f"{out} holds fits of another {' and '.join(keys)}; use another --out, "
                                     f"or remove {path} and {out / PARTS} to start again")
