@@ -47,9 +47,11 @@ def log_placements(df: pd.DataFrame) -> list[Placement]:
     """The executed placements of a behaviour log (timed-out records left out), in the log's order."""
     out = []
     done = df[~df["timed_out"]]
-    for row in done[["participant", "condition", "tower_before", "sequence", "step", "x", "layer"]].itertuples(index=False):
+    cols = ["participant", "condition", "tower_before", "sequence", "step", "width", "x", "layer"]
+    for row in done[cols].itertuples(index=False):
         geometry = Geometry(tuple(Block(check_width(w), float(bx), int(bl)) for w, bx, bl in row.tower_before))
-        remaining = tuple(float(w) for w in row.sequence[row.step - 1:])
+        # the sequence starts with the ground block, so the block of step k is sequence[k]
+        remaining = tuple(float(w) for w in row.sequence[row.step:])
         out.append(Placement(str(row.participant), str(row.condition), State(geometry, remaining), float(row.x),
                              int(row.layer)))
     return out
