@@ -167,7 +167,7 @@ def check_group_choices(args: Sequence[str]) -> None:
         raise UnknownPluginsError(unknown)
 
 
-def _variants(words: Sequence[str], multirun: bool) -> list[list[str]]:
+def sweep_variants(words: Sequence[str], multirun: bool) -> list[list[str]]:
     """Single-valued override lists that together use every value of every sweep (one compose each).
 
     Without ``-m`` the words are composed as given, so that Hydra's complaint
@@ -242,7 +242,7 @@ def _key_error(full_key: str, cfg, problem: str = "unknown config key") -> str:
     return f"{problem} '{full_key}'{hint}; {where}: {', '.join(keys) if keys else '(none)'}"
 
 
-def _one_line(text: str) -> str:
+def one_line(text: str) -> str:
     lines = [line.strip() for line in str(text).splitlines() if line.strip()]
     lines = [line for line in lines if not line.startswith(("See https://", "full_key:", "object_type="))]
     return "; ".join(lines)
@@ -256,7 +256,7 @@ def _compose_error(words: Sequence[str], err: Exception) -> str:
     if isinstance(err, OverrideParseException):
         bad = next((w for w in words if not _parses(w)), None)
         what = f"cannot read the override '{bad}'" if bad else "cannot read an override"
-        return (f"{what}: {_one_line(err)}; overrides are key=value, +key=value (add), ~key (remove); "
+        return (f"{what}: {one_line(err)}; overrides are key=value, +key=value (add), ~key (remove); "
                 "see --help")
     if isinstance(err, MissingConfigException):
         group, _, name = (err.missing_cfg_file or "").rpartition("/")
@@ -267,7 +267,7 @@ def _compose_error(words: Sequence[str], err: Exception) -> str:
                     f"extra '{extra}': pip install -e '.[{extra}]'")
         if group and err.options is not None:
             return f"unknown {group} {name!r}; available: {', '.join(err.options) or '(none)'}"
-        return _one_line(err).split("; Config search path:")[0]
+        return one_line(err).split("; Config search path:")[0]
     if isinstance(err, ConfigCompositionException):
         cause = err.__cause__
         full_key = getattr(cause, "full_key", None)
@@ -276,14 +276,14 @@ def _compose_error(words: Sequence[str], err: Exception) -> str:
         if isinstance(cause, OmegaConfBaseException) and full_key:
             message = str(cause).splitlines()[0]
             return f"bad value for '{full_key}': {message}"
-        message = _one_line(err)
+        message = one_line(err)
         if message.startswith("Ambiguous value for argument"):
             word = message.split("'")[1] if "'" in message else "?"
             key = word.split("=", 1)[0]
             return (f"'{word}' gives several values: add -m (--multirun) to sweep over them, or write "
                     f"{key}=[...] for a list")
         return message
-    return _one_line(err) or type(err).__name__
+    return one_line(err) or type(err).__name__
 
 
 def _compose(words: Sequence[str]):
@@ -374,7 +374,7 @@ def check_command_line(args: Sequence[str], check_config: Optional[Callable] = N
     multirun = is_multirun(args) or from_config  # an experiment config may sweep (hydra.mode: MULTIRUN)
     if multirun:
         words = [*words, *config_sweeps]
-    configs = [_compose(variant) for variant in _variants(words, multirun)]
+    configs = [_compose(variant) for variant in sweep_variants(words, multirun)]
     _check_appended(words)
     for cfg in configs:
         _check_groups_present(cfg)

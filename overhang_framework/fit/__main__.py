@@ -185,22 +185,15 @@ def command_words(args: Sequence[str]) -> list[str]:
 
 def preflight(words: Sequence[str]) -> None:
     from overhang_framework.config import compose_config
-    from overhang_framework.preflight import check_flags, split_flags
+    from overhang_framework.participants import _one_line
+    from overhang_framework.preflight import check_flags, split_flags, sweep_variants
 
     check_flags(words)
     flags, overrides = split_flags(words)
-    if "-m" in flags or "--multirun" in flags:
-        from overhang_framework.participants import _sweep_variants
-
-        variants = _sweep_variants(overrides)
-    else:
-        variants = [list(overrides)]
-    for variant in variants:
+    for variant in sweep_variants(overrides, "-m" in flags or "--multirun" in flags):
         try:
             cfg = compose_config(variant, config_name=CONFIG_NAME)
         except Exception as err:  # Hydra raises several kinds
-            from overhang_framework.participants import _one_line
-
             raise OverhangError(_one_line(err)) from None
         check_config(cfg)
 
