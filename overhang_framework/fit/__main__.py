@@ -36,7 +36,8 @@ from overhang_framework.errors import ConfigError, OverhangError
 enable_plugin_configs()
 log = logging.getLogger("overhang_framework.fit")
 CONFIG_NAME = "fit"
-TOP = ("world", "value", "logs", "out", "models", "depths", "cache", "shard", "shards", "pooled", "progress")
+TOP = ("world", "value", "logs", "out", "models", "depths", "cache", "shard", "shards", "pooled", "progress",
+       "states", "jobs")
 
 
 def _plain(node) -> Any:
@@ -65,11 +66,16 @@ def check_config(cfg: DictConfig) -> dict:
     if not cfg.get("out"):
         raise ConfigError("no results directory given: add --out DIR")
     shard, shards = _whole(cfg, "shard", 0), _whole(cfg, "shards", 1)
+    _whole(cfg, "jobs", 1)
     if shard >= shards:
         raise ConfigError(f"shard must be from 0 to shards - 1 = {shards - 1}, got {shard}")
     for key in ("pooled", "progress"):
         if not isinstance(cfg.get(key), bool):
             raise ConfigError(f"{key} must be true or false, got {cfg.get(key)!r}")
+    from overhang_framework.fit.fitting import STATES
+
+    if cfg.get("states") not in STATES:
+        raise ConfigError(f"states must be one of {', '.join(STATES)}, got {cfg.get('states')!r}")
     depths = _plain(cfg.depths)
     if not isinstance(depths, list):
         depths = [depths]
@@ -98,7 +104,8 @@ def run(cfg: DictConfig) -> dict:
     world, value, space = checked["world"], checked["value"], checked["space"]
     context = {"world": _plain(cfg.world), "value": _plain(cfg.value)}
     description = {"logs": checked["logs"], "models": [[m.label, dict(m.predictor)] for i in space for m in i.variants],
-                   "context": context, "pooled": cfg.pooled, "shards": checked["shards"]}
+                   "context": context, "pooled": cfg.pooled, "shards": checked["shards"],
+                   "states": cfg.states}
     check_directory(out, description)
     units = units_of(log_placements(checked["df"]), cfg.pooled)
     mine = [u for k, u in enumerate(units) if k % checked["shards"] == checked["shard"]]
@@ -113,14 +120,22 @@ def run(cfg: DictConfig) -> dict:
 
     bar = progress_bar(total=len(mine) * len(space), desc="fits", unit="fit", disable=not cfg.progress,
                        miniters=1, mininterval=0.5, dynamic_ncols=True)
+    table_bar = progress_bar(desc="score tables", unit="table", disable=not cfg.progress or cfg.jobs < 2,
+                             miniters=1, mininterval=0.5, dynamic_ncols=True)
+
+    def set_total(n):
+        table_bar.total = n
+        table_bar.refresh()
 
     def on_unit(label, unit):
         bar.set_postfix_str(f"{label} {unit.name}")
         bar.update(1)
 
     try:
-        result = fit_units(mine, world, value, context, space, cache, build, on_unit)
+        result = fit_units(mine, world, value, context, space, cache, build, on_unit, cfg.states, cfg.jobs,
+                           lambda: table_bar.update(1), set_total)
     finally:
+        table_bar.close()
         bar.close()
         cache.close()
     part = write_part(out, checked["shard"], checked["shards"], result.fits)

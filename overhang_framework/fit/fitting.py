@@ -41,19 +41,21 @@ class Placement:
     state: State
     x: float
     layer: int
+    trial: int = 0
+    step: int = 0
 
 
 def log_placements(df: pd.DataFrame) -> list[Placement]:
     """The executed placements of a behaviour log (timed-out records left out), in the log's order."""
     out = []
     done = df[~df["timed_out"]]
-    cols = ["participant", "condition", "tower_before", "sequence", "step", "width", "x", "layer"]
+    cols = ["participant", "condition", "tower_before", "sequence", "step", "width", "x", "layer", "trial"]
     for row in done[cols].itertuples(index=False):
         geometry = Geometry(tuple(Block(check_width(w), float(bx), int(bl)) for w, bx, bl in row.tower_before))
         # the sequence starts with the ground block, so the block of step k is sequence[k]
         remaining = tuple(float(w) for w in row.sequence[row.step:])
         out.append(Placement(str(row.participant), str(row.condition), State(geometry, remaining), float(row.x),
-                             int(row.layer)))
+                             int(row.layer), int(row.trial), int(row.step)))
     return out
 
 
@@ -66,16 +68,42 @@ class Mapped:
     unmapped: int
 
 
-def map_placements(world: World, placements: Sequence[Placement]) -> Mapped:
-    states, chosen, unmapped = [], [], 0
+#: How decision states are built: ``grid`` replays each trial's mapped grid actions, ``logged`` takes the log's towers.
+STATES = ("grid", "logged")
+
+
+def map_placements(world: World, placements: Sequence[Placement], states: str = "grid") -> Mapped:
+    """The decision states of ``placements`` and the grid action each executed placement maps to.
+
+    With ``states="grid"`` (the default), a trial's decision states are the
+    model's own: the first is the logged one (the ground block and the blocks
+    to place), and each next one is the previous state after the grid action
+    the previous placement mapped to. A person's placements differ from the grid
+    by at most half a grid step, so these towers are within that of the logged
+    ones; and they are shared by every participant who made the same grid
+    choices, and by the previous step's search. When a placement is unmapped,
+    or a record is missing, the trial goes on from the logged tower.
+    ``states="logged"`` takes every logged tower as it is.
+    """
+    if states not in STATES:
+        raise ValueError(f"unknown decision states {states!r}; allowed: {', '.join(STATES)}")
+    out, chosen, unmapped = [], [], 0
+    after: dict[tuple, State] = {}  # (participant, trial) -> the grid state after its last mapped placement
     for p in placements:
-        index = action_index(world, p.state, p.x, p.layer)
+        state = p.state
+        trial = (p.participant, p.trial)
+        replayed = after.pop(trial, None) if states == "grid" else None
+        if replayed is not None and len(replayed.geometry) == len(p.state.geometry):
+            state = State(replayed.geometry, p.state.remaining)
+        index = action_index(world, state, p.x, p.layer)
         if index is None:
             unmapped += 1
             continue
-        states.append(p.state)
+        out.append(state)
         chosen.append(index)
-    return Mapped(states, chosen, unmapped)
+        if states == "grid":
+            after[trial] = world.successor(state, world.legal_actions(state)[index])
+    return Mapped(out, chosen, unmapped)
 
 
 @dataclass

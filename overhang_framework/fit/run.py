@@ -23,6 +23,8 @@ import pandas as pd
 from overhang_framework.errors import OverhangError
 from overhang_framework.fit.fitting import ModelFit, Placement, fit_index, log_placements, map_placements
 from overhang_framework.fit.scores import ScoreCache, ScoreTables, TableStats
+from overhang_framework.interfaces import State
+from overhang_framework.search import state_key
 from overhang_framework.fit.space import ModelIndex
 from overhang_framework.results import atomic_write_json, atomic_write_text, readable
 
@@ -70,15 +72,23 @@ class JobResult:
 
 def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], space: Sequence[ModelIndex],
               cache: Optional[ScoreCache], build_predictor: Callable[[Mapping[str, Any]], Any],
-              on_unit: Callable[[str, Unit], None] = lambda label, unit: None) -> JobResult:
+              on_unit: Callable[[str, Unit], None] = lambda label, unit: None, states: str = "grid",
+              jobs: int = 1, on_table: Callable[[], None] = lambda: None,
+              on_total: Callable[[int], None] = lambda n: None) -> JobResult:
     """Fit every model index of ``space`` to every unit. Tables are shared across units (one
-    :class:`ScoreTables` per model) and kept in ``cache``."""
+    :class:`ScoreTables` per model) and kept in ``cache``. ``states`` says how decision states are built
+    (:func:`~overhang_framework.fit.fitting.map_placements`). With ``jobs > 1`` the tables not in the
+    cache are first computed on that many worker processes (``on_table`` is called for each)."""
     started = time.perf_counter()
-    mapped = {u.name: map_placements(world, u.placements) for u in units}
+    mapped = {u.name: map_placements(world, u.placements, states) for u in units}
+    tables = [[ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
+              for index in space]
+    if jobs > 1:
+        fill_tables([t for variants in tables for t in variants], [s for m in mapped.values() for s in m.states],
+                    jobs, on_table, on_total)
     fits: list[ModelFit] = []
     stats: dict[str, TableStats] = {}
-    for index in space:
-        variants = [ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
+    for index, variants in zip(space, tables):
         for unit in units:
             fits.append(fit_index(unit.name, unit.condition, variants, mapped[unit.name]))
             on_unit(index.label, unit)
@@ -88,6 +98,72 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
                 setattr(total, name, getattr(total, name) + getattr(v.stats, name))
         stats[index.label] = total
     return JobResult(fits, stats, time.perf_counter() - started)
+
+
+#: States per work item of :func:`fill_tables`: enough to amortise the hand-over, few enough to balance.
+CHUNK = 8
+
+
+def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs: int,
+                on_table: Callable[[], None] = lambda: None, on_total: Callable[[int], None] = lambda n: None) -> None:
+    """Compute, on ``jobs`` worker processes, every table of ``all_tables`` x ``states`` that neither memory
+    nor the cache holds, and hand each to its :class:`ScoreTables` (which keeps it and writes it to the cache).
+
+    The states keep their order (a trial's steps stay together, so a worker's expander reuses the subtrees
+    they share); each item is one model's next few states. A table is the same whichever process computes
+    it (common random numbers).
+    """
+    from overhang_framework.parallel import pool_map
+
+    items = []
+    for k, tables in enumerate(all_tables):
+        todo, seen = [], set()
+        for state in states:
+            key = state_key(state)
+            if key in seen or tables.known(state):
+                continue
+            seen.add(key)
+            todo.append(state)
+        items += [(k, todo[i:i + CHUNK]) for i in range(0, len(todo), CHUNK)]
+    on_total(sum(len(chunk) for _, chunk in items))
+    if not items:
+        return
+    first = all_tables[0]
+    setup = (dict(first.context), [dict(t.model.predictor) for t in all_tables], [t.model.depth for t in all_tables],
+             [t.model.family for t in all_tables])
+    for (k, chunk), (scores, stats), _ in pool_map(_tables_setup, setup, _tables_work, items, jobs, on_table):
+        all_tables[k].receive(chunk, scores, stats)
+
+
+def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, families: list) -> list:
+    from overhang_framework.fit.scores import Model
+    from overhang_framework.plugins import Registry
+
+    registry = Registry()
+    world = registry.create("world", dict(context["world"]))
+    value = registry.create("value", dict(context["value"]), world=world)
+    built: dict[str, Any] = {}
+    out = []
+    for config, depth, family in zip(predictors, depths, families):
+        key = repr(sorted(config.items()))
+        if key not in built:
+            built[key] = registry.create("predictor", dict(config), world=world)
+        out.append(ScoreTables(world, value, built[key], Model(config, depth, family), context, None))
+    return out
+
+
+def _tables_work(tables: list, item: tuple) -> tuple[list, TableStats]:
+    from overhang_framework.parallel import tick
+
+    k, states = item
+    mine = tables[k]
+    before = TableStats(**vars(mine.stats))
+    scores = []
+    for state in states:
+        scores.append(mine.table(state))
+        tick()
+    delta = TableStats(**{name: getattr(mine.stats, name) - getattr(before, name) for name in vars(before)})
+    return scores, delta
 
 
 @contextlib.contextmanager

@@ -182,6 +182,28 @@ class ScoreTables:
     def _new_expander(self) -> Expander:
         return Expander(self.world, self.predictor, Budget(), seed=self.model.draw_seed(self.context))
 
+    def known(self, state: State) -> bool:
+        """Whether the table of ``state`` is in memory or in the cache (computing nothing)."""
+        if state_key(state) in self._tables:
+            return True
+        if self.cache is None:
+            return False
+        scores = self.cache.get(ScoreCache.entry(self.key, state))
+        if scores is None:
+            return False
+        self._tables[state_key(state)] = scores
+        self.stats.cached += 1
+        return True
+
+    def receive(self, states, scores, stats: "TableStats") -> None:
+        """Tables of ``states`` computed elsewhere (a worker process), with what they cost there."""
+        for state, table in zip(states, scores):
+            self._tables[state_key(state)] = np.asarray(table, dtype=float)
+            if self.cache is not None:
+                self.cache.put(ScoreCache.entry(self.key, state), np.asarray(table, dtype=float))
+        for name in ("computed", "cached", "predictor_calls", "seconds"):
+            setattr(self.stats, name, getattr(self.stats, name) + getattr(stats, name))
+
     def table(self, state: State) -> np.ndarray:
         """The model's score of every action of ``world.legal_actions(state)``, in that order."""
         self.stats.asked += 1
