@@ -1,0 +1,182 @@
+"""The cost of exact likelihoods: ``python -m overhang_framework.bench.fit [--log LOG ...]``.
+
+Prints, for each model of the fit's model space (IPE, CNN and hybrid, each myopic,
+D=2 and D=3), the cost of one decision state's score table (seconds and predictor
+calls, every root action's score exact, on a fresh expander and no cache), on
+decision states sampled from a behaviour log; and how much reuse saves:
+
+* **states shared across participants**: the decisions of the log against its
+  distinct decision states, with the logged towers and with the grid states the
+  fit uses (``states=grid``);
+* **subtrees shared across the steps of a trial**: a trial's tables computed on
+  one expander (as the fit does) against a fresh expander per table.
+
+It then projects the cold-cache cost of fitting the log (tables x distinct grid
+states, one table per sigma of a grid) from the measured seconds per table.
+
+Without ``--log``, the log is the synthetic study of
+``python -m overhang_framework.bench.analysis`` (paper size, ``--scale`` of it).
+Measured on whatever else the machine is doing: the figures are of this run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+#: The benchmark's models: family -> predictor config.
+FAMILIES = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03}, "cnn": {"name": "cnn"}, "hybrid": {"name": "hybrid"}}
+
+
+def _log(args, world_overrides: Sequence[str]) -> Path:
+    if args.log:
+        return Path(args.log)
+    from overhang_framework.behaviour.analysis import build_world
+    from overhang_framework.behaviour.log import write_log
+    from overhang_framework.bench.analysis import CONDITIONS, synthetic_log
+    from overhang_framework.config import compose_config
+    from overhang_framework.tasks import tasks_from_config
+
+    tasks = tasks_from_config(compose_config(list(world_overrides)).tasks)
+    conditions = {c: (max(1, round(n * args.scale)), *rest) for c, (n, *rest) in CONDITIONS.items()}
+    world = build_world(list(world_overrides))
+    judge = build_world([*world_overrides, "world.physics=static"])
+    records = synthetic_log(world, tasks, args.seed, conditions, judge=judge)
+    path = Path(tempfile.mkdtemp()) / "synthetic.jsonl"
+    write_log(records, path)
+    return path
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.bench.fit", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--log", help="behaviour log whose decision states to use (default: a synthetic paper-size one)")
+    ap.add_argument("--world", action="append", default=[], metavar="OVERRIDE",
+                    help="world override, e.g. world.physics=static (repeatable)")
+    ap.add_argument("--scale", type=float, default=1.0, help="synthetic log's participants, share of the paper's 81")
+    ap.add_argument("--states", type=int, default=6, help="decision states timed per model (default 6)")
+    ap.add_argument("--depths", default="1,2,3", help="depths to time (default 1,2,3)")
+    ap.add_argument("--families", default="ipe,cnn,hybrid")
+    ap.add_argument("--cell-seconds", type=float, default=240.0,
+                    help="stop timing a model after this many seconds (at least one table each; default 240)")
+    ap.add_argument("--trials", type=int, default=3, help="trials timed for the reuse across steps (default 3)")
+    ap.add_argument("--sigmas", type=int, default=5, help="sigma grid size for the IPE's projection (default 5)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
+    args = ap.parse_args(argv)
+
+    from overhang_framework.behaviour.analysis import build_world
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.fit.fitting import log_placements, map_placements
+    from overhang_framework.fit.scores import Model, ScoreTables
+    from overhang_framework.plugins import Registry
+    from overhang_framework.search import state_key
+
+    started = time.perf_counter()
+    path = _log(args, args.world)
+    placements = log_placements(read_log(path))
+    world = build_world(list(args.world))
+    registry = Registry()
+    value = registry.create("value", {"name": "overhang"}, world=world)
+    context = {"world": {"bench": list(args.world)}, "value": {"name": "overhang"}}
+    grid = map_placements(world, placements, "grid")
+    logged = map_placements(world, placements, "logged")
+    n_logged = len({state_key(s) for s in logged.states})
+    n_grid = len({state_key(s) for s in grid.states})
+    figures: dict = {"log": str(path), "decisions": len(grid.states), "distinct_logged": n_logged,
+                     "distinct_grid": n_grid, "unmapped": grid.unmapped, "tables": [], "reuse": {}}
+    print(f"log {path}: {len(placements)} placements, {len(grid.states)} mapped to the grid "
+          f"({grid.unmapped} unmapped)", flush=True)
+    print(f"states shared across participants: {n_logged} distinct logged states "
+          f"({len(logged.states) / max(n_logged, 1):.2f} decisions each), {n_grid} distinct grid states "
+          f"({len(grid.states) / max(n_grid, 1):.2f} decisions each)", flush=True)
+
+    # the timed states: distinct grid states, sampled across steps
+    rng = np.random.default_rng(args.seed)
+    distinct = list({state_key(s): s for s in grid.states}.values())
+    sample = [distinct[i] for i in rng.choice(len(distinct), min(args.states, len(distinct)), replace=False)]
+    depths = [int(d) for d in args.depths.split(",") if d]
+    families = [f for f in args.families.split(",") if f]
+    predictors = {f: registry.create("predictor", dict(FAMILIES[f]), world=world) for f in families}
+    for f in families:  # warm up (a network's first call, a backend's start)
+        ScoreTables(world, value, predictors[f], Model(FAMILIES[f], 1), context, None).table(sample[0])
+    print(f"\nscore table of one decision state (every root action exact; fresh expander, no cache; "
+          f"{len(sample)} states, at most {args.cell_seconds:g} s per model):", flush=True)
+    print(f"  {'model':<14}{'tables':>7}{'s/table':>10}{'calls/table':>13}{'projected cold fit':>22}", flush=True)
+    for depth in depths:
+        for f in families:
+            model = Model(FAMILIES[f], depth)
+            seconds, calls, done = [], [], 0
+            t_cell = time.perf_counter()
+            for state in sample:
+                tables = ScoreTables(world, value, predictors[f], model, context, None)
+                t0 = time.perf_counter()
+                tables.table(state)
+                seconds.append(time.perf_counter() - t0)
+                calls.append(tables.stats.predictor_calls)
+                done += 1
+                if time.perf_counter() - t_cell > args.cell_seconds:
+                    break
+            per = float(np.mean(seconds))
+            variants = args.sigmas if f == "ipe" else 1
+            projected = per * n_grid * variants
+            row = {"model": model.label, "tables": done, "seconds_per_table": per,
+                   "calls_per_table": float(np.mean(calls)), "projected_cold_seconds": projected,
+                   "variants": variants}
+            figures["tables"].append(row)
+            print(f"  {model.label:<14}{done:>7}{per:>10.3f}{row['calls_per_table']:>13.1f}"
+                  f"{projected / 60:>14.1f} min{' (x' + str(variants) + ' sigma)' if variants > 1 else '':>8}",
+                  flush=True)
+
+    # reuse across the steps of a trial: one expander per model (the fit) against one per table
+    mapped_trials = _grid_trials(world, placements)
+    long = [t for t in mapped_trials if len(t) >= 4]
+    chosen = [long[i] for i in rng.choice(len(long), min(args.trials, len(long)), replace=False)] if long else []
+    if chosen and 2 in depths:
+        f = families[0]
+        model = Model(FAMILIES[f], 2)
+        shared = ScoreTables(world, value, predictors[f], model, context, None)
+        t0 = time.perf_counter()
+        for trial in chosen:
+            for state in trial:
+                shared.table(state)
+        t_shared, c_shared = time.perf_counter() - t0, shared.stats.predictor_calls
+        t0, c_fresh = time.perf_counter(), 0
+        for trial in chosen:
+            for state in trial:
+                fresh = ScoreTables(world, value, predictors[f], model, context, None)
+                fresh.table(state)
+                c_fresh += fresh.stats.predictor_calls
+        t_fresh = time.perf_counter() - t0
+        n_tables = sum(len(t) for t in chosen)
+        figures["reuse"] = {"model": model.label, "trials": len(chosen), "tables": n_tables,
+                            "shared_seconds": t_shared, "shared_calls": c_shared, "fresh_seconds": t_fresh,
+                            "fresh_calls": c_fresh}
+        print(f"\nsubtrees shared across the steps of a trial ({model.label}, {len(chosen)} trials, {n_tables} "
+              f"tables): one expander {t_shared:.1f} s / {c_shared} calls; a fresh one per table "
+              f"{t_fresh:.1f} s / {c_fresh} calls (saves {1 - t_shared / max(t_fresh, 1e-9):.0%} of the time)",
+              flush=True)
+    figures["seconds"] = time.perf_counter() - started
+    print(f"\nbenchmark took {figures['seconds']:.0f} s", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+    return 0
+
+
+def _grid_trials(world, placements) -> list[list]:
+    """Each trial's grid decision states, in step order (what ``map_placements`` builds, per trial)."""
+    from overhang_framework.fit.fitting import map_placements
+
+    by_trial: dict[tuple, list] = {}
+    for p in placements:
+        by_trial.setdefault((p.participant, p.trial), []).append(p)
+    return [map_placements(world, ps, "grid").states for ps in by_trial.values()]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
