@@ -68,22 +68,22 @@ class Mapped:
     unmapped: int
 
 
-#: How decision states are built: ``grid`` replays each trial's mapped grid actions, ``logged`` takes the log's towers.
-STATES = ("grid", "logged")
+#: How decision states are built: ``logged`` takes the log's towers, ``grid`` replays each trial's mapped grid actions.
+STATES = ("logged", "grid")
 
 
-def map_placements(world: World, placements: Sequence[Placement], states: str = "grid") -> Mapped:
+def map_placements(world: World, placements: Sequence[Placement], states: str = "logged") -> Mapped:
     """The decision states of ``placements`` and the grid action each executed placement maps to.
 
-    With ``states="grid"`` (the default), a trial's decision states are the
-    model's own: the first is the logged one (the ground block and the blocks
-    to place), and each next one is the previous state after the grid action
-    the previous placement mapped to. A person's placements differ from the grid
-    by at most half a grid step, so these towers are within that of the logged
-    ones; and they are shared by every participant who made the same grid
-    choices, and by the previous step's search. When a placement is unmapped,
-    or a record is missing, the trial goes on from the logged tower.
-    ``states="logged"`` takes every logged tower as it is.
+    With ``states="logged"`` (the default), every decision state is the logged
+    tower, as the person saw it. With ``states="grid"``, a trial's decision
+    states are the model's own: the first is the logged one, and each next one is
+    the previous state after the grid action the previous placement mapped to.
+    Those towers are within half a grid step of the logged ones and are shared by
+    every participant who made the same grid choices (fewer tables), but a tower
+    near its balance limit can stand on the grid and fall as logged, or the
+    reverse, which the lapse then absorbs (docs/fitting.md). When a placement is
+    unmapped, or a record is missing, a grid trial goes on from the logged tower.
     """
     if states not in STATES:
         raise ValueError(f"unknown decision states {states!r}; allowed: {', '.join(STATES)}")

@@ -72,7 +72,7 @@ class JobResult:
 
 def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], space: Sequence[ModelIndex],
               cache: Optional[ScoreCache], build_predictor: Callable[[Mapping[str, Any]], Any],
-              on_unit: Callable[[str, Unit], None] = lambda label, unit: None, states: str = "grid",
+              on_unit: Callable[[str, Unit], None] = lambda label, unit: None, states: str = "logged",
               jobs: int = 1, on_table: Callable[[], None] = lambda: None,
               on_total: Callable[[int], None] = lambda n: None) -> JobResult:
     """Fit every model index of ``space`` to every unit. Tables are shared across units (one
