@@ -11,8 +11,9 @@ decision states sampled from a behaviour log; and how much reuse saves:
 * **subtrees shared across the steps of a trial**: a trial's tables computed on
   one expander (as the fit does) against a fresh expander per table.
 
-It then projects the cold-cache cost of fitting the log (tables x distinct grid
-states, one table per sigma of a grid) from the measured seconds per table.
+It then projects the cold-cache cost of fitting the log in one process (tables x
+distinct decision states as the fit builds them by default, ``states=logged``, one
+table per sigma of a grid) from the measured seconds per table.
 
 Without ``--log``, the log is the synthetic study of
 ``python -m overhang_framework.bench.analysis`` (paper size, ``--scale`` of it).
@@ -96,9 +97,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
           f"({len(logged.states) / max(n_logged, 1):.2f} decisions each), {n_grid} distinct grid states "
           f"({len(grid.states) / max(n_grid, 1):.2f} decisions each)", flush=True)
 
-    # the timed states: distinct grid states, sampled across steps
+    # the timed states: distinct decision states (logged, the fit's default), sampled across steps
     rng = np.random.default_rng(args.seed)
-    distinct = list({state_key(s): s for s in grid.states}.values())
+    distinct = list({state_key(s): s for s in logged.states}.values())
     sample = [distinct[i] for i in rng.choice(len(distinct), min(args.states, len(distinct)), replace=False)]
     depths = [int(d) for d in args.depths.split(",") if d]
     families = [f for f in args.families.split(",") if f]
@@ -124,7 +125,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     break
             per = float(np.mean(seconds))
             variants = args.sigmas if f == "ipe" else 1
-            projected = per * n_grid * variants
+            projected = per * n_logged * variants
             row = {"model": model.label, "tables": done, "seconds_per_table": per,
                    "calls_per_table": float(np.mean(calls)), "projected_cold_seconds": projected,
                    "variants": variants}
