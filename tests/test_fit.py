@@ -258,3 +258,16 @@ def test_recovery_of_a_small_cohort_whose_answer_is_known(tmp_path):
     assert "| veridical/myopic |" in text and "## Model: generating against winning" in text
     assert (out / "recovery.png").stat().st_size > 5000
     assert "participants: depth" in proc.stdout
+
+
+def test_recovery_refuses_bad_settings_in_one_line_before_it_writes_anything(tmp_path):
+    out = tmp_path / "rec"
+    for args, message in ((["generators.ipe.predictor=crystal"], "generators.ipe: unknown predictor 'crystal'"),
+                          (["+models.m={predictor: crystal}"], "unknown predictor 'crystal'"),
+                          (["participants=0"], "participants must be a whole number >= 1"),
+                          ([], None)):
+        argv = [sys.executable, "-m", "overhang_framework.fit.recovery"] + (["--out", str(out)] if message else [])
+        proc = subprocess.run(argv + args, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1
+        assert (message or "no results directory given") in proc.stderr, proc.stderr
+    assert not out.exists()

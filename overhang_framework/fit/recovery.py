@@ -64,6 +64,10 @@ def _whole(cfg, key: str, minimum: int) -> int:
 
 def check_config(cfg: DictConfig) -> dict:
     """The checked settings of a recovery run (nothing simulated or fitted)."""
+    from overhang_framework.fit.space import model_space
+    from overhang_framework.plugins import Registry
+
+    registry = Registry()
     extra = [k for k in cfg if k not in TOP and k != "hydra"]
     if extra:
         raise ConfigError(f"unknown config key '{extra[0]}'; top-level keys: {', '.join(sorted(TOP))}")
@@ -80,7 +84,13 @@ def check_config(cfg: DictConfig) -> dict:
                               f"got {spec!r}")
         if not str(name).replace("_", "").isalnum():
             raise ConfigError(f"generator name {name!r} must be letters, digits and underscores")
-    return {"generators": generators, "out": Path(str(cfg.out)).expanduser().resolve()}
+        predictor = str(spec.get("predictor", name))
+        if predictor not in registry.names("predictor"):
+            raise ConfigError(f"generators.{name}: unknown predictor {predictor!r}; registered: "
+                              f"{', '.join(sorted(registry.names('predictor')))}")
+    depths = _plain(cfg.depths)
+    space = model_space(_plain(cfg.models) or {}, depths if isinstance(depths, list) else [depths])
+    return {"generators": generators, "out": Path(str(cfg.out)).expanduser().resolve(), "space": space}
 
 
 def participants_config(cfg: DictConfig, name: str, spec: Mapping[str, Any], index: int) -> DictConfig:
@@ -352,13 +362,9 @@ def _figure(table: pd.DataFrame, model_matrix: pd.DataFrame, depth_matrix: pd.Da
 
 
 def run(cfg: DictConfig) -> dict:
-    from overhang_framework.fit.space import model_space
-
     checked = check_config(cfg)
-    out = checked["out"]
+    out, space = checked["out"], checked["space"]
     out.mkdir(parents=True, exist_ok=True)
-    depths = _plain(cfg.depths)
-    space = model_space(_plain(cfg.models) or {}, depths if isinstance(depths, list) else [depths])
     log_path, truth = simulate(cfg, out, checked["generators"])
     fits = fit(cfg, out, log_path)
     table = recovery_table(fits, truth)
