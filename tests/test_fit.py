@@ -236,8 +236,7 @@ def test_recovery_of_a_small_cohort_whose_answer_is_known(tmp_path):
     median fitted beta 20.7, fitted lapses 0 to 0.17 against 0.004 to 0.04): at least 7 of 8 depths, since a participant with a
     large lapse can be ambiguous on 30 placements; the median fitted beta within a
     factor of 2 of the true 20, since beta trades off against the lapse and single
-    fits can reach the bound of 200. A second generator (the myopic veridical one is
-    the same model at depth 1) shows in the model confusion matrix.
+    fits can reach the bound of 200.
     """
     out = tmp_path / "rec"
     proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.recovery", "--out", str(out),
@@ -251,6 +250,7 @@ def test_recovery_of_a_small_cohort_whose_answer_is_known(tmp_path):
     table = pd.read_csv(out / "recovery.csv")
     assert summary["participants"] == 8 == len(table)
     assert set(table["true_depth"]) <= {1, 2} and table["generator"].eq("veridical").all()
+    assert table["true_family"].eq("veridical").all()
     assert (table["fitted_depth"] == table["true_depth"]).sum() >= 7, table
     assert summary["depth_recovered"] == pytest.approx((table["fitted_depth"] == table["true_depth"]).mean())
     assert 10 <= table["fitted_beta"].median() <= 40
@@ -265,6 +265,8 @@ def test_recovery_refuses_bad_settings_in_one_line_before_it_writes_anything(tmp
     for args, message in ((["generators.ipe.predictor=crystal"], "generators.ipe: unknown predictor 'crystal'"),
                           (["+models.m={predictor: crystal}"], "unknown predictor 'crystal'"),
                           (["participants=0"], "participants must be a whole number >= 1"),
+                          (["~models.cnn"], "generators.cnn uses the predictor 'cnn', which no fitted family uses"),
+                          (["states=nearest"], "states must be one of logged, grid"),
                           ([], None)):
         argv = [sys.executable, "-m", "overhang_framework.fit.recovery"] + (["--out", str(out)] if message else [])
         proc = subprocess.run(argv + args, capture_output=True, text=True, timeout=300)

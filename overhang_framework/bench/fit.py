@@ -6,8 +6,8 @@ calls, every root action's score exact, on a fresh expander and no cache), on
 decision states sampled from a behaviour log; and how much reuse saves:
 
 * **states shared across participants**: the decisions of the log against its
-  distinct decision states, with the logged towers and with the grid states the
-  fit uses (``states=grid``);
+  distinct decision states, with the logged towers (the fit's default) and with
+  the grid states of ``states=grid`` (opt-in);
 * **subtrees shared across the steps of a trial**: a trial's tables computed on
   one expander (as the fit does) against a fresh expander per table.
 

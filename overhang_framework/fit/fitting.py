@@ -79,7 +79,7 @@ def map_placements(world: World, placements: Sequence[Placement], states: str = 
     tower, as the person saw it. With ``states="grid"``, a trial's decision
     states are the model's own: the first is the logged one, and each next one is
     the previous state after the grid action the previous placement mapped to.
-    Those towers are within half a grid step of the logged ones and are shared by
+    Those towers are within a grid step of the logged ones and are shared by
     every participant who made the same grid choices (fewer tables), but a tower
     near its balance limit can stand on the grid and fall as logged, or the
     reverse, which the lapse then absorbs (docs/fitting.md). When a placement is

@@ -88,9 +88,24 @@ def check_config(cfg: DictConfig) -> dict:
         if predictor not in registry.names("predictor"):
             raise ConfigError(f"generators.{name}: unknown predictor {predictor!r}; registered: "
                               f"{', '.join(sorted(registry.names('predictor')))}")
+    from overhang_framework.fit.fitting import STATES
+
+    if cfg.get("states") not in STATES:
+        raise ConfigError(f"states must be one of {', '.join(STATES)}, got {cfg.get('states')!r}")
     depths = _plain(cfg.depths)
     space = model_space(_plain(cfg.models) or {}, depths if isinstance(depths, list) else [depths])
-    return {"generators": generators, "out": Path(str(cfg.out)).expanduser().resolve(), "space": space}
+    fitted = {}  # predictor name -> the first fitted family that uses it
+    for family, spec in (_plain(cfg.models) or {}).items():
+        fitted.setdefault(str((spec or {}).get("predictor", family)), str(family))
+    families = {}
+    for name, spec in generators.items():
+        predictor = str(spec.get("predictor", name))
+        if predictor not in fitted:
+            raise ConfigError(f"generators.{name} uses the predictor {predictor!r}, which no fitted family uses; "
+                              f"fitted families: {', '.join(f'{f} ({p})' for p, f in fitted.items())}")
+        families[str(name)] = fitted[predictor]
+    return {"generators": generators, "out": Path(str(cfg.out)).expanduser().resolve(), "space": space,
+            "families": families}
 
 
 def participants_config(cfg: DictConfig, name: str, spec: Mapping[str, Any], index: int) -> DictConfig:
@@ -131,8 +146,10 @@ def _predictor_configs() -> list[str]:
     return group_options("predictor")
 
 
-def simulate(cfg: DictConfig, out: Path, generators: Mapping[str, Mapping[str, Any]]) -> tuple[Path, pd.DataFrame]:
-    """Simulate every generator's participants; one log with them all, and the truth (one row each)."""
+def simulate(cfg: DictConfig, out: Path, generators: Mapping[str, Mapping[str, Any]],
+             families: Mapping[str, str]) -> tuple[Path, pd.DataFrame]:
+    """Simulate every generator's participants; one log with them all, and the truth (one row each;
+    ``family``: the fitted family of the generator's predictor)."""
     from overhang_framework import participants as sim
 
     lines, truth = [], []
@@ -149,7 +166,7 @@ def simulate(cfg: DictConfig, out: Path, generators: Mapping[str, Mapping[str, A
         table = pd.read_csv(where / sim.CSV)
         table["participant"] = [f"{name}-{p}" for p in table["id"]]
         table["generator"] = name
-        table["family"] = name
+        table["family"] = families[name]
         truth.append(table.drop(columns=["id", "index"]))
     path = out / "sim" / "log.jsonl"
     atomic_write_text(path, "".join(line + "\n" for line in lines))
@@ -193,7 +210,8 @@ def recovery_table(fits: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
         true_fit = family[family["depth"] == t.depth]
         true_fit = true_fit.iloc[0] if len(true_fit) else None
         rows.append({
-            "participant": t.participant, "generator": t.generator, "true_model": _label(t.family, int(t.depth)),
+            "participant": t.participant, "generator": t.generator, "true_family": t.family,
+            "true_model": _label(t.family, int(t.depth)),
             "true_depth": int(t.depth), "true_sigma": _num(getattr(t, "sigma", None)), "true_beta": float(t.beta),
             "true_lapse": float(t.lapse), "winner": win["model"], "winner_family": win["family"],
             "winner_depth": int(win["depth"]),
@@ -239,7 +257,7 @@ def correlation(x: Sequence[float], y: Sequence[float]) -> dict:
 
 def summarise(table: pd.DataFrame, models: Sequence[str]) -> dict:
     """The headline figures of a recovery table."""
-    family_ok = table["winner_family"] == table["generator"]
+    family_ok = table["winner_family"] == table["true_family"]
     depth_ok = table["fitted_depth"] == table["true_depth"]
     has_sigma = table["true_sigma"].notna() & table["fitted_sigma"].notna()
     summary = {
@@ -248,7 +266,7 @@ def summarise(table: pd.DataFrame, models: Sequence[str]) -> dict:
         "family_recovered": float(family_ok.mean()) if len(table) else float("nan"),
         "model_recovered": float((table["winner"] == table["true_model"]).mean()) if len(table) else float("nan"),
         "by_generator": {g: {"participants": int(len(t)), "depth": float((t["fitted_depth"] == t["true_depth"]).mean()),
-                             "family": float((t["winner_family"] == g).mean())}
+                             "family": float((t["winner_family"] == t["true_family"]).mean())}
                          for g, t in table.groupby("generator")},
         "sigma": correlation(table.loc[has_sigma, "true_sigma"], table.loc[has_sigma, "fitted_sigma"]),
         "beta": correlation(table["true_beta"], table["fitted_beta"]),
@@ -365,7 +383,7 @@ def run(cfg: DictConfig) -> dict:
     checked = check_config(cfg)
     out, space = checked["out"], checked["space"]
     out.mkdir(parents=True, exist_ok=True)
-    log_path, truth = simulate(cfg, out, checked["generators"])
+    log_path, truth = simulate(cfg, out, checked["generators"], checked["families"])
     fits = fit(cfg, out, log_path)
     table = recovery_table(fits, truth)
     summary = summarise(table, [index.label for index in space])

@@ -187,6 +187,7 @@ def check_directory(out: Path, description: Mapping[str, Any]) -> None:
             except ValueError:
                 raise OverhangError(f"{path} is not a fit description; move it away or use another --out") from None
             description = json.loads(json.dumps(readable(dict(description))))  # as the file holds it
+            previous.setdefault("states", "logged")  # fits written before the setting existed used the logged towers
             if previous != description:
                 keys = sorted(k for k in set(previous) | set(description) if previous.get(k) != description.get(k))
                 raise OverhangError(f"{out} holds fits of another {' and '.join(keys)}; use another --out, "
