@@ -39,6 +39,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.fit.__main__ import _plain, _whole
 from overhang_framework.results import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("overhang_framework.fit.recovery")
@@ -49,17 +50,6 @@ TOP = ("world", "value", "out", "seed", "generators", "participants", "tasks", "
 CONDITION = "unconstrained"
 #: The targets of the issue this command reports against (share of participants, correlation).
 TARGETS = {"depth": 0.8, "family": 0.8, "sigma_r": 0.8}
-
-
-def _plain(node) -> Any:
-    return OmegaConf.to_container(node, resolve=True) if node is not None else None
-
-
-def _whole(cfg, key: str, minimum: int) -> int:
-    value = cfg.get(key)
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
-    return value
 
 
 def check_config(cfg: DictConfig) -> dict:
@@ -115,14 +105,10 @@ def participants_config(cfg: DictConfig, name: str, spec: Mapping[str, Any], ind
 
     settings = dict(spec)
     predictor = str(settings.pop("predictor", name))
-    registry = Registry()
-    if predictor not in registry.names("predictor"):
-        raise ConfigError(f"generators.{name}: unknown predictor {predictor!r}; registered: "
-                          f"{', '.join(sorted(registry.names('predictor')))}")
-    base = compose_config([f"predictor={predictor}"] if predictor in _predictor_configs() else [],
-                          config_name="participants")
-    base.predictor = OmegaConf.merge(base.predictor if predictor in _predictor_configs() else {"name": predictor},
-                                     settings)
+    registry = Registry()  # check_config has refused unknown predictors
+    shipped = predictor in _predictor_configs()
+    base = compose_config([f"predictor={predictor}"] if shipped else [], config_name="participants")
+    base.predictor = OmegaConf.merge(base.predictor if shipped else {"name": predictor}, settings)
     parameters = dict(_plain(cfg.parameters))
     takes = accepted_parameters(registry.get("predictor", predictor).factory)
     if takes is not None and "sigma" not in takes:
