@@ -398,17 +398,23 @@ def _checked_entries(records: Iterable[Mapping[str, Any]], label: str) -> list[d
     return check_log([(f"{label} {i}", _checked(f"{label} {i}", _data(r))) for i, r in enumerate(records, 1)])
 
 
-def write_log(records: Union[Iterable[Mapping[str, Any]], pd.DataFrame], path: PathLike) -> None:
-    """Check ``records`` (dicts, or a DataFrame from :func:`read_log`) and write them to ``path`` as
-    JSON Lines, atomically; numbers are written with 12 significant digits. Raises :class:`LogError`
-    (``record N: ...``, ``row N: ...`` for a DataFrame) and writes nothing when one is malformed."""
+def log_text(records: Union[Iterable[Mapping[str, Any]], pd.DataFrame]) -> str:
+    """``records`` (dicts, or a DataFrame from :func:`read_log`) checked and as JSON Lines text; numbers
+    with 12 significant digits. Raises :class:`LogError` (``record N: ...``, ``row N: ...`` for a
+    DataFrame) when one is malformed."""
     if isinstance(records, pd.DataFrame):
         checked = _checked_entries([readable(r) for r in records_of(records)], "row")
     else:
         checked = _checked_entries([readable(_data(r)) for r in records], "record")
     lines = [json.dumps({k: v for k, v in r.items() if v is not None or k in REQUIRED}, allow_nan=False)
              for r in checked]
-    atomic_write_text(path, "".join(line + "\n" for line in lines))
+    return "".join(line + "\n" for line in lines)
+
+
+def write_log(records: Union[Iterable[Mapping[str, Any]], pd.DataFrame], path: PathLike) -> None:
+    """Check ``records`` (as :func:`log_text`) and write them to ``path`` as JSON Lines, atomically;
+    nothing is written when one is malformed."""
+    atomic_write_text(path, log_text(records))
 
 
 def _cell(name: str, value: Any) -> str:

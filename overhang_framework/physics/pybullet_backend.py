@@ -214,6 +214,39 @@ class PyBulletSimulator:
         displacement = float(np.max(np.linalg.norm(pos - start, axis=1))) if len(bodies) else 0.0
         return Outcome(displacement <= prm.threshold, displacement, step)
 
+    def motion(self, geometry: Geometry, fps: float = 30.0, settle: float = 0.5) -> list[list[list[float]]]:
+        """The tower's motion over the window, for showing it: frames at ``fps`` of ``[x, z, angle]`` per block.
+
+        ``angle`` is in radians, counter-clockwise in the x-z plane seen with x to the right and z up. The
+        run ends at ``duration``, or once every block has rested for ``settle`` seconds after the first
+        (the rest of the window would repeat the last frame).
+        """
+        p, cid, prm = self._p, self._client, self.params
+        bodies = self._build(geometry, None, None)
+        total = int(round(prm.duration / prm.time_step))
+        every = max(1, int(round(1.0 / (fps * prm.time_step))))
+        rest_needed = max(1, int(round(settle / prm.time_step / every)))
+        frames, at_rest = [], 0
+
+        def frame():
+            out = []
+            for b in bodies:
+                (x, _, z), quat = p.getBasePositionAndOrientation(b, physicsClientId=cid)
+                out.append([round(x, 5), round(z, 5), round(-p.getEulerFromQuaternion(quat)[1], 5)])
+            return out
+
+        frames.append(frame())
+        for step in range(every, total + 1, every):
+            for _ in range(every):
+                p.stepSimulation(physicsClientId=cid)
+            frames.append(frame())
+            speed = max((np.linalg.norm(v) + np.linalg.norm(w) * BLOCK_HEIGHT
+                         for v, w in (p.getBaseVelocity(b, physicsClientId=cid) for b in bodies)), default=0.0)
+            at_rest = at_rest + 1 if speed < 10 * prm.rest_speed else 0
+            if at_rest >= rest_needed and step * prm.time_step >= 1.0:
+                break
+        return frames
+
 
 class PyBulletBackend:
     """:class:`~overhang_framework.physics.PhysicsBackend` over one reused :class:`PyBulletSimulator`."""

@@ -1,0 +1,118 @@
+"""``python -m overhang_framework.experiment``: serve the experiment, export its log, build its front end.
+
+    python -m overhang_framework.experiment [OVERRIDES...]                  # serve on localhost
+    python -m overhang_framework.experiment export --out log.jsonl [OVERRIDES...] [--url URL]
+    python -m overhang_framework.experiment build                            # (re)build web/dist
+
+Overrides are keys of ``conf/serve.yaml`` (``port=8080``, ``database=postgresql+psycopg://...``,
+``'tasks.only=[paper00,paper01]'``). ``export`` reads the database the config names, or with ``--url``
+asks a running server (with the admin token).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+
+def _serve(overrides: Sequence[str]) -> int:
+    import uvicorn
+
+    from overhang_framework.experiment.api import create_app
+    from overhang_framework.experiment.settings import load_settings
+    from overhang_framework.experiment.web import ensure_built
+
+    settings = load_settings(overrides)
+    settings.web_dir = ensure_built(settings.web_dir)
+    settings.run_dir.mkdir(parents=True, exist_ok=True)
+    app = create_app(settings)
+    db = settings.database.split("://")[0]
+    print(f"experiment: http://{settings.host}:{settings.port}/?participant=P1  (database {db}, "
+          f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)})", file=sys.stderr)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning")
+    return 0
+
+
+def _export(args) -> int:
+    from overhang_framework.results import atomic_write_text
+
+    if args.url:
+        import httpx
+
+        from overhang_framework.experiment.settings import ADMIN_ENV, compose
+        import os
+
+        cfg = compose(args.overrides)
+        token = cfg.admin_token or os.environ.get(ADMIN_ENV)
+        if not token:
+            print(f"error: no admin token: set admin_token=... or {ADMIN_ENV}", file=sys.stderr)
+            return 2
+        try:
+            reply = httpx.get(args.url.rstrip("/") + "/api/admin/export", headers={"X-Admin-Token": str(token)},
+                              timeout=120)
+        except httpx.HTTPError as err:
+            print(f"error: cannot reach {args.url}: {err}", file=sys.stderr)
+            return 2
+        if reply.status_code != 200:
+            print(f"error: {args.url} refused the export ({reply.status_code}): "
+                  f"{reply.json().get('error', reply.text) if reply.headers.get('content-type', '').startswith('application/json') else reply.text}",
+                  file=sys.stderr)
+            return 2
+        text, unfinished = reply.text, None
+    else:
+        from overhang_framework.experiment.export import export_jsonl
+        from overhang_framework.experiment.settings import load_settings
+        from overhang_framework.experiment.store import Store
+
+        settings = load_settings(args.overrides)
+        if settings.database.startswith("sqlite:///"):
+            path = Path(settings.database[len("sqlite:///"):])
+            if not path.exists():
+                print(f"error: no database at {path}; give the run_dir or database the server used", file=sys.stderr)
+                return 2
+        store = Store(settings.database)
+        text, unfinished = export_jsonl(store)
+        store.close()
+    atomic_write_text(args.out, text)
+    lines = text.count("\n")
+    extra = "" if not unfinished else f"; {unfinished} unfinished trial(s) left out"
+    print(f"wrote {args.out}: {lines} placements{extra}", file=sys.stderr)
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    from overhang_framework.errors import OverhangError
+
+    command = argv[0] if argv and argv[0] in ("serve", "export", "build") else "serve"
+    if argv and argv[0] == command:
+        argv = argv[1:]
+    parser = argparse.ArgumentParser(prog=f"python -m overhang_framework.experiment {command}",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
+    if command == "export":
+        parser.add_argument("--out", required=True, help="the behaviour log to write (JSON Lines)")
+        parser.add_argument("--url", help="a running server to ask (default: read the database directly)")
+    if command == "build":
+        parser.add_argument("--force", action="store_true", help="build even when web/dist exists")
+    args = parser.parse_args(argv)
+    try:
+        if command == "export":
+            return _export(args)
+        if command == "build":
+            from overhang_framework.experiment.web import ensure_built
+
+            print(ensure_built(force=args.force))
+            return 0
+        return _serve(args.overrides)
+    except (OverhangError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,345 @@
+"""The experiment's HTTP API (FastAPI): sessions, placements, the end, and the admin export.
+
+The routes and their bodies are documented in ``docs/experiment.md``. Each
+placement is checked against the participant's position (derived from what is
+stored), the world's rules and the condition's time limit, then run through
+the world's physics and stored under its unique key (participant, phase,
+trial, attempt, step). Every refusal is ``{"error": "one line"}`` with a 4xx
+status, and nothing is written.
+"""
+
+from __future__ import annotations
+
+import hmac
+import math
+import re
+import secrets
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Annotated, Literal, Optional
+
+import numpy as np
+from fastapi import Depends, FastAPI, Header, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from overhang_framework import rules
+from overhang_framework.experiment.outcome import Outcomes
+from overhang_framework.experiment.settings import Settings
+from overhang_framework.experiment.store import Conflict, Participant, Placement, Store, request_hash, token_hash
+from overhang_framework.geometry import MAX_LAYER, Action, Geometry, overhang
+
+PARTICIPANT_ID = re.compile(r"^[A-Za-z0-9_.@:-]{1,200}$")
+#: The most mouse samples or dwell entries one placement may carry (10 minutes at 60 Hz).
+MAX_SAMPLES = 36_000
+
+
+class Refused(Exception):
+    """A request refused with ``status`` and a one-line ``message``."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status, self.message = status, message
+
+
+class SessionIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    params: dict[str, str] = Field(default_factory=dict)
+
+
+class PlacementIn(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    phase: Literal["practice", "main"]
+    trial: int = Field(ge=1)
+    attempt: int = Field(default=1, ge=1)
+    step: int = Field(ge=1)
+    x: Optional[float] = None
+    layer: Optional[int] = None
+    timed_out: bool = False
+    decision_time: float = Field(ge=0)
+    trajectory: list[tuple[float, float, float]] = Field(default_factory=list, max_length=MAX_SAMPLES)
+    dwell: list[tuple[float, int, float]] = Field(default_factory=list, max_length=MAX_SAMPLES)
+
+    @field_validator("trajectory")
+    @classmethod
+    def _times_go_forward(cls, value):
+        times = [t for t, _, _ in value]
+        if any(t < 0 for t in times) or any(b < a for a, b in zip(times, times[1:])):
+            raise ValueError("times must start at 0 or later and never go back")
+        return value
+
+    @field_validator("dwell")
+    @classmethod
+    def _dwell_non_negative(cls, value):
+        if any(s < 0 or layer < 0 for _, layer, s in value):
+            raise ValueError("layers and seconds must be >= 0")
+        return value
+
+
+@dataclass
+class Position:
+    """Where a participant is: the next placement's phase, trial, attempt and step, and the tower it goes on."""
+
+    phase: str
+    trial: int
+    attempt: int
+    step: int
+    tower: list
+    total_reward: float
+
+
+def _tower_after(sequence, rows) -> list:
+    tower = [[float(sequence[0]), 0.0, 0]]
+    tower += [[r.width, r.x, r.layer] for r in rows if not r.timed_out]
+    return tower
+
+
+def position(settings: Settings, participant: Participant, rows: list[Placement]) -> Position:
+    """The position after ``rows`` (the participant's placements)."""
+    groups: dict[tuple, list[Placement]] = {}
+    for r in sorted(rows, key=lambda r: (r.phase, r.trial, r.attempt, r.step)):
+        groups.setdefault((r.phase, r.trial, r.attempt), []).append(r)
+    total = sum(g[-1].reward or 0.0 for (phase, _, _), g in groups.items() if phase == "main" and g[-1].trial_over)
+    for k, practice in enumerate(settings.practice, 1):
+        attempt = 1
+        while True:
+            done = groups.get(("practice", k, attempt), [])
+            if done and done[-1].trial_over:
+                if done[-1].passed:
+                    break
+                attempt += 1
+                continue
+            return Position("practice", k, attempt, len(done) + 1, _tower_after(practice.task.sequence, done), total)
+    tasks = main_tasks(settings, participant)
+    for t, task in enumerate(tasks, 1):
+        done = groups.get(("main", t, 1), [])
+        if not (done and done[-1].trial_over):
+            return Position("main", t, 1, len(done) + 1, _tower_after(task.sequence, done), total)
+    return Position("done", len(tasks), 1, 0, [], total)
+
+
+def main_tasks(settings: Settings, participant: Participant):
+    by_id = {t.id: t for t in settings.tasks}
+    missing = [i for i in participant.order if i not in by_id]
+    if missing:
+        raise Refused(500, f"participant {participant.id}'s trials name tasks the server no longer has "
+                           f"({', '.join(missing)}); serve with the tasks the study started with")
+    return [by_id[i] for i in participant.order]
+
+
+def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Optional[Outcomes] = None) -> FastAPI:
+    """The FastAPI app of the experiment described by ``settings``.
+
+    ``store`` defaults to the database ``settings.database`` names, ``outcomes`` to the world's physics; the
+    front end in ``settings.web_dir`` is served at ``/`` when given.
+    """
+    store = store or Store(settings.database)
+    outcomes = outcomes or Outcomes(settings.world, fps=settings.animation_fps)
+    app = FastAPI(title="Overhang Tower experiment", version="1")
+    app.state.store, app.state.settings, app.state.outcomes = store, settings, outcomes
+
+    @app.exception_handler(Refused)
+    async def _refused(_request: Request, err: Refused):
+        return JSONResponse({"error": err.message}, status_code=err.status)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_request: Request, err: RequestValidationError):
+        return JSONResponse({"error": _one_line(err)}, status_code=422)
+
+    def participant_of(authorization: Annotated[Optional[str], Header()] = None) -> Participant:
+        token = _bearer(authorization)
+        if token is None:
+            raise Refused(401, "no session token: send Authorization: Bearer TOKEN as issued by POST /api/sessions")
+        found = store.by_token(token)
+        if found is None:
+            raise Refused(403, "unknown session token")
+        return found
+
+    def admin(x_admin_token: Annotated[Optional[str], Header()] = None) -> None:
+        if not x_admin_token:
+            raise Refused(401, "no admin token: send X-Admin-Token")
+        if not hmac.compare_digest(x_admin_token.encode(), settings.admin_token.encode()):
+            raise Refused(403, "wrong admin token")
+
+    def session_payload(p: Participant, token: Optional[str]) -> dict:
+        rows = store.placements(p.id)
+        pos = position(settings, p, rows)
+        out = {
+            "participant": p.id, "condition": p.condition,
+            "time_limit": settings.time_limit if p.condition == "time_limited" else None,
+            "grid": {"half_width": 4.0, "height": 8.0, "block_height": 0.6, "max_layer": MAX_LAYER},
+            "mouse_hz": settings.mouse_hz, "bonus_per_unit": settings.bonus_per_unit, "currency": settings.currency,
+            "practice_threshold": settings.practice_threshold,
+            "practice": [{"trial": k, "task_id": pt.task.id, "sequence": list(pt.task.sequence),
+                          "optimum": pt.optimum, "optimal_tower": pt.optimal_tower}
+                         for k, pt in enumerate(settings.practice, 1)],
+            "trials": [{"trial": t, "task_id": task.id, "sequence": list(task.sequence)}
+                       for t, task in enumerate(main_tasks(settings, p), 1)],
+            "position": asdict(pos), "completed": p.completed_at is not None,
+        }
+        if token is not None:
+            out["token"] = token
+        if p.completed_at is not None:
+            out.update(completion_url=settings.completion_url, bonus=p.bonus)
+        return out
+
+    @app.post("/api/sessions")
+    def start(body: SessionIn, authorization: Annotated[Optional[str], Header()] = None):
+        params = body.params
+        pid = params.get("PROLIFIC_PID") or params.get("participant")
+        if not pid:
+            raise Refused(422, "no participant: the page's URL needs PROLIFIC_PID (with STUDY_ID and SESSION_ID) "
+                               "or participant")
+        if not PARTICIPANT_ID.match(pid):
+            raise Refused(422, "a participant id is 1 to 200 letters, digits or _ . @ : -")
+        token = _bearer(authorization)
+        known = store.participant(pid)
+        if known is not None:
+            if token is None or not hmac.compare_digest(token_hash(token), known.token_hash):
+                raise Refused(403, f"participant {pid} already has a session; it resumes only in the browser that "
+                                   "started it")
+            return JSONResponse(session_payload(known, token), status_code=200)
+        token = secrets.token_urlsafe(24)
+        counts = store.condition_counts(settings.conditions)
+        fewest = min(counts.values())
+        tied = [c for c in settings.conditions if counts[c] == fewest]
+        rng = np.random.default_rng([settings.seed, sum(counts.values()), *map(ord, pid)])
+        condition = tied[int(rng.integers(len(tied)))]
+        order = [settings.tasks[i].id for i in rng.permutation(len(settings.tasks))]
+        p = Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
+                        token_hash=token_hash(token), condition=condition, order=order)
+        if not store.add_participant(p):
+            raise Refused(409, f"participant {pid} was started by another request at the same moment")
+        return JSONResponse(session_payload(p, token), status_code=201)
+
+    @app.get("/api/session")
+    def current(p: Participant = Depends(participant_of)):
+        return session_payload(p, None)
+
+    @app.post("/api/placements")
+    def place(body: PlacementIn, p: Participant = Depends(participant_of)):
+        digest = request_hash(body.model_dump(mode="json"))
+        stored = store.find(p.id, body.phase, body.trial, body.attempt, body.step)
+        if stored is not None:
+            if stored.request_hash != digest:
+                raise Refused(409, f"{body.phase} trial {body.trial} step {body.step} is already stored with a "
+                                   "different placement")
+            return stored.response
+        rows = store.placements(p.id)
+        pos = position(settings, p, rows)
+        if pos.phase == "done":
+            raise Refused(409, "every trial is over; nothing more can be placed")
+        expected = (pos.phase, pos.trial, pos.attempt, pos.step)
+        if (body.phase, body.trial, body.attempt, body.step) != expected:
+            raise Refused(409, f"out of order: the next placement is {pos.phase} trial {pos.trial} attempt "
+                               f"{pos.attempt} step {pos.step}, not {body.phase} trial {body.trial} attempt "
+                               f"{body.attempt} step {body.step}")
+        if body.phase == "practice":
+            practice = settings.practice[pos.trial - 1]
+            task = practice.task
+        else:
+            practice, task = None, main_tasks(settings, p)[pos.trial - 1]
+        width = task.sequence[pos.step]
+        limited = p.condition == "time_limited"
+        if body.timed_out:
+            if not limited:
+                raise Refused(422, f"condition {p.condition} has no time limit, so no placement can time out")
+            if body.x is not None or body.layer is not None:
+                raise Refused(422, "a timed-out placement has x and layer null")
+        else:
+            if body.x is None or body.layer is None:
+                raise Refused(422, "a placement needs x and layer (or timed_out: true)")
+            if limited and body.decision_time > settings.time_limit + settings.time_grace:
+                raise Refused(422, f"decision_time {body.decision_time:g} s is over the time limit of "
+                                   f"{settings.time_limit:g} s; send timed_out: true")
+        geometry = Geometry.from_tuples(pos.tower)
+        if body.timed_out:
+            stable, level, poses = None, None, [[[b.x, b.z, 0.0] for b in geometry.blocks]]
+        else:
+            reason = rules.illegal_reason(geometry, width, Action(float(body.x), int(body.layer)))
+            if reason is not None:
+                raise Refused(422, f"illegal placement of the {width:g} block at x={body.x:g}, layer {body.layer}: "
+                                   f"{reason}")
+            geometry = rules.place(geometry, width, Action(float(body.x), int(body.layer)))
+            result = outcomes(geometry)
+            stable, level, poses = result.stable, round(overhang(geometry), 9), result.poses
+        last = pos.step == len(task.sequence) - 1
+        trial_over = bool(body.timed_out or not stable or last)
+        reward = (0.0 if body.timed_out or not stable else float(level)) if trial_over else None
+        passed = None
+        response: dict = {"stable": stable, "overhang": level, "reward": reward, "trial_over": trial_over,
+                          "frames": {"fps": settings.animation_fps, "poses": poses}}
+        if practice is not None and trial_over:
+            passed = bool(reward >= settings.practice_threshold * practice.optimum - 1e-9)
+            response.update(optimum=practice.optimum, optimal_tower=practice.optimal_tower, passed=passed)
+        record = Placement(
+            participant_id=p.id, phase=body.phase, trial=body.trial, attempt=body.attempt, step=body.step,
+            task_id=task.id, sequence=list(task.sequence), width=width, x=body.x, layer=body.layer,
+            timed_out=body.timed_out, decision_time=body.decision_time,
+            trajectory=[list(s) for s in body.trajectory], dwell=[list(d) for d in body.dwell],
+            tower_before=pos.tower, stable=stable, overhang=level, reward=reward, trial_over=trial_over,
+            passed=passed, request_hash=digest, response={})
+        after = position(settings, p, rows + [record])
+        response.update(total_reward=after.total_reward, position=asdict(after))
+        record.response = response
+        try:
+            return store.add_placement(record).response
+        except Conflict as err:
+            raise Refused(409, str(err)) from None
+
+    @app.post("/api/finish")
+    def finish(p: Participant = Depends(participant_of)):
+        pos = position(settings, p, store.placements(p.id))
+        if pos.phase != "done":
+            raise Refused(409, f"not finished: the next placement is {pos.phase} trial {pos.trial} step {pos.step}")
+        bonus = round(pos.total_reward * settings.bonus_per_unit, 2)
+        done = store.complete(p.id, pos.total_reward, bonus)
+        return {"completion_url": settings.completion_url, "bonus": done.bonus, "total_reward": done.total_reward,
+                "currency": settings.currency}
+
+    @app.get("/api/admin/export", dependencies=[Depends(admin)])
+    def export():
+        from overhang_framework.experiment.export import export_jsonl
+
+        text, _ = export_jsonl(store)
+        return PlainTextResponse(text, media_type="application/x-ndjson")
+
+    @app.get("/api/admin/participants", dependencies=[Depends(admin)])
+    def participants():
+        rows = []
+        for p in store.participants():
+            pos = position(settings, p, store.placements(p.id))
+            rows.append({"participant": p.id, "study_id": p.study_id, "session_id": p.session_id,
+                         "condition": p.condition, "phase": pos.phase, "trial": pos.trial,
+                         "total_reward": pos.total_reward, "completed": p.completed_at is not None,
+                         "bonus": p.bonus})
+        return rows
+
+    @app.get("/complete", response_class=HTMLResponse)
+    def complete():
+        return ("<!doctype html><meta charset='utf-8'><title>Thank you</title>"
+                "<p style='font:18px sans-serif;margin:4em auto;max-width:30em'>Thank you for taking part. "
+                "Your answers are saved; you can close this tab.</p>")
+
+    if settings.web_dir is not None:
+        from fastapi.staticfiles import StaticFiles
+
+        app.mount("/", StaticFiles(directory=str(settings.web_dir), html=True), name="web")
+    return app
+
+
+def _bearer(authorization: Optional[str]) -> Optional[str]:
+    if not authorization:
+        return None
+    scheme, _, token = authorization.partition(" ")
+    return token.strip() if scheme.lower() == "bearer" and token.strip() else None
+
+
+def _one_line(err: RequestValidationError) -> str:
+    first = err.errors()[0]
+    where = ".".join(str(part) for part in first.get("loc", ()) if part != "body")
+    msg = first.get("msg", "invalid request")
+    if first.get("type") == "json_invalid":
+        return "the request body is not valid JSON"
+    return f"field '{where}': {msg}" if where else msg

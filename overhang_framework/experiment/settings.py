@@ -1,0 +1,156 @@
+"""The experiment's settings: ``conf/serve.yaml`` composed with command-line overrides, checked once.
+
+Everything the server needs is resolved here (the world's config, the main
+tasks, the practice tasks with their optima, the database URL, the admin
+token), so a mistake stops the server before it listens, in one line.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+from omegaconf import DictConfig, OmegaConf
+
+from overhang_framework.errors import ConfigError
+from overhang_framework.interfaces import Task
+
+ADMIN_ENV = "OVERHANG_ADMIN_TOKEN"
+REPO_WEB = Path(__file__).resolve().parents[2] / "web"
+
+
+@dataclass(frozen=True)
+class PracticeTask:
+    task: Task
+    optimum: float
+    optimal_tower: list  # [width, x, layer] per block, the ground block first
+
+
+@dataclass
+class Settings:
+    world: dict
+    tasks: list[Task]
+    practice: list[PracticeTask]
+    practice_threshold: float
+    conditions: list[str]
+    time_limit: float
+    time_grace: float
+    database: str
+    admin_token: str
+    completion_url: str
+    bonus_per_unit: float
+    currency: str
+    mouse_hz: float
+    animation_fps: float
+    seed: int
+    run_dir: Path
+    web_dir: Optional[Path]
+    host: str = "127.0.0.1"
+    port: int = 8000
+    extra: dict = field(default_factory=dict)
+
+
+def compose(overrides: Sequence[str] = ()) -> DictConfig:
+    """``conf/serve.yaml`` with ``overrides`` (Hydra syntax, as on the command line)."""
+    from hydra.errors import HydraException
+
+    from overhang_framework.config import compose_config
+
+    try:
+        return compose_config(list(overrides), config_name="serve")
+    except HydraException as err:
+        raise ConfigError(str(err).splitlines()[0]) from None
+
+
+def _number(cfg: DictConfig, key: str, minimum: float = 0.0, strict: bool = True) -> float:
+    value = OmegaConf.select(cfg, key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < minimum or (strict and value == minimum):
+        bound = f"> {minimum:g}" if strict else f">= {minimum:g}"
+        raise ConfigError(f"{key} must be a number {bound}, got {value!r}")
+    return float(value)
+
+
+def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
+    """The practice tasks with their optima under ``world``'s physics, from the project's optima file.
+
+    A practice task whose optimum is not stored stops the server with the command that computes it.
+    """
+    from overhang_framework.geometry import Action
+    from overhang_framework.optimum import load_optima, optimum_key, DATA_FILE
+    from overhang_framework.tasks import parse_tasks
+
+    tasks = parse_tasks(list(cfg.practice.sequences), list(cfg.practice.ids), prefix="practice")
+    optima = load_optima(DATA_FILE)
+    out = []
+    for task in tasks:
+        row = optima.get(optimum_key(task, world))
+        if row is None:
+            seqs = ",".join("[" + ",".join(map(str, t.sequence)) + "]" for t in tasks)
+            ids = ",".join(t.id for t in tasks)
+            raise ConfigError(
+                f"practice task {task.id} has no stored optimum under world.physics={world.physics_name}; compute them "
+                f"with: python -m overhang_framework.optimum tasks=custom 'tasks.sequences=[{seqs}]' "
+                f"'tasks.ids=[{ids}]' world.physics={world.physics_name}")
+        state = world.initial_state(task)
+        for x, layer in row["actions"]:
+            state = world.successor(state, Action(float(x), int(layer)))
+        tower = [[b.width, b.x, b.layer] for b in state.geometry.blocks]
+        out.append(PracticeTask(task, float(row["optimum"]), tower))
+    return out
+
+
+def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = None) -> Settings:
+    """Checked :class:`Settings` of ``conf/serve.yaml`` with ``overrides`` (or of a composed ``cfg``)."""
+    from overhang_framework.app import _params
+    from overhang_framework.plugins import Registry
+    from overhang_framework.tasks import tasks_from_config
+
+    cfg = compose(overrides) if cfg is None else cfg
+    world_cfg = _params(cfg.world)
+    try:
+        world = Registry().create("world", world_cfg)
+    except ValueError as err:
+        raise ConfigError(f"world: {err}") from None
+    tasks = tasks_from_config(cfg.tasks)
+    conditions = list(cfg.conditions or [])
+    allowed = ("time_limited", "unconstrained")
+    if not conditions or any(c not in allowed for c in conditions) or len(set(conditions)) != len(conditions):
+        raise ConfigError(f"conditions must be a non-empty list of distinct names from {', '.join(allowed)}, "
+                          f"got {conditions!r}")
+    run_dir = Path(str(cfg.run_dir))
+    database = cfg.database or f"sqlite:///{(run_dir / 'experiment.sqlite').resolve()}"
+    if not isinstance(database, str) or "://" not in database:
+        raise ConfigError(f"database must be an SQLAlchemy URL such as sqlite:///experiment.sqlite or "
+                          f"postgresql+psycopg://user:password@host/db, got {database!r}")
+    token = cfg.admin_token or os.environ.get(ADMIN_ENV)
+    if not token:
+        raise ConfigError(f"no admin token: set admin_token=... or the environment variable {ADMIN_ENV}")
+    if len(str(token)) < 8:
+        raise ConfigError("the admin token must have at least 8 characters")
+    threshold = OmegaConf.select(cfg, "practice.threshold")
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 <= threshold <= 1:
+        raise ConfigError(f"practice.threshold must be a number in [0, 1], got {threshold!r}")
+    port = cfg.port
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port < 65536:
+        raise ConfigError(f"port must be a whole number in [0, 65535], got {port!r}")
+    practice_ids = {str(i) for i in cfg.practice.ids}
+    overlap = practice_ids & {t.id for t in tasks}
+    if overlap:
+        raise ConfigError(f"practice task ids {sorted(overlap)} are also main tasks; practice is excluded from the "
+                          "stimulus pool")
+    main_seqs = {t.sequence for t in tasks}
+    practice = practice_tasks(cfg, world)
+    for p in practice:
+        if p.task.sequence in main_seqs:
+            raise ConfigError(f"practice task {p.task.id} has the sequence of a main task; practice is excluded "
+                              "from the stimulus pool")
+    web_dir = Path(str(cfg.web_dir)) if cfg.web_dir else None
+    return Settings(
+        world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold), conditions=conditions,
+        time_limit=_number(cfg, "time_limit"), time_grace=_number(cfg, "time_grace", strict=False),
+        database=str(database), admin_token=str(token), completion_url=str(cfg.completion_url),
+        bonus_per_unit=_number(cfg, "bonus_per_unit", strict=False), currency=str(cfg.currency),
+        mouse_hz=_number(cfg, "mouse_hz"), animation_fps=_number(cfg, "animation_fps"), seed=int(cfg.seed),
+        run_dir=run_dir, web_dir=web_dir, host=str(cfg.host), port=int(port))

@@ -1,0 +1,221 @@
+"""The experiment's storage: participants and their placements, in any database SQLAlchemy 2 speaks.
+
+Two tables. ``participants`` holds who took part (the recruitment platform's
+ids, a hash of the session token, the condition, the order of the main
+trials, when they finished and their bonus). ``placements`` holds one row per
+placement, keyed by participant, phase, trial, attempt and step: a unique
+key, so a retried request can never store a placement twice, and two
+different requests for the same step cannot both be stored. Each row keeps
+the response that was sent for it, so a retry gets the same answer.
+
+Where a participant is (which trial, which step, which tower) is derived from
+their placements, never stored apart from them.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+from dataclasses import dataclass
+from typing import Any, Iterable, Optional, Sequence
+
+from sqlalchemy import (JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, UniqueConstraint, create_engine,
+                        event, func, select)
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
+
+
+class Participant(Base):
+    __tablename__ = "participants"
+
+    id: Mapped[str] = mapped_column(String(200), primary_key=True)
+    study_id: Mapped[Optional[str]] = mapped_column(String(200))
+    session_id: Mapped[Optional[str]] = mapped_column(String(200))
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True, index=True)
+    condition: Mapped[str] = mapped_column(String(100))
+    order: Mapped[list] = mapped_column(JSON)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
+    completed_at: Mapped[Optional[dt.datetime]] = mapped_column(DateTime(timezone=True))
+    total_reward: Mapped[Optional[float]] = mapped_column(Float)
+    bonus: Mapped[Optional[float]] = mapped_column(Float)
+
+
+class Placement(Base):
+    __tablename__ = "placements"
+    __table_args__ = (UniqueConstraint("participant_id", "phase", "trial", "attempt", "step", name="one_per_step"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    participant_id: Mapped[str] = mapped_column(ForeignKey("participants.id"), index=True)
+    phase: Mapped[str] = mapped_column(String(20))
+    trial: Mapped[int] = mapped_column(Integer)
+    attempt: Mapped[int] = mapped_column(Integer)
+    step: Mapped[int] = mapped_column(Integer)
+    task_id: Mapped[str] = mapped_column(String(100))
+    sequence: Mapped[list] = mapped_column(JSON)
+    width: Mapped[float] = mapped_column(Float)
+    x: Mapped[Optional[float]] = mapped_column(Float)
+    layer: Mapped[Optional[int]] = mapped_column(Integer)
+    timed_out: Mapped[bool] = mapped_column(Boolean)
+    decision_time: Mapped[float] = mapped_column(Float)
+    trajectory: Mapped[Optional[list]] = mapped_column(JSON)
+    dwell: Mapped[Optional[list]] = mapped_column(JSON)
+    tower_before: Mapped[list] = mapped_column(JSON)
+    stable: Mapped[Optional[bool]] = mapped_column(Boolean)
+    overhang: Mapped[Optional[float]] = mapped_column(Float)
+    reward: Mapped[Optional[float]] = mapped_column(Float)
+    trial_over: Mapped[bool] = mapped_column(Boolean)
+    passed: Mapped[Optional[bool]] = mapped_column(Boolean)
+    request_hash: Mapped[str] = mapped_column(String(64))
+    response: Mapped[dict] = mapped_column(JSON)
+    received_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
+
+
+def token_hash(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def request_hash(body: Any) -> str:
+    """A digest of a request body, independent of key order."""
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+class Conflict(Exception):
+    """A placement for a step that already holds a different one."""
+
+
+@dataclass
+class Stored:
+    """A placement row as plain data."""
+
+    participant: str
+    phase: str
+    trial: int
+    attempt: int
+    step: int
+    row: dict
+
+
+class Store:
+    """Participants and placements in the database at ``url`` (any SQLAlchemy URL); tables are created when
+    missing."""
+
+    def __init__(self, url: str):
+        kwargs: dict = {}
+        if url.startswith("sqlite"):
+            kwargs["connect_args"] = {"check_same_thread": False, "timeout": 30}
+        self.url = url
+        self.engine = create_engine(url, **kwargs)
+        if url.startswith("sqlite"):
+            event.listen(self.engine, "connect", _sqlite_pragmas)
+        Base.metadata.create_all(self.engine)
+        self._session = sessionmaker(self.engine, expire_on_commit=False)
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    # participants -------------------------------------------------------------------------------------------
+    def participant(self, pid: str) -> Optional[Participant]:
+        with self._session() as s:
+            return s.get(Participant, pid)
+
+    def by_token(self, token: str) -> Optional[Participant]:
+        with self._session() as s:
+            return s.scalars(select(Participant).where(Participant.token_hash == token_hash(token))).first()
+
+    def condition_counts(self, conditions: Sequence[str]) -> dict[str, int]:
+        with self._session() as s:
+            rows = s.execute(select(Participant.condition, func.count()).group_by(Participant.condition)).all()
+        counts = {c: 0 for c in conditions}
+        for condition, n in rows:
+            if condition in counts:
+                counts[condition] = int(n)
+        return counts
+
+    def add_participant(self, participant: Participant) -> bool:
+        """Store a new participant; False when one with that id was stored first."""
+        with self._session() as s:
+            s.add(participant)
+            try:
+                s.commit()
+            except IntegrityError:
+                s.rollback()
+                return False
+        return True
+
+    def participants(self) -> list[Participant]:
+        with self._session() as s:
+            return list(s.scalars(select(Participant).order_by(Participant.created_at, Participant.id)))
+
+    def complete(self, pid: str, total_reward: float, bonus: float) -> Participant:
+        """Mark a participant complete (once: a second call keeps the first record)."""
+        with self._session() as s:
+            p = s.get(Participant, pid, with_for_update=True)
+            if p.completed_at is None:
+                p.completed_at, p.total_reward, p.bonus = _now(), total_reward, bonus
+                s.commit()
+            return p
+
+    # placements ---------------------------------------------------------------------------------------------
+    def placements(self, pid: Optional[str] = None, phase: Optional[str] = None) -> list[Placement]:
+        """Placements in the order they were made (of one participant and phase when given)."""
+        q = select(Placement)
+        if pid is not None:
+            q = q.where(Placement.participant_id == pid)
+        if phase is not None:
+            q = q.where(Placement.phase == phase)
+        q = q.order_by(Placement.participant_id, Placement.phase.desc(), Placement.trial, Placement.attempt,
+                       Placement.step)
+        with self._session() as s:
+            return list(s.scalars(q))
+
+    def find(self, pid: str, phase: str, trial: int, attempt: int, step: int) -> Optional[Placement]:
+        with self._session() as s:
+            return s.scalars(select(Placement).where(
+                Placement.participant_id == pid, Placement.phase == phase, Placement.trial == trial,
+                Placement.attempt == attempt, Placement.step == step)).first()
+
+    def add_placement(self, placement: Placement) -> Placement:
+        """Store ``placement``; when its step is already stored, the stored one if it came from the same
+        request, else :class:`Conflict`."""
+        with self._session() as s:
+            s.add(placement)
+            try:
+                s.commit()
+                return placement
+            except IntegrityError:
+                s.rollback()
+        stored = self.find(placement.participant_id, placement.phase, placement.trial, placement.attempt,
+                           placement.step)
+        if stored is None:
+            raise Conflict(f"{placement.phase} trial {placement.trial} step {placement.step} could not be stored")
+        if stored.request_hash != placement.request_hash:
+            raise Conflict(f"{placement.phase} trial {placement.trial} step {placement.step} is already stored "
+                           "with a different placement")
+        return stored
+
+    def count(self) -> dict[str, int]:
+        with self._session() as s:
+            return {"participants": s.scalar(select(func.count()).select_from(Participant)),
+                    "placements": s.scalar(select(func.count()).select_from(Placement))}
+
+
+def _sqlite_pragmas(connection, _record) -> None:
+    cursor = connection.cursor()
+    cursor.execute("PRAGMA journal_mode=WAL")
+    cursor.execute("PRAGMA synchronous=NORMAL")
+    cursor.execute("PRAGMA foreign_keys=ON")
+    cursor.close()
+
+
+def rows_as_dicts(rows: Iterable[Placement]) -> list[dict]:
+    cols = [c.name for c in Placement.__table__.columns]
+    return [{c: getattr(r, c) for c in cols} for r in rows]
