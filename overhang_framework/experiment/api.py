@@ -220,13 +220,14 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     @app.post("/api/placements")
     def place(body: PlacementIn, p: Participant = Depends(participant_of)):
         digest = request_hash(body.model_dump(mode="json"))
-        stored = store.find(p.id, body.phase, body.trial, body.attempt, body.step)
+        rows = store.placements(p.id)
+        key = (body.phase, body.trial, body.attempt, body.step)
+        stored = next((r for r in rows if (r.phase, r.trial, r.attempt, r.step) == key), None)
         if stored is not None:
             if stored.request_hash != digest:
                 raise Refused(409, f"{body.phase} trial {body.trial} step {body.step} is already stored with a "
                                    "different placement")
             return stored.response
-        rows = store.placements(p.id)
         pos = position(settings, p, rows)
         if pos.phase == "done":
             raise Refused(409, "every trial is over; nothing more can be placed")

@@ -1,0 +1,383 @@
+"""The experiment's HTTP API: sessions, placements, refusals, resuming, the end and the export.
+
+Every storage test runs on SQLite and on PostgreSQL. PostgreSQL is the server
+that ``OVERHANG_TEST_POSTGRES_URL`` names (``.ci/run`` installs and starts one);
+without it those tests are skipped, except under CI, where they fail.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import pytest
+from fastapi.testclient import TestClient
+
+from overhang_framework import rules
+from overhang_framework.behaviour.log import read_log
+from overhang_framework.experiment.api import create_app
+from overhang_framework.experiment.settings import load_settings
+from overhang_framework.experiment.store import Base, Store
+from overhang_framework.geometry import Action, Geometry
+from overhang_framework.plugins import Registry
+
+ADMIN = "admin-secret-token"
+PG_ENV = "OVERHANG_TEST_POSTGRES_URL"
+
+
+@pytest.fixture(scope="module")
+def base_settings(tmp_path_factory):
+    run = tmp_path_factory.mktemp("experiment")
+    return load_settings([f"run_dir={run}", f"admin_token={ADMIN}", "tasks.only=[paper00,paper03]"])
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database(request, tmp_path):
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'experiment.sqlite'}"
+        return
+    url = os.environ.get(PG_ENV)
+    if not url:
+        if os.environ.get("CI"):
+            pytest.fail(f"{PG_ENV} is not set: .ci/run starts a PostgreSQL server and sets it")
+        pytest.skip(f"no PostgreSQL server ({PG_ENV} not set)")
+    store = Store(url)
+    Base.metadata.drop_all(store.engine)
+    store.close()
+    yield url
+
+
+@pytest.fixture
+def make_client(base_settings, database):
+    clients = []
+
+    def make(**changes):
+        settings = base_settings.__class__(**{**base_settings.__dict__, "database": database, **changes})
+        store = Store(database)
+        client = TestClient(create_app(settings, store=store))
+        client.store = store
+        clients.append(client)
+        return client
+
+    yield make
+    for c in clients:
+        c.store.close()
+
+
+@pytest.fixture
+def client(make_client):
+    return make_client()
+
+
+def start(client, pid="P1", token=None):
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    return client.post("/api/sessions", json={"params": {"participant": pid}}, headers=headers)
+
+
+def auth(session):
+    return {"Authorization": f"Bearer {session['token']}"}
+
+
+def place(client, session, phase, trial, step, x, layer, attempt=1, **extra):
+    body = {"phase": phase, "trial": trial, "attempt": attempt, "step": step, "x": x, "layer": layer,
+            "decision_time": 1.0, **extra}
+    return client.post("/api/placements", json=body, headers=auth(session))
+
+
+def pass_practice(client, session):
+    reply = None
+    for pt in session["practice"]:
+        for step, (_, x, layer) in enumerate(pt["optimal_tower"][1:], 1):
+            reply = place(client, session, "practice", pt["trial"], step, x, layer)
+            assert reply.status_code == 200, reply.json()
+    return reply.json()
+
+
+def stack(client, session, trial, sequence):
+    """Each block centred on the one below: a tower that stands; the last reply."""
+    for step in range(1, len(sequence)):
+        reply = place(client, session, "main", trial, step, 0.0, step)
+        assert reply.status_code == 200, reply.json()
+    return reply.json()
+
+
+def rows(client):
+    return client.store.count()["placements"]
+
+
+def error(reply, status):
+    assert reply.status_code == status, (reply.status_code, reply.text)
+    message = reply.json()["error"]
+    assert isinstance(message, str) and "\n" not in message and message
+    return message
+
+
+# sessions -----------------------------------------------------------------------------------------------------
+def test_session_is_issued_then_resumed_only_with_its_token(client):
+    first = start(client)
+    assert first.status_code == 201
+    s = first.json()
+    assert s["position"] == {"phase": "practice", "trial": 1, "attempt": 1, "step": 1,
+                             "tower": [[s["practice"][0]["sequence"][0], 0.0, 0]], "total_reward": 0}
+    assert sorted(t["task_id"] for t in s["trials"]) == ["paper00", "paper03"]
+    assert s["time_limit"] == (5.0 if s["condition"] == "time_limited" else None)
+    again = start(client, token=s["token"])
+    assert again.status_code == 200
+    assert {k: again.json()[k] for k in ("condition", "trials")} == {k: s[k] for k in ("condition", "trials")}
+    assert "already has a session" in error(start(client), 403)
+    other = start(client, "P2").json()
+    error(start(client, token=other["token"]), 403)  # another participant's token
+    error(start(client, token="forged"), 403)
+
+
+def test_prolific_parameters_identify_the_participant(client):
+    s = client.post("/api/sessions", json={"params": {"PROLIFIC_PID": "5f1a", "STUDY_ID": "st", "SESSION_ID": "se"}})
+    assert s.status_code == 201 and s.json()["participant"] == "5f1a"
+    rows_ = client.get("/api/admin/participants", headers={"X-Admin-Token": ADMIN}).json()
+    assert rows_[0]["study_id"] == "st" and rows_[0]["session_id"] == "se"
+
+
+@pytest.mark.parametrize("body, words", [
+    ({"params": {}}, "PROLIFIC_PID"),
+    ({"params": {"participant": "a b"}}, "participant id"),
+    ({"params": {"participant": "P1"}, "extra": 1}, "extra"),
+    ({"params": {"participant": 3}}, "params.participant"),
+])
+def test_bad_session_requests_are_refused(client, body, words):
+    assert words in error(client.post("/api/sessions", json=body), 422)
+    assert client.store.count()["participants"] == 0
+
+
+def test_malformed_json_is_refused_in_one_line(client):
+    reply = client.post("/api/sessions", content=b"{not json", headers={"Content-Type": "application/json"})
+    assert "JSON" in error(reply, 422)
+
+
+def test_conditions_are_balanced(client):
+    conditions = [start(client, f"P{i}").json()["condition"] for i in range(10)]
+    assert conditions.count("time_limited") == conditions.count("unconstrained") == 5
+    orders = {tuple(t["task_id"] for t in start(client, f"Q{i}").json()["trials"]) for i in range(8)}
+    assert len(orders) == 2  # both orders of the two tasks occur
+
+
+# placements ---------------------------------------------------------------------------------------------------
+def test_a_placement_is_checked_run_and_stored(client, base_settings):
+    s = start(client).json()
+    pt = s["practice"][0]
+    _, x, layer = pt["optimal_tower"][1]
+    reply = place(client, s, "practice", 1, 1, x, layer, trajectory=[[0, 0.0, 2.0], [0.5, x, 0.9]],
+                  dwell=[[x, layer, 0.4]])
+    assert reply.status_code == 200
+    out = reply.json()
+    assert out["stable"] is True and out["trial_over"] is False and out["reward"] is None
+    assert out["overhang"] == pytest.approx(abs(x) + pt["sequence"][1] / 2)
+    assert out["position"]["step"] == 2
+    assert out["position"]["tower"] == [[pt["sequence"][0], 0.0, 0], [pt["sequence"][1], x, layer]]
+    stored = client.store.placements("P1")
+    assert len(stored) == 1 and stored[0].trajectory == [[0, 0.0, 2.0], [0.5, x, 0.9]]
+
+
+def test_a_falling_tower_is_the_worlds_verdict_and_is_animated(client, base_settings):
+    s = start(client).json()
+    pt = s["practice"][0]
+    width = pt["sequence"][1]
+    x = pt["sequence"][0] / 2 + width / 2 - 0.05  # resting on 5 cm of the ground block's edge
+    world = Registry().create("world", base_settings.world)
+    tower = Geometry.from_tuples([[pt["sequence"][0], 0.0, 0]])
+    assert not world.is_stable(rules.place(tower, width, Action(x, 1)))
+    out = place(client, s, "practice", 1, 1, x, 1).json()
+    assert out["stable"] is False and out["trial_over"] is True and out["reward"] == 0
+    assert out["passed"] is False and out["optimum"] == pt["optimum"] and out["optimal_tower"] == pt["optimal_tower"]
+    poses = out["frames"]["poses"]
+    assert len(poses) > 10 and len(poses[0]) == 2
+    assert poses[0][1][:2] == pytest.approx([x, 0.9], abs=1e-3)
+    assert abs(poses[-1][1][0] - x) + abs(poses[-1][1][1] - 0.9) > 0.05  # the block has left its place
+    assert out["position"] == {**out["position"], "phase": "practice", "trial": 1, "attempt": 2, "step": 1}
+
+
+@pytest.mark.parametrize("x, layer, words", [
+    (0.0, 1, None),        # legal: the control
+    (0.0, 2, "supports"),  # nothing in layer 1
+    (3.9, 1, "outside the grid"),
+    (2.5, 1, "supports"),
+    (0.0, 0, "ground"),
+])
+def test_illegal_actions_are_refused_and_nothing_is_written(client, x, layer, words):
+    s = start(client).json()
+    reply = place(client, s, "practice", 1, 1, x, layer)
+    if words is None:
+        assert reply.status_code == 200 and rows(client) == 1
+    else:
+        assert words in error(reply, 422) and rows(client) == 0
+
+
+def test_overlap_in_a_layer_is_refused(client):
+    s = start(client).json()
+    pt = s["practice"][0]
+    _, x, layer = pt["optimal_tower"][1]
+    place(client, s, "practice", 1, 1, x, layer)
+    assert "overlaps" in error(place(client, s, "practice", 1, 2, x, layer), 422)
+    assert rows(client) == 1
+
+
+def test_steps_must_come_in_order(client):
+    s = start(client).json()
+    assert "out of order" in error(place(client, s, "practice", 1, 2, 0.0, 1), 409)
+    assert "out of order" in error(place(client, s, "main", 1, 1, 0.0, 1), 409)  # practice first
+    assert "out of order" in error(place(client, s, "practice", 2, 1, 0.0, 1), 409)
+    assert "out of order" in error(place(client, s, "practice", 1, 1, 0.0, 1, attempt=2), 409)
+    assert rows(client) == 0
+
+
+def test_a_retry_returns_the_stored_reply_and_stores_nothing_twice(client):
+    s = start(client).json()
+    _, x, layer = s["practice"][0]["optimal_tower"][1]
+    first = place(client, s, "practice", 1, 1, x, layer)
+    again = place(client, s, "practice", 1, 1, x, layer)
+    assert first.json() == again.json() and rows(client) == 1
+    assert "different placement" in error(place(client, s, "practice", 1, 1, x + 0.1, layer), 409)
+    assert rows(client) == 1
+
+
+def test_simultaneous_retries_store_one_placement(client):
+    s = start(client).json()
+    _, x, layer = s["practice"][0]["optimal_tower"][1]
+    replies = []
+    threads = [threading.Thread(target=lambda: replies.append(place(client, s, "practice", 1, 1, x, layer)))
+               for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(r.status_code == 200 for r in replies), [r.text for r in replies]
+    assert len({str(r.json()) for r in replies}) == 1 and rows(client) == 1
+
+
+@pytest.mark.parametrize("headers, status", [({}, 401), ({"Authorization": "Bearer nope"}, 403),
+                                             ({"Authorization": "Basic abc"}, 401)])
+def test_placements_need_the_participants_token(client, headers, status):
+    start(client)
+    body = {"phase": "practice", "trial": 1, "step": 1, "x": 0.0, "layer": 1, "decision_time": 1.0}
+    error(client.post("/api/placements", json=body, headers=headers), status)
+    assert rows(client) == 0
+
+
+def test_one_participant_cannot_change_anothers_data(client):
+    a, b = start(client, "A").json(), start(client, "B").json()
+    _, x, layer = a["practice"][0]["optimal_tower"][1]
+    place(client, a, "practice", 1, 1, x, layer)
+    # B's token addresses B's own position only: A's step 2 is not B's next step
+    assert "out of order" in error(place(client, b, "practice", 1, 2, 0.0, 2), 409)
+    assert client.get("/api/session", headers=auth(b)).json()["position"]["step"] == 1
+    assert len(client.store.placements("A")) == 1 and client.store.placements("B") == []
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"x": None}, "needs x and layer"),
+    ({"decision_time": -1}, "decision_time"),
+    ({"trajectory": [[0.5, 0, 0], [0.2, 0, 0]]}, "never go back"),
+    ({"trajectory": [[0.5, 0]]}, "trajectory"),
+    ({"phase": "warmup"}, "phase"),
+    ({"step": 0}, "step"),
+    ({"layer": "one"}, "layer"),
+    ({"colour": "red"}, "colour"),
+    ({"timed_out": True}, "no time limit"),
+])
+def test_malformed_placements_are_refused(make_client, change, words):
+    client = make_client(conditions=["unconstrained"])
+    s = start(client).json()
+    body = {"phase": "practice", "trial": 1, "attempt": 1, "step": 1, "x": 0.0, "layer": 1, "decision_time": 1.0,
+            **change}
+    assert words in error(client.post("/api/placements", json=body, headers=auth(s)), 422)
+    assert rows(client) == 0
+
+
+# practice, main trials, timeouts, the end ----------------------------------------------------------------------
+def test_practice_is_retried_until_passed_then_the_main_trials_follow(client):
+    s = start(client).json()
+    pt = s["practice"][0]
+    # attempt 1: the block one step off the ground block's edge collapses
+    out = place(client, s, "practice", 1, 1, pt["sequence"][0] / 2 + pt["sequence"][1] / 2 - 0.05, 1).json()
+    assert out["passed"] is False and out["position"]["attempt"] == 2
+    # attempt 2: a low tower, stacked centred, stands but stays under the threshold
+    for step in range(1, len(pt["sequence"])):
+        out = place(client, s, "practice", 1, step, 0.0, step, attempt=2).json()
+    assert out["reward"] < s["practice_threshold"] * pt["optimum"] or out["passed"]
+    attempt = 2 if out["passed"] else 3
+    if not out["passed"]:
+        for step, (_, x, layer) in enumerate(pt["optimal_tower"][1:], 1):
+            out = place(client, s, "practice", 1, step, x, layer, attempt=3).json()
+    assert out["passed"] is True and out["position"]["trial"] == 2 and attempt >= 2
+    for k in (2, 3):
+        for step, (_, x, layer) in enumerate(s["practice"][k - 1]["optimal_tower"][1:], 1):
+            out = place(client, s, "practice", k, step, x, layer).json()
+    assert out["position"]["phase"] == "main" and out["position"]["trial"] == 1
+
+
+def test_a_timeout_ends_the_trial_with_reward_zero(make_client):
+    client = make_client(conditions=["time_limited"])
+    s = start(client).json()
+    assert s["time_limit"] == 5.0
+    pass_practice(client, s)
+    assert "over the time limit" in error(place(client, s, "main", 1, 1, 0.0, 1, decision_time=6.0), 422)
+    assert "x and layer null" in error(place(client, s, "main", 1, 1, 0.0, 1, timed_out=True, decision_time=5.0), 422)
+    out = place(client, s, "main", 1, 1, None, None, timed_out=True, decision_time=5.0).json()
+    assert out["trial_over"] is True and out["reward"] == 0 and out["stable"] is None
+    assert out["position"]["trial"] == 2 and out["position"]["step"] == 1
+
+
+def test_a_reopened_session_resumes_at_the_same_step(client):
+    s = start(client).json()
+    pass_practice(client, s)
+    place(client, s, "main", 1, 1, 0.0, 1)
+    place(client, s, "main", 1, 2, 0.0, 2)
+    again = start(client, token=s["token"]).json()
+    assert again["position"]["phase"] == "main" and again["position"]["trial"] == 1
+    assert again["position"]["step"] == 3 and len(again["position"]["tower"]) == 3
+    assert client.get("/api/session", headers=auth(s)).json()["position"] == again["position"]
+
+
+def test_finish_only_after_the_last_trial_and_then_export(client):
+    s = start(client).json()
+    pass_practice(client, s)
+    assert "not finished" in error(client.post("/api/finish", headers=auth(s)), 409)
+    total = 0.0
+    for t in s["trials"]:
+        total += stack(client, s, t["trial"], t["sequence"])["reward"]
+    assert "every trial is over" in error(place(client, s, "main", 3, 1, 0.0, 1), 409)
+    done = client.post("/api/finish", headers=auth(s)).json()
+    assert done["total_reward"] == pytest.approx(total) and done["bonus"] == round(total * 0.25, 2)
+    assert client.post("/api/finish", headers=auth(s)).json() == done
+    assert start(client, token=s["token"]).json()["completed"] is True
+
+    error(client.get("/api/admin/export"), 401)
+    error(client.get("/api/admin/export", headers={"X-Admin-Token": "wrong-token"}), 403)
+    reply = client.get("/api/admin/export", headers={"X-Admin-Token": ADMIN})
+    assert reply.status_code == 200
+    path = client.store.url  # the log goes beside the database
+    log = read_log_text(reply.text, tmp=os.path.dirname(path.split(":///")[-1]) if "sqlite" in path else None)
+    assert len(log) == sum(len(t["sequence"]) - 1 for t in s["trials"])
+    assert set(log.participant) == {"P1"} and set(log.source) == {"human"}
+    assert log.groupby("trial").reward.last().sum() == pytest.approx(total)
+
+
+def read_log_text(text, tmp=None):
+    import tempfile
+
+    with tempfile.NamedTemporaryFile("w", suffix=".jsonl", dir=tmp, delete=False) as f:
+        f.write(text)
+    try:
+        return read_log(f.name)
+    finally:
+        os.unlink(f.name)
+
+
+def test_an_unfinished_trial_is_left_out_of_the_export(client):
+    from overhang_framework.experiment.export import export_jsonl
+
+    s = start(client).json()
+    pass_practice(client, s)
+    stack(client, s, 1, s["trials"][0]["sequence"])
+    place(client, s, "main", 2, 1, 0.0, 1)
+    text, unfinished = export_jsonl(client.store)
+    assert unfinished == 1 and text.count("\n") == len(s["trials"][0]["sequence"]) - 1
