@@ -1,0 +1,93 @@
+"""The experiment's settings and command: one-line errors before the server listens, practice optima that the
+reference physics confirms, and the export command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from overhang_framework.errors import ConfigError
+from overhang_framework.experiment.settings import ADMIN_ENV, load_settings
+from overhang_framework.geometry import Action
+from overhang_framework.interfaces import Task
+from overhang_framework.plugins import Registry
+
+
+@pytest.fixture(autouse=True)
+def no_admin_env(monkeypatch):
+    monkeypatch.delenv(ADMIN_ENV, raising=False)
+
+
+@pytest.mark.parametrize("overrides, words", [
+    ([], "no admin token"),
+    (["admin_token=short"], "at least 8"),
+    (["admin_token=long-enough", "database=experiment.sqlite"], "SQLAlchemy URL"),
+    (["admin_token=long-enough", "conditions=[time_limited,fast]"], "conditions must be"),
+    (["admin_token=long-enough", "practice.threshold=2"], "practice.threshold"),
+    (["admin_token=long-enough", "time_limit=0"], "time_limit"),
+    (["admin_token=long-enough", "port=-1"], "port"),
+    (["admin_token=long-enough", "practice.ids=[paper00,practice2,practice3]"], "also main tasks"),
+    (["admin_token=long-enough", "world.physics=static"], "python -m overhang_framework.optimum"),
+    (["admin_token=long-enough", "predictor=ipe"], "predictor"),
+])
+def test_bad_settings_fail_in_one_line(tmp_path, overrides, words):
+    with pytest.raises(ConfigError) as err:
+        load_settings([f"run_dir={tmp_path}", *overrides])
+    assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_admin_token_can_come_from_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv(ADMIN_ENV, "from-the-environment")
+    assert load_settings([f"run_dir={tmp_path}"]).admin_token == "from-the-environment"
+
+
+def test_practice_optima_stand_step_by_step_under_the_reference(tmp_path):
+    settings = load_settings([f"run_dir={tmp_path}", "admin_token=long-enough"])
+    reference = Registry().create("world", {**settings.world, "physics": "pybullet"})
+    assert len(settings.practice) == 3
+    for practice in settings.practice:
+        state = reference.initial_state(practice.task)
+        for width, x, layer in practice.optimal_tower[1:]:
+            assert reference.illegal_reason(state, Action(x, layer)) is None
+            state = reference.successor(state, Action(x, layer))
+            assert reference.is_stable(state.geometry), (practice.task.id, state.geometry)
+        assert reference.overhang(state.geometry) == pytest.approx(practice.optimum)
+
+
+def test_the_command_refuses_bad_settings_in_one_line(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "overhang_framework.experiment", f"run_dir={tmp_path}"],
+                          capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"}, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [f"error: no admin token: set admin_token=... or the environment "
+                                                f"variable {ADMIN_ENV}"]
+
+
+def test_export_command_writes_a_log_the_toolkit_reads(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.experiment.api import create_app
+
+    overrides = [f"run_dir={tmp_path}", "admin_token=long-enough", "tasks.only=[paper03]"]
+    settings = load_settings(overrides)
+    client = TestClient(create_app(settings))
+    s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
+    h = {"Authorization": f"Bearer {s['token']}"}
+    for pt in s["practice"]:
+        for step, (_, x, layer) in enumerate(pt["optimal_tower"][1:], 1):
+            client.post("/api/placements", json={"phase": "practice", "trial": pt["trial"], "step": step, "x": x,
+                                                 "layer": layer, "decision_time": 1.0}, headers=h)
+    seq = s["trials"][0]["sequence"]
+    for step in range(1, len(seq)):
+        client.post("/api/placements", json={"phase": "main", "trial": 1, "step": step, "x": 0.0, "layer": step,
+                                             "decision_time": 1.5}, headers=h)
+    out = tmp_path / "log.jsonl"
+    done = subprocess.run([sys.executable, "-m", "overhang_framework.experiment", "export", "--out", str(out),
+                           *overrides], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    log = read_log(out)
+    assert len(log) == len(seq) - 1 and list(log.decision_time) == [1.5] * (len(seq) - 1)
+    assert json.loads(out.read_text().splitlines()[0])["task_id"] == "paper03"
