@@ -1,0 +1,285 @@
+"""The experiment end to end: the real page in headless Chromium (Python Playwright, the system's browser),
+against the real server on loopback.
+
+Two scripted participants take the whole procedure (consent, instructions, the tutorial, practice until
+passed, the main trials, the debriefing and the completion redirect), one in each condition. The
+time-limited one lets the timer end a trial; the other reloads the page mid-trial and resumes. The export
+of both loads in the analysis toolkit.
+
+The page is built from ``web/`` when needed (npm). Without Chromium or npm the test is skipped, except
+under CI, where it fails.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from overhang_framework.experiment.settings import load_settings
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--disable-quic"]
+ADMIN = "e2e-admin-token"
+TASKS = ["paper03", "paper08"]  # two main trials per participant
+ROBUST = 0.04  # a scripted placement must stand with the block this far to either side (mouse pixels)
+
+
+def _needs(what: str, ok: bool) -> None:
+    if not ok:
+        if os.environ.get("CI"):
+            pytest.fail(f"{what} is missing; .ci/run installs it")
+        pytest.skip(f"{what} is missing")
+
+
+@pytest.fixture(scope="module")
+def dist():
+    _needs("npm", shutil.which("npm") is not None)
+    from overhang_framework.experiment.web import ensure_built
+
+    return ensure_built()
+
+
+@pytest.fixture(scope="module")
+def server(dist, tmp_path_factory):
+    import uvicorn
+
+    from overhang_framework.experiment.api import create_app
+
+    run = tmp_path_factory.mktemp("e2e")
+    settings = load_settings([f"run_dir={run}", f"admin_token={ADMIN}", f"tasks.only=[{','.join(TASKS)}]"])
+    settings.web_dir = dist
+    app = create_app(settings)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    deadline = time.time() + 30
+    while not srv.started and time.time() < deadline:
+        time.sleep(0.05)
+    assert srv.started, "the server did not start"
+    yield {"url": f"http://127.0.0.1:{port}", "app": app, "settings": settings, "store": app.state.store,
+           "world": app.state.outcomes.world()}
+    srv.should_exit = True
+    thread.join(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    _needs("chromium", Path(CHROMIUM).exists())
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        yield b
+        b.close()
+
+
+class ScriptedParticipant:
+    """Clicks through the page as a participant would, placing blocks with the mouse.
+
+    Tutorial blocks go centred on the block below. Practice and main blocks go where the tower reaches
+    furthest while it stands with the block ``ROBUST`` to either side (a mouse lands within a pixel of
+    where it aims). In ``time_limited``, ``hold`` names main (trial, step) pairs where the participant
+    never clicks; ``reload_at`` is one where the page is reloaded before the placement.
+    """
+
+    def __init__(self, page, server, pid, hold=(), reload_at=None, collapse_first_practice=True):
+        self.page, self.server, self.pid = page, server, pid
+        self.hold, self.reload_at = set(hold), reload_at
+        self.collapse_first_practice = collapse_first_practice
+        self.in_tutorial = True
+        self.events: list[str] = []
+        self.waits: dict = {}
+
+    # what the server knows -------------------------------------------------------------------------------------
+    def position(self):
+        from overhang_framework.experiment.api import position
+
+        store = self.server["store"]
+        participant = store.participant(self.pid)
+        return position(self.server["settings"], participant, store.placements(self.pid)), participant
+
+    def sequence(self, pos, participant):
+        settings = self.server["settings"]
+        if pos.phase == "practice":
+            return settings.practice[pos.trial - 1].task.sequence
+        by_id = {t.id: t for t in settings.tasks}
+        return by_id[participant.order[pos.trial - 1]].sequence
+
+    # choosing -----------------------------------------------------------------------------------------------
+    def robust_action(self, tower, width):
+        from overhang_framework import rules
+        from overhang_framework.geometry import Action, Geometry, overhang
+
+        world = self.server["world"]
+        geometry = Geometry.from_tuples(tower)
+        xs, layers = rules.legal_xs(geometry, width, 0.1)
+        candidates = sorted(zip(xs.tolist(), layers.tolist()),
+                            key=lambda a: (-overhang(rules.place(geometry, width, Action(*a))), abs(a[0])))
+        for x, layer in candidates:
+            shifted = [Action(x + d, layer) for d in (-ROBUST, 0.0, ROBUST)]
+            if all(rules.is_legal(geometry, width, a) and world.is_stable(rules.place(geometry, width, a))
+                   for a in shifted):
+                return x, layer
+        return 0.0, len(tower)
+
+    def choose(self, tower, step):
+        if self.in_tutorial:
+            return tower[-1][1], max(b[2] for b in tower) + 1
+        pos, participant = self.position()
+        width = self.sequence(pos, participant)[step]
+        if pos.phase == "practice" and pos.trial == 1 and pos.attempt == 1 and self.collapse_first_practice:
+            return tower[0][0] / 2 + width / 2 - 0.1, 1  # mostly beyond the ground block's edge: it falls
+        return self.robust_action(tower, width)
+
+    # acting ---------------------------------------------------------------------------------------------------
+    def click_at(self, x, layer):
+        canvas = self.page.get_by_test_id("overhang-canvas")
+        box = canvas.bounding_box()
+        d = canvas.evaluate("c => ({ppu: +c.dataset.pxPerUnit, ox: +c.dataset.originX, oy: +c.dataset.originY, "
+                            "bh: +c.dataset.blockHeight})")
+        px = box["x"] + d["ox"] + x * d["ppu"]
+        py = box["y"] + d["oy"] - (layer + 0.5) * d["bh"] * d["ppu"]
+        self.page.mouse.move(px - 40, py + 25)
+        self.page.mouse.move(px, py, steps=6)
+        self.page.wait_for_timeout(80)
+        self.page.mouse.click(px, py)
+
+    def visible(self, selector) -> bool:
+        loc = self.page.locator(selector)
+        return loc.count() > 0 and loc.first.is_visible()
+
+    def run(self, timeout=float(os.environ.get('E2E_TIMEOUT', 240))):
+        page = self.page
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            if page.url.endswith("/complete"):
+                return
+            if self.visible("[data-testid=error]"):
+                raise AssertionError(f"the page shows an error: {page.get_by_test_id('error').inner_text()}")
+            for testid in ("agree", "start-practice", "start-main", "resume", "continue", "finish"):
+                if self.visible(f"[data-testid={testid}]"):
+                    if testid in ("start-practice", "resume"):
+                        self.in_tutorial = False
+                    self.events.append(testid)
+                    page.get_by_test_id(testid).first.click()
+                    break
+            else:
+                if self.visible("#jspsych-instructions-next"):
+                    page.locator("#jspsych-instructions-next").click()
+                elif self.visible(".overhang-tower[data-state=deciding]"):
+                    self.decide()
+                else:
+                    page.wait_for_timeout(50)
+                continue
+            page.wait_for_timeout(50)
+        pos, _ = self.position()
+        if os.environ.get("E2E_SHOT"):
+            page.screenshot(path=os.environ["E2E_SHOT"])
+        raise AssertionError(f"{self.pid} did not finish in {timeout} s; last events {self.events[-8:]}; "
+                             f"the server has them at {pos}")
+
+    def decide(self):
+        root = self.page.locator(".overhang-tower[data-state=deciding]")
+        tower = json.loads(root.get_attribute("data-tower"))
+        step = int(root.get_attribute("data-step"))
+        if not self.in_tutorial:
+            pos, participant = self.position()
+            if pos.phase == "main" and (pos.trial, step) == self.reload_at:
+                self.reload_at = None
+                self.events.append(f"reload main {pos.trial} {step}")
+                self.page.reload()
+                return
+            if pos.phase == "main" and (pos.trial, step) in self.hold and participant.condition == "time_limited":
+                self.events.append(f"hold main {pos.trial} {step}")
+                started = time.time()
+                self.page.locator(".overhang-tower[data-state=done]").wait_for(timeout=15_000)
+                self.waits[(pos.trial, step)] = time.time() - started
+                return
+        x, layer = self.choose(tower, step)
+        self.click_at(x, layer)
+        self.page.wait_for_function("() => document.querySelector('.overhang-tower')?.dataset.state !== 'deciding'"
+                                    " || document.querySelector('.overhang-tower')?.dataset.step !== '%d'" % step,
+                                    timeout=15_000)
+
+
+def take_part(browser, server, pid, condition_wanted=None, **kwargs):
+    context = browser.new_context(viewport={"width": 1400, "height": 1000})
+    page = context.new_page()
+    page.goto(f"{server['url']}/?participant={pid}&animation_speed=40")
+    page.get_by_test_id("agree").wait_for(timeout=30_000)
+    condition = server["store"].participant(pid).condition
+    if condition_wanted is not None:
+        assert condition == condition_wanted
+    participant = ScriptedParticipant(page, server, pid, **kwargs)
+    participant.run()
+    context.close()
+    return participant, condition
+
+
+def test_two_participants_take_the_whole_experiment(browser, server, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from overhang_framework.analyze import main as analyze
+    from overhang_framework.behaviour.log import read_log
+
+    store, settings = server["store"], server["settings"]
+    # conditions are balanced: the first participant's is random, the second gets the other
+    first, c1 = take_part(browser, server, "E2E-1", hold=[(1, 2)], reload_at=(2, 3))
+    second, c2 = take_part(browser, server, "E2E-2", hold=[(1, 2)], reload_at=(2, 3))
+    assert {c1, c2} == {"time_limited", "unconstrained"}
+    timed = first if c1 == "time_limited" else second
+
+    for who in (first, second):
+        rows = store.placements(who.pid)
+        practice = [r for r in rows if r.phase == "practice"]
+        main = [r for r in rows if r.phase == "main"]
+        # practice: the first attempt collapsed, the next passed; all three practice trials passed
+        assert [r.passed for r in practice if r.trial_over and r.trial == 1] == [False, True]
+        assert sorted(r.trial for r in practice if r.trial_over and r.passed) == [1, 2, 3]
+        # the main trials are over, in the participant's order
+        assert {r.trial for r in main if r.trial_over} == {1, 2}
+        # the reload resumed at the same step of the same trial
+        assert "reload main 2 3" in who.events and "resume" in who.events
+        assert [r.step for r in main if r.trial == 2][:3] == [1, 2, 3]
+        # what the page records: mouse samples in task units, forward in time, and dwell times
+        placed = [r for r in main if not r.timed_out]
+        assert all(len(r.trajectory) >= 2 for r in placed)
+        for r in placed:
+            t = [s[0] for s in r.trajectory]
+            assert t == sorted(t) and all(-5 < s[1] < 5 and -1 < s[2] < 9 for s in r.trajectory)
+            assert abs(r.trajectory[-1][1] - r.x) < 0.1
+        assert all(r.dwell for r in placed)
+        assert store.participant(who.pid).completed_at is not None
+        assert "finish" in who.events
+
+    # the timer: in time_limited, the held step timed out at 5 s and ended the trial with reward 0
+    timed_rows = {(r.trial, r.step): r for r in store.placements(timed.pid) if r.phase == "main"}
+    held = timed_rows[(1, 2)]
+    assert held.timed_out and held.reward == 0 and held.trial_over and (1, 3) not in timed_rows
+    assert 4.9 <= held.decision_time <= 5.0 + settings.time_grace
+    assert 4.5 <= timed.waits[(1, 2)] <= 8.0
+    untimed = first if timed is second else second
+    assert not any(r.timed_out for r in store.placements(untimed.pid)) and untimed.waits == {}
+
+    # the export loads in the analysis toolkit
+    reply = TestClient(server["app"]).get("/api/admin/export", headers={"X-Admin-Token": ADMIN})
+    assert reply.status_code == 200
+    log_path = tmp_path / "log.jsonl"
+    log_path.write_text(reply.text)
+    log = read_log(log_path)
+    assert set(log.participant) == {"E2E-1", "E2E-2"} and set(log.condition) == {"time_limited", "unconstrained"}
+    assert set(log.task_id) == set(TASKS)
+    assert analyze([str(log_path), "--out", str(tmp_path / "analysis"), "--only", "table1", "--quiet"]) == 0
+    assert (tmp_path / "analysis" / "report.md").exists()
+
