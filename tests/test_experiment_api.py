@@ -28,7 +28,7 @@ PG_ENV = "OVERHANG_TEST_POSTGRES_URL"
 @pytest.fixture(scope="module")
 def base_settings(tmp_path_factory):
     run = tmp_path_factory.mktemp("experiment")
-    return load_settings([f"run_dir={run}", f"admin_token={ADMIN}", "tasks.only=[paper00,paper03]"])
+    return load_settings([f"run_dir={run}", f"admin_token={ADMIN}", "tasks.only=[paper00,paper03]", "physics_processes=0"])
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

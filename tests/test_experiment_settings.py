@@ -29,6 +29,8 @@ def no_admin_env(monkeypatch):
     (["admin_token=long-enough", "practice.threshold=2"], "practice.threshold"),
     (["admin_token=long-enough", "time_limit=0"], "time_limit"),
     (["admin_token=long-enough", "port=-1"], "port"),
+    (["admin_token=long-enough", "workers=0"], "workers must be"),
+    (["admin_token=long-enough", "physics_processes=-1"], "physics_processes must be"),
     (["admin_token=long-enough", "practice.ids=[paper00,practice2,practice3]"], "also main tasks"),
     (["admin_token=long-enough", "world.physics=static"], "python -m overhang_framework.optimum"),
     (["admin_token=long-enough", "predictor=ipe"], "predictor"),
@@ -91,3 +93,40 @@ def test_export_command_writes_a_log_the_toolkit_reads(tmp_path):
     log = read_log(out)
     assert len(log) == len(seq) - 1 and list(log.decision_time) == [1.5] * (len(seq) - 1)
     assert json.loads(out.read_text().splitlines()[0])["task_id"] == "paper03"
+
+
+def test_the_command_serves_the_page_and_the_api_with_its_default_processes(tmp_path):
+    import socket
+    import time
+
+    import httpx
+
+    from overhang_framework.experiment.web import dist_dir
+
+    if not (dist_dir() / "index.html").exists():
+        pytest.skip("the front end is not built (tests/test_experiment_e2e.py builds it)")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = subprocess.Popen([sys.executable, "-m", "overhang_framework.experiment", f"run_dir={tmp_path}",
+                               "admin_token=long-enough", f"port={port}"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.time() + 90
+        while True:
+            try:
+                page = httpx.get(url + "/", timeout=5)
+                break
+            except httpx.HTTPError:
+                assert server.poll() is None and time.time() < deadline, server.stderr.read() if server.poll() else ""
+                time.sleep(0.5)
+        assert page.status_code == 200 and "<html" in page.text
+        conditions = [httpx.post(url + "/api/sessions", json={"params": {"participant": f"S{i}"}}, timeout=30).json()
+                      ["condition"] for i in range(4)]
+        assert sorted(conditions) == ["time_limited"] * 2 + ["unconstrained"] * 2
+        listed = httpx.get(url + "/api/admin/participants", headers={"X-Admin-Token": "long-enough"}, timeout=30)
+        assert [r["participant"] for r in listed.json()] == ["S0", "S1", "S2", "S3"]
+    finally:
+        server.terminate()
+        server.wait(timeout=30)

@@ -17,22 +17,50 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 
+#: How the server's worker processes get the command line's settings.
+SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
+
+
 def _serve(overrides: Sequence[str]) -> int:
+    import json
+    import os
+
     import uvicorn
 
     from overhang_framework.experiment.api import create_app
     from overhang_framework.experiment.settings import load_settings
+    from overhang_framework.experiment.store import Store
     from overhang_framework.experiment.web import ensure_built
 
     settings = load_settings(overrides)
-    settings.web_dir = ensure_built(settings.web_dir)
+    web_dir = ensure_built(settings.web_dir)
     settings.run_dir.mkdir(parents=True, exist_ok=True)
-    app = create_app(settings)
+    Store(settings.database).close()  # the tables, made once before the server processes open the database
     db = settings.database.split("://")[0]
     print(f"experiment: http://{settings.host}:{settings.port}/?participant=P1  (database {db}, "
-          f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)})", file=sys.stderr)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning")
+          f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)}, "
+          f"{settings.workers} server process(es))", file=sys.stderr)
+    options = dict(host=settings.host, port=settings.port, log_level="warning",
+                   timeout_keep_alive=int(settings.keep_alive))
+    if settings.workers == 1:
+        settings.web_dir = web_dir
+        uvicorn.run(create_app(settings), **options)
+    else:
+        os.environ[SETTINGS_ENV] = json.dumps([*overrides, f"web_dir={web_dir}"])
+        uvicorn.run("overhang_framework.experiment.__main__:app_factory", factory=True, workers=settings.workers,
+                    **options)
     return 0
+
+
+def app_factory():
+    """The app of one server process, from the settings the command line gave (in :data:`SETTINGS_ENV`)."""
+    import json
+    import os
+
+    from overhang_framework.experiment.api import create_app
+    from overhang_framework.experiment.settings import load_settings
+
+    return create_app(load_settings(json.loads(os.environ[SETTINGS_ENV])))
 
 
 def _export(args) -> int:

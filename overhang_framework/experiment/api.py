@@ -11,6 +11,7 @@ status, and nothing is written.
 from __future__ import annotations
 
 import hmac
+from contextlib import asynccontextmanager
 import math
 import re
 import secrets
@@ -135,8 +136,15 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     front end in ``settings.web_dir`` is served at ``/`` when given.
     """
     store = store or Store(settings.database)
-    outcomes = outcomes or Outcomes(settings.world, fps=settings.animation_fps)
-    app = FastAPI(title="Overhang Tower experiment", version="1")
+    outcomes = outcomes or Outcomes(settings.world, fps=settings.animation_fps, processes=settings.physics_processes)
+
+    @asynccontextmanager
+    async def lifespan(_app):
+        outcomes.start()
+        yield
+        outcomes.close()
+
+    app = FastAPI(title="Overhang Tower experiment", version="1", lifespan=lifespan)
     app.state.store, app.state.settings, app.state.outcomes = store, settings, outcomes
 
     @app.exception_handler(Refused)
@@ -163,8 +171,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             raise Refused(403, "wrong admin token")
 
     def session_payload(p: Participant, token: Optional[str]) -> dict:
-        rows = store.placements(p.id)
-        pos = position(settings, p, rows)
+        pos = position(settings, p, store.steps(p.id))
         out = {
             "participant": p.id, "condition": p.condition,
             "time_limit": settings.time_limit if p.condition == "time_limited" else None,
@@ -220,14 +227,14 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     @app.post("/api/placements")
     def place(body: PlacementIn, p: Participant = Depends(participant_of)):
         digest = request_hash(body.model_dump(mode="json"))
-        rows = store.placements(p.id)
+        rows = store.steps(p.id)
         key = (body.phase, body.trial, body.attempt, body.step)
         stored = next((r for r in rows if (r.phase, r.trial, r.attempt, r.step) == key), None)
         if stored is not None:
             if stored.request_hash != digest:
                 raise Refused(409, f"{body.phase} trial {body.trial} step {body.step} is already stored with a "
                                    "different placement")
-            return stored.response
+            return store.find(p.id, *key).response
         pos = position(settings, p, rows)
         if pos.phase == "done":
             raise Refused(409, "every trial is over; nothing more can be placed")
@@ -281,7 +288,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             trajectory=[list(s) for s in body.trajectory], dwell=[list(d) for d in body.dwell],
             tower_before=pos.tower, stable=stable, overhang=level, reward=reward, trial_over=trial_over,
             passed=passed, request_hash=digest, response={})
-        after = position(settings, p, rows + [record])
+        after = position(settings, p, [*rows, record])
         response.update(total_reward=after.total_reward, position=asdict(after))
         record.response = response
         try:
@@ -291,7 +298,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     @app.post("/api/finish")
     def finish(p: Participant = Depends(participant_of)):
-        pos = position(settings, p, store.placements(p.id))
+        pos = position(settings, p, store.steps(p.id))
         if pos.phase != "done":
             raise Refused(409, f"not finished: the next placement is {pos.phase} trial {pos.trial} step {pos.step}")
         bonus = round(pos.total_reward * settings.bonus_per_unit, 2)
@@ -310,7 +317,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     def participants():
         rows = []
         for p in store.participants():
-            pos = position(settings, p, store.placements(p.id))
+            pos = position(settings, p, store.steps(p.id))
             rows.append({"participant": p.id, "study_id": p.study_id, "session_id": p.session_id,
                          "condition": p.condition, "phase": pos.phase, "trial": pos.trial,
                          "total_reward": pos.total_reward, "completed": p.completed_at is not None,

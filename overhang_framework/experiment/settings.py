@@ -49,6 +49,9 @@ class Settings:
     web_dir: Optional[Path]
     host: str = "127.0.0.1"
     port: int = 8000
+    workers: int = 1
+    physics_processes: int = 0
+    keep_alive: float = 75.0
     extra: dict = field(default_factory=dict)
 
 
@@ -147,10 +150,17 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
             raise ConfigError(f"practice task {p.task.id} has the sequence of a main task; practice is excluded "
                               "from the stimulus pool")
     web_dir = Path(str(cfg.web_dir)) if cfg.web_dir else None
+    counts = {}
+    for key, minimum in (("workers", 1), ("physics_processes", 0)):
+        value = cfg.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
+        counts[key] = value
     return Settings(
         world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold), conditions=conditions,
         time_limit=_number(cfg, "time_limit"), time_grace=_number(cfg, "time_grace", strict=False),
         database=str(database), admin_token=str(token), completion_url=str(cfg.completion_url),
         bonus_per_unit=_number(cfg, "bonus_per_unit", strict=False), currency=str(cfg.currency),
         mouse_hz=_number(cfg, "mouse_hz"), animation_fps=_number(cfg, "animation_fps"), seed=int(cfg.seed),
-        run_dir=run_dir, web_dir=web_dir, host=str(cfg.host), port=int(port))
+        run_dir=run_dir, web_dir=web_dir, host=str(cfg.host), port=int(port), **counts,
+        keep_alive=_number(cfg, "keep_alive"))

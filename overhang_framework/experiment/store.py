@@ -88,6 +88,11 @@ def request_hash(body: Any) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
+#: The columns of :meth:`Store.steps`.
+STEP_COLUMNS = ("phase", "trial", "attempt", "step", "width", "x", "layer", "timed_out", "reward", "trial_over",
+                "passed", "request_hash")
+
+
 class Conflict(Exception):
     """A placement for a step that already holds a different one."""
 
@@ -177,6 +182,13 @@ class Store:
         with self._session() as s:
             return list(s.scalars(q))
 
+    def steps(self, pid: str) -> list:
+        """A participant's placements without their large fields (trajectory, dwell, the stored reply): what
+        working out their position needs, as rows with attribute access."""
+        cols = [getattr(Placement, c) for c in STEP_COLUMNS]
+        with self._session() as s:
+            return list(s.execute(select(*cols).where(Placement.participant_id == pid)))
+
     def find(self, pid: str, phase: str, trial: int, attempt: int, step: int) -> Optional[Placement]:
         with self._session() as s:
             return s.scalars(select(Placement).where(
@@ -210,6 +222,7 @@ class Store:
 
 def _sqlite_pragmas(connection, _record) -> None:
     cursor = connection.cursor()
+    cursor.execute("PRAGMA busy_timeout=30000")
     cursor.execute("PRAGMA journal_mode=WAL")
     cursor.execute("PRAGMA synchronous=NORMAL")
     cursor.execute("PRAGMA foreign_keys=ON")
