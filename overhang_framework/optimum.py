@@ -33,7 +33,7 @@ import numpy as np
 
 from overhang_framework.interfaces import Budget, Predictor, State, Task, World
 from overhang_framework.results import atomic_write_json
-from overhang_framework.search import Expander, lookahead_value, root_scores
+from overhang_framework.search import Expander, lookahead_value, root_scores, settled_scores
 
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
 
@@ -81,10 +81,10 @@ class OptimumSearch:
             e = self.expander.expand(state, force=True)
             if not e.actions:
                 return 0.0
-            i = int(np.argmax(e.p * e.overhang))
-            if e.p[i] <= 0:
+            i = int(np.argmax(settled_scores(e, e.overhang, batch=self.expander.settle_batch)))
+            if e.p_at(i) <= 0:
                 return 0.0
-            score *= float(e.p[i])
+            score *= e.p_at(i)
             state = e.children[i]
         return score * self.value(state)
 
@@ -102,7 +102,11 @@ class OptimumSearch:
         while not state.done and target > 0:
             depth = len(state.remaining)
             e = self.expander.expand(state, force=True)
-            for action, child, p in zip(e.actions, e.children, e.p):
+            for i, (action, child) in enumerate(zip(e.actions, e.children)):
+                bound = self.value.bound(child, depth - 1)
+                if e.upper[i] <= 0 or (bound is not None and e.upper[i] * bound < target * (1 - 1e-9)):
+                    continue
+                p = e.p_at(i)
                 if p <= 0:
                     continue
                 v = lookahead_value(self.expander, self.value, child, depth - 1, target / p, self.memo,

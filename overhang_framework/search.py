@@ -74,14 +74,50 @@ def node_rng(seed: int, key: tuple) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed) & (2**63 - 1), *words]))
 
 
-@dataclass
 class Expansion:
-    """The scored children of one state: legal actions, successor states, stability, overhang."""
+    """The scored children of one state: legal actions, successor states, stability, overhang.
 
-    actions: list[Action]
-    children: list[State]
-    p: np.ndarray
-    overhang: np.ndarray
+    A predictor that can tell which of its answers are cheap (the world's verdicts, where the static
+    stages are sure) may leave the others unknown (NaN) with a ``settle`` function that computes them
+    for given children (the full-window reference). :attr:`p` settles every unknown child first, so
+    code that reads it sees a complete array; a search reads :attr:`upper` (unknown children counted
+    as standing) and settles only the children whose answer could still change its result
+    (:func:`settled_scores`, :func:`lookahead_value`), which keeps the result exact.
+    """
+
+    def __init__(self, actions: list, children: list, p, overhang: np.ndarray, settle=None):
+        self.actions, self.children, self.overhang = actions, children, overhang
+        self._p = np.asarray(p, dtype=float)
+        self._settle = settle
+        self.settled = 0  # children whose answer was settled on demand
+
+    @property
+    def p(self) -> np.ndarray:
+        """The probability of standing of every child (unknown ones settled first)."""
+        self.settle(np.flatnonzero(np.isnan(self._p)))
+        return self._p
+
+    @property
+    def unknown(self) -> np.ndarray:
+        """Which children's answers are not known yet."""
+        return np.isnan(self._p)
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Upper bounds of :attr:`p`: the known answers, 1 for unknown ones."""
+        return np.where(np.isnan(self._p), 1.0, self._p)
+
+    def settle(self, indices) -> None:
+        """Compute the answers of the children ``indices`` that are not known yet, in one call."""
+        todo = [int(i) for i in indices if np.isnan(self._p[int(i)])]
+        if todo:
+            self._p[todo] = np.asarray(self._settle(todo), dtype=float)
+            self.settled += len(todo)
+
+    def p_at(self, i: int) -> float:
+        """The probability of child ``i`` (settled first when unknown)."""
+        self.settle([i])
+        return float(self._p[i])
 
 
 @dataclass
@@ -118,6 +154,7 @@ class Expander:
     seed: int
     resolution: Optional[float] = None
     mirror: bool = False
+    lazy: bool = True
     stats: SearchStats = field(default_factory=SearchStats)
     _memo: dict = field(default_factory=dict, repr=False)
 
@@ -132,16 +169,26 @@ class Expander:
         actions = self.world.legal_actions(state, self.resolution)
         if self.mirror and is_symmetric(state):
             actions = [a for a in actions if a.x >= 0]
+        settle = None
         if actions:
-            p = np.asarray(self.predictor.predict(canonical_state(state), actions, node_rng(self.seed, key)),
-                           dtype=float)
+            lazy = getattr(self.predictor, "predict_lazy", None) if self.lazy else None
+            if lazy is not None:
+                p, settle = lazy(canonical_state(state), actions, node_rng(self.seed, key))
+            else:
+                p = self.predictor.predict(canonical_state(state), actions, node_rng(self.seed, key))
+            p = np.asarray(p, dtype=float)
             self.budget.charge(1)
             self.stats.predictor_calls += 1
         else:
             p = np.zeros(0)
-        expansion = self._expansion(state, actions, p)
+        expansion = self._expansion(state, actions, p, settle)
         self._memo[key] = expansion
         return expansion
+
+    @property
+    def settle_batch(self) -> int:
+        """How many unknown children a search settles together: the world's physics workers."""
+        return max(1, int(getattr(self.world, "workers", 1) or 1))
 
 
     def expand_many(self, states: Sequence[State]) -> None:
@@ -157,7 +204,7 @@ class Expander:
             if key not in self._memo and key not in seen and not state.done:
                 seen.add(key)
                 todo.append((key, state))
-        if len(todo) < 2:
+        if len(todo) < 2 or (self.lazy and getattr(self.predictor, "predict_lazy", None) is not None):
             return
         if self.budget.predictor_calls is not None and \
                 self.budget.calls_used + len(todo) > self.budget.predictor_calls:
@@ -180,14 +227,14 @@ class Expander:
                 self.stats.predictor_calls += 1
             self._memo[key] = self._expansion(state, actions, p)
 
-    def _expansion(self, state: State, actions: list, p: np.ndarray) -> Expansion:
+    def _expansion(self, state: State, actions: list, p: np.ndarray, settle=None) -> Expansion:
         children = [self.world.successor(state, a) for a in actions]
         base = overhang(state.geometry)
         width = state.next_width or 0.0
         reach = np.array([abs(a.x) + width / 2 for a in actions], dtype=float)
         self.stats.actions_scored += len(actions)
         self.stats.nodes_expanded += 1
-        return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach)
+        return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach, settle)
 
 
 def max_reach(world: World, state: State, resolution: Optional[float] = None) -> float:
@@ -226,6 +273,37 @@ def _below(bound: Optional[float], threshold: float) -> bool:
     return bound is not None and threshold > 0 and bound < threshold * (1 - TIE) - 1e-15
 
 
+def settled_scores(expansion: Expansion, values: np.ndarray, floor: float = 0.0, exact_all: bool = False,
+                   batch: int = 1) -> np.ndarray:
+    """``p * values`` for every child, settling unknown answers only where they can matter.
+
+    Exact for every child scoring at least ``floor`` and at least every other child's score (ties
+    included); another child may get an upper bound of its score instead (still below the best, or
+    below ``floor``). With ``exact_all`` every score is exact. Unknown children are settled best
+    bound first, ``batch`` at a time.
+    """
+    values = np.asarray(values, dtype=float)
+    unknown = expansion.unknown
+    if exact_all or not unknown.any():
+        return expansion.p * values
+    upper = expansion.upper * values
+    scores = upper.copy()
+    known = ~unknown
+    best = float(scores[known].max()) if known.any() else 0.0
+    order = [int(i) for i in np.argsort(-upper, kind="stable") if unknown[i]]
+    k = 0
+    while k < len(order):
+        if _below(upper[order[k]], max(best, floor)) or upper[order[k]] <= 0:
+            break
+        group = [i for i in order[k:k + batch] if not _below(upper[i], max(best, floor))]
+        expansion.settle(group)
+        for i in group:
+            scores[i] = expansion.p_at(i) * values[i]
+            best = max(best, float(scores[i]))
+        k += batch
+    return scores
+
+
 def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
                     threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None, prefetch: bool = False) -> float:
     """``max`` over action sequences of length ``depth`` of ``prod p * V(leaf)`` from ``state``.
@@ -242,6 +320,8 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     above the leaves together (:meth:`Expander.expand_many`), which is faster
     when one large physics call costs much less than many small ones, at the
     cost of scoring children that a bound would have skipped.
+    Children whose answer the predictor left unknown (:class:`Expansion`) count as standing in the
+    bounds and are settled only when they are about to be searched, so the result is the same.
     """
     memo = {} if memo is None else memo
     depth = min(depth, len(state.remaining))
@@ -254,29 +334,48 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
         if exact or threshold >= tried:
             return result
     expansion = expander.expand(state)
-    p = expansion.p
     best = 0.0
     if depth == 1:
-        scores = p * _leaf_values(value, expansion)
+        scores = settled_scores(expansion, _leaf_values(value, expansion), threshold, batch=expander.settle_batch)
         best = float(scores.max()) if len(scores) else 0.0
     else:
+        upper = expansion.upper
         bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
-        order = np.argsort(-_products(p, bounds), kind="stable")[:beam]
+        order = np.argsort(-_products(upper, bounds), kind="stable")[:beam]
         if depth == 2 and prefetch:
             floor = threshold
             expander.expand_many([expansion.children[i] for i in order
-                                  if p[i] > 0 and not _below(p[i] * bounds[i], floor)])
-        for i in order:
+                                  if upper[i] > 0 and not _below(upper[i] * bounds[i], floor)])
+        for n, i in enumerate(order):
             floor = max(threshold, best)
-            if p[i] <= 0 or _below(p[i] * bounds[i], floor):
+            if upper[i] <= 0 or _below(upper[i] * bounds[i], floor):
                 expander.stats.leaves_pruned += 1
                 continue
+            _settle_next(expander, expansion, order, n, upper, bounds, floor)
+            p_i = float(expansion._p[i])
+            if p_i <= 0:
+                continue
             child = lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                    floor / p[i], memo, beam, prefetch)
-            best = max(best, float(p[i] * child))
+                                    floor / p_i, memo, beam, prefetch)
+            best = max(best, float(p_i * child))
     exact = best >= threshold * (1 - TIE) or threshold <= 0
     memo[key] = (best, exact, threshold)
     return best
+
+
+def _settle_next(expander: Expander, expansion: Expansion, order, n: int, upper, bounds, floor: float) -> None:
+    """Settle child ``order[n]`` if unknown, with the next unknown children that the bound does not skip
+    at ``floor`` (up to the expander's batch)."""
+    i = order[n]
+    if not np.isnan(expansion._p[i]):
+        return
+    group = [i]
+    for j in order[n + 1:]:
+        if len(group) >= expander.settle_batch:
+            break
+        if np.isnan(expansion._p[j]) and upper[j] > 0 and not _below(upper[j] * bounds[j], floor):
+            group.append(j)
+    expansion.settle(group)
 
 
 def _products(p: np.ndarray, bounds: np.ndarray) -> np.ndarray:
@@ -306,28 +405,35 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
     """
     memo = {} if memo is None else memo
     expansion = expander.expand(state, force=True)
-    p = expansion.p
     n = len(expansion.actions)
     scores = np.zeros(n)
     if depth <= 1 or len(state.remaining) <= 1:
-        return p * _leaf_values(value, expansion)
+        return settled_scores(expansion, _leaf_values(value, expansion), exact_all=exact_all,
+                              batch=expander.settle_batch)
+    if exact_all:
+        expansion.p  # every root score must be exact: settle them all at once
+    upper = expansion.upper
     bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
-    order = list(np.argsort(-_products(p, bounds), kind="stable"))
+    order = list(np.argsort(-_products(upper, bounds), kind="stable"))
     if first is not None and first in order:
         order.remove(first)
         order.insert(0, first)
     best = 0.0
-    for i in order:
-        if p[i] <= 0:
+    for k, i in enumerate(order):
+        if upper[i] <= 0:
             expander.stats.leaves_pruned += 1
             continue
         floor = 0.0 if exact_all else best
-        if _below(p[i] * bounds[i], floor):
+        if _below(upper[i] * bounds[i], floor):
             expander.stats.leaves_pruned += 1
-            scores[i] = p[i] * bounds[i]
+            scores[i] = upper[i] * bounds[i]
             continue
-        scores[i] = p[i] * lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                           floor / p[i], memo, beam, prefetch)
+        _settle_next(expander, expansion, order, k, upper, bounds, floor)
+        p_i = float(expansion._p[i])
+        if p_i <= 0:
+            continue
+        scores[i] = p_i * lookahead_value(expander, value, expansion.children[i], depth - 1,
+                                          floor / p_i, memo, beam, prefetch)
         best = max(best, scores[i])
     return scores
 

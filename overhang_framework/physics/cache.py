@@ -60,6 +60,10 @@ class VerdictCache:
         self._data.move_to_end(key)
         return value
 
+    def peek(self, key) -> Optional[bool]:
+        """The stored verdict or ``None``, without counting a hit or a miss."""
+        return self._data.get(key)
+
     def put(self, key, verdict: bool) -> None:
         self._data[key] = bool(verdict)
         self._data.move_to_end(key)

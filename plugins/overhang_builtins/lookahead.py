@@ -64,7 +64,7 @@ class LookaheadPlanner(Planner):
             raise RuntimeError("no legal action in this state")
         choice = self.rule.choose(scores, rng)
         spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=completed)
-        return Decision(actions.actions[choice.index], float(actions.p[choice.index]), spend,
+        return Decision(actions.actions[choice.index], actions.p_at(choice.index), spend,
                         choice.probability, choice.rank)
 
 

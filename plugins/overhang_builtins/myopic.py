@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
-from overhang_framework.search import ChoiceRule, Expander
+from overhang_framework.search import ChoiceRule, Expander, settled_scores
 
 
 class MyopicPlanner(Planner):
@@ -30,7 +30,9 @@ class MyopicPlanner(Planner):
         expansion = expander.expand(state, force=True)
         if not expansion.actions:
             raise RuntimeError("no legal action in this state")
-        choice = self.rule.choose(expansion.p * expansion.overhang, rng)
+        scores = settled_scores(expansion, expansion.overhang, exact_all=self.rule.needs_all_scores,
+                                batch=expander.settle_batch)
+        choice = self.rule.choose(scores, rng)
         spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=1)
-        return Decision(expansion.actions[choice.index], float(expansion.p[choice.index]), spend,
+        return Decision(expansion.actions[choice.index], expansion.p_at(choice.index), spend,
                         choice.probability, choice.rank)

@@ -67,5 +67,5 @@ class OptimalPlanner(Planner):
         expansion = search.expander.expand(state, force=True)
         spend = search.expander.stats.spend(time.perf_counter() - start, budget,
                                             depth_completed=len(state.remaining))
-        return Decision(expansion.actions[choice.index], float(expansion.p[choice.index]), spend,
+        return Decision(expansion.actions[choice.index], expansion.p_at(choice.index), spend,
                         choice.probability, choice.rank)

@@ -352,3 +352,23 @@ class VeridicalPredictor(IPEPredictor):
     def world_verdicts(self) -> bool:
         """Whether the probabilities are exactly the world's own verdicts (1 stands, 0 falls)."""
         return self.backend_name == "world" and not self.backend_params
+
+    @property
+    def predict_lazy(self):
+        """With the world's own verdicts from a world that can say which are cheap
+        (``deferred_verdicts`` and ``stability_bounds``), :meth:`_predict_lazy`; else ``None`` (searches then call :meth:`predict`)."""
+        if self.world_verdicts and getattr(self.world, "deferred_verdicts", False):
+            return self._predict_lazy
+        return None
+
+    def _predict_lazy(self, state: State, actions: Sequence[Action], rng: np.random.Generator):
+        """The verdicts the world knows cheaply (1 or 0; NaN where only the reference can tell), and a
+        function that settles given actions' verdicts (see :class:`~overhang_framework.search.Expansion`)."""
+        geometries = self.successors(state, actions)
+        known = np.asarray(self.world.stability_bounds(geometries))
+        p = np.where(known < 0, np.nan, known.astype(float))
+
+        def settle(indices):
+            return np.asarray(self.world.stable_batch([geometries[i] for i in indices]), dtype=float)
+
+        return p, settle

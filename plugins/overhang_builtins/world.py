@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Optional
 
+import numpy as np
+
 from overhang_framework import rules
 from overhang_framework.geometry import Action, Block, Geometry, check_width, overhang
 from overhang_framework.interfaces import State, Task, World
@@ -35,6 +37,7 @@ class OverhangWorld(World):
         if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
             raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
         self.resolution = float(resolution)
+        self.workers = workers
         self.physics_name = physics
         for name, given in (("pybullet", pybullet), ("static", static), ("tiered", tiered)):
             if given is not None and not isinstance(given, Mapping):
@@ -72,6 +75,49 @@ class OverhangWorld(World):
 
     def is_stable(self, geometry: Geometry) -> bool:
         return bool(self.backend.stable(geometry))
+
+    @property
+    def deferred_verdicts(self) -> bool:
+        """Whether some verdicts cost a reference run that a search may put off (the tiered physics)."""
+        return self.physics_name == "tiered"
+
+    def stable_batch(self, geometries) -> "np.ndarray":
+        """:meth:`is_stable` of many geometries in one physics call (reference runs on the pool with workers > 1)."""
+        return np.asarray(self.backend.stable_batch(list(geometries)), dtype=bool)
+
+    def stability_bounds(self, geometries) -> "np.ndarray":
+        """What is known about each geometry's verdict without running the reference: 1 stands, 0 falls,
+        -1 only the full-window reference can tell (the tiered physics' band near a tipping point).
+
+        Cached verdicts are used; the static stages' sure verdicts are cached. Physics without stages
+        (``pybullet``, ``static``) answer every geometry.
+        """
+        from overhang_framework.physics.cache import CachedBackend, verdict_key
+
+        geometries = list(geometries)
+        backend = self.backend
+        inner = backend.backend if isinstance(backend, CachedBackend) else backend
+        if not hasattr(inner, "classify"):
+            return np.asarray(backend.stable_batch(geometries), dtype=np.int8)
+        out = np.full(len(geometries), -1, dtype=np.int8)
+        todo, keys = [], []
+        for i, g in enumerate(geometries):
+            if isinstance(backend, CachedBackend):
+                key = verdict_key(g, None, None, backend._context)
+                verdict = backend.cache.peek(key)
+                if verdict is not None:
+                    out[i] = verdict
+                    continue
+                keys.append(key)
+            todo.append(i)
+        if todo:
+            stage = inner.classify([geometries[i] for i in todo])
+            out[todo] = stage
+            if isinstance(backend, CachedBackend):
+                for key, s in zip(keys, stage):
+                    if s >= 0:
+                        backend.cache.put(key, bool(s))
+        return out
 
     def overhang(self, geometry: Geometry) -> float:
         return overhang(geometry)
