@@ -148,3 +148,91 @@ class CachedBackend:
         close = getattr(self.backend, "close", None)
         if close is not None:
             close()
+
+
+class DiskCachedBackend:
+    """A backend whose verdicts are also kept in an SQLite file, for every later run and process to reuse.
+
+    Verdicts are keyed like :class:`CachedBackend`'s (the backend's name and parameters, the canonical
+    geometry, gravity and friction), so a file serves any run with the same physics and never answers
+    for other parameters. Each batch is looked up in one query and its misses written in one
+    transaction; several processes (the jobs of a sweep) can share one file. Meant for verdicts that
+    are dear (the full-window reference), not for microsecond static checks.
+    """
+
+    def __init__(self, backend, path):
+        import sqlite3
+        from pathlib import Path
+
+        self.backend = backend
+        self.name = getattr(backend, "name", type(backend).__name__)
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._context = backend_context(backend)
+        self._db = sqlite3.connect(str(self.path), timeout=60, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("CREATE TABLE IF NOT EXISTS verdicts (key TEXT PRIMARY KEY, stable INTEGER NOT NULL)")
+        self._db.commit()
+        self.hits = 0
+        self.misses = 0
+
+    @property
+    def params(self):
+        return getattr(self.backend, "params", None)
+
+    def _key(self, geometry, gravity, friction) -> str:
+        import hashlib
+
+        return hashlib.blake2b(repr(verdict_key(geometry, gravity, friction, self._context)).encode(),
+                               digest_size=16).hexdigest()
+
+    def stable(self, geometry: Geometry, gravity=None, friction=None) -> bool:
+        return bool(self.stable_batch([geometry], None if gravity is None else [gravity],
+                                      None if friction is None else [friction])[0])
+
+    def stable_batch(self, geometries: Sequence[Geometry], gravity=None, friction=None) -> np.ndarray:
+        geometries = list(geometries)
+        keys = [self._key(g, None if gravity is None else gravity[i], None if friction is None else friction[i])
+                for i, g in enumerate(geometries)]
+        known: dict = {}
+        for start in range(0, len(keys), 500):
+            chunk = keys[start:start + 500]
+            rows = self._db.execute(f"SELECT key, stable FROM verdicts WHERE key IN ({','.join('?' * len(chunk))})",
+                                    chunk).fetchall()
+            known.update((k, bool(v)) for k, v in rows)
+        out = np.zeros(len(geometries), dtype=bool)
+        todo = [i for i, k in enumerate(keys) if k not in known]
+        self.hits += len(keys) - len(todo)
+        self.misses += len(todo)
+        if todo:
+            verdicts = self.backend.stable_batch(
+                [geometries[i] for i in todo],
+                None if gravity is None else np.asarray(gravity, dtype=float)[todo],
+                None if friction is None else [friction[i] for i in todo])
+            with self._db:
+                self._db.executemany("INSERT OR REPLACE INTO verdicts VALUES (?, ?)",
+                                     [(keys[i], int(bool(v))) for i, v in zip(todo, verdicts)])
+            known.update((keys[i], bool(v)) for i, v in zip(todo, verdicts))
+        for i, k in enumerate(keys):
+            out[i] = known[k]
+        return out
+
+    def stats(self) -> dict:
+        return {"disk_hits": self.hits, "disk_misses": self.misses, "file": str(self.path)}
+
+    def close(self) -> None:
+        close = getattr(self.backend, "close", None)
+        if close is not None:
+            close()
+        self._db.close()
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_db"] = None
+        return state
+
+    def __setstate__(self, state):
+        import sqlite3
+
+        self.__dict__.update(state)
+        self._db = sqlite3.connect(str(self.path), timeout=60, check_same_thread=False)

@@ -30,7 +30,7 @@ def backend_params(name: str, **params):
 
 
 def make_backend(name: str, *, workers: Optional[int] = None, cache=None, pybullet=None, static=None,
-                 **params):
+                 verdict_file=None, **params):
     """The backend called ``name`` with ``params`` overriding its parameter defaults.
 
     ``pybullet`` takes :class:`PyBulletParams` fields and, with ``workers > 1``,
@@ -38,7 +38,8 @@ def make_backend(name: str, *, workers: Optional[int] = None, cache=None, pybull
     fields; ``tiered`` takes :class:`TieredParams` fields, plus the mappings
     ``pybullet`` and ``static`` for the reference and static model it is
     built on (reference checks on a pool with ``workers > 1``). ``cache`` wraps the backend in a :class:`CachedBackend`: ``True``
-    for a fresh :class:`VerdictCache`, or a cache to share. Unknown names and
+    for a fresh :class:`VerdictCache`, or a cache to share. ``verdict_file`` keeps the reference's
+    verdicts (``pybullet``, and ``tiered``'s band) in an SQLite file for later runs. Unknown names and
     unknown parameters raise ``ValueError``.
     """
     prm = backend_params(name, **params)
@@ -47,7 +48,7 @@ def make_backend(name: str, *, workers: Optional[int] = None, cache=None, pybull
 
         backend = TieredBackend(prm, static=backend_params("static", **dict(static or {})),
                                 pybullet=backend_params("pybullet", **dict(pybullet or {})),
-                                workers=workers or 1)
+                                workers=workers or 1, verdict_file=verdict_file)
     elif name == "pybullet":
         if workers is not None and workers > 1:
             from overhang_framework.physics.pool import PyBulletPool
@@ -57,6 +58,10 @@ def make_backend(name: str, *, workers: Optional[int] = None, cache=None, pybull
             from overhang_framework.physics.pybullet_backend import PyBulletBackend
 
             backend = PyBulletBackend(prm)
+        if verdict_file:
+            from overhang_framework.physics.cache import DiskCachedBackend
+
+            backend = DiskCachedBackend(backend, verdict_file)
     else:
         from overhang_framework.physics.static_backend import StaticBackend
 

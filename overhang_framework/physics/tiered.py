@@ -97,11 +97,12 @@ class TieredBackend:
     name = "tiered"
 
     def __init__(self, params: TieredParams = TieredParams(), static: StaticParams = StaticParams(),
-                 pybullet: PyBulletParams = PyBulletParams(), workers: int = 1):
+                 pybullet: PyBulletParams = PyBulletParams(), workers: int = 1, verdict_file=None):
         self.tiers = params
         self.static_params = static
         self.reference_params = replace(pybullet, early_stop=False)
         self.workers = max(1, int(workers))
+        self.verdict_file = verdict_file
         self.params = (params, static, self.reference_params)
         self.counts = dict.fromkeys(STAGES, 0)
         static = replace(static, height_margin=0.0, friction_scale=1.0)  # the stages bring their own margins
@@ -123,6 +124,11 @@ class TieredBackend:
                 from overhang_framework.physics.pybullet_backend import PyBulletBackend
 
                 self._reference = PyBulletBackend(self.reference_params)
+            if self.verdict_file:
+                from overhang_framework.physics.cache import DiskCachedBackend
+
+                # keyed by the reference's own parameters: the file serves any world with the same reference
+                self._reference = DiskCachedBackend(self._reference, self.verdict_file)
         return self._reference
 
     def classify(self, geometries: Sequence[Geometry], gravity=None, friction=None) -> np.ndarray:

@@ -22,12 +22,14 @@ class OverhangWorld(World):
     ``tiered`` builds on the other two). ``resolution`` is the x step of the candidate
     actions that :meth:`legal_actions` enumerates; ``cache`` memoises verdicts by
     the canonical geometry key; ``workers > 1`` runs PyBullet batches on a
-    process pool of that many workers.
+    process pool of that many workers. ``verdict_file`` keeps the full-window reference's verdicts in an
+    SQLite file that later runs, and the jobs of a sweep, reuse.
     """
 
     def __init__(self, physics: str = "tiered", resolution: float = 0.1, cache: bool = True,
                  workers: int = 1, pybullet: Optional[Mapping[str, Any]] = None,
-                 static: Optional[Mapping[str, Any]] = None, tiered: Optional[Mapping[str, Any]] = None):
+                 static: Optional[Mapping[str, Any]] = None, tiered: Optional[Mapping[str, Any]] = None,
+                 verdict_file: Optional[str] = None):
         from overhang_framework.physics.factory import backend_params, make_backend
 
         if not isinstance(resolution, (int, float)) or isinstance(resolution, bool) or resolution <= 0:
@@ -50,7 +52,11 @@ class OverhangWorld(World):
             backend_params(name, **params)
         extra = {"pybullet": self.backend_params["pybullet"], "static": self.backend_params["static"]} \
             if physics == "tiered" else {}
-        self.backend = make_backend(physics, workers=workers, cache=cache, **self.backend_params[physics], **extra)
+        if verdict_file is not None and not isinstance(verdict_file, str):
+            raise ValueError(f"verdict_file must be a file path or null, got {verdict_file!r}")
+        self.verdict_file = verdict_file
+        self.backend = make_backend(physics, workers=workers, cache=cache, verdict_file=verdict_file,
+                                    **self.backend_params[physics], **extra)
 
     def initial_state(self, task: Task) -> State:
         widths = tuple(check_width(w) for w in task.sequence)
@@ -113,6 +119,10 @@ class OverhangWorld(World):
         if todo:
             stage = inner.classify([geometries[i] for i in todo])
             out[todo] = stage
+            counts = getattr(inner, "counts", None)
+            if counts is not None:
+                counts["static_stable"] += int(np.sum(stage == 1))
+                counts["static_fall"] += int(np.sum(stage == 0))
             if isinstance(backend, CachedBackend):
                 for key, s in zip(keys, stage):
                     if s >= 0:
