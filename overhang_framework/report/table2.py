@@ -68,7 +68,8 @@ def rows_of(jobs: list[Job], optima: dict) -> list[dict]:
     for job in jobs:
         eps = job.episodes
         reward, sem, tasks = task_sem(eps, [e["reward"] for e in eps])
-        best = [optimum_of(job, e, optima) or static_optimum(job, e, optima) for e in eps]
+        own = [optimum_of(job, e, optima) for e in eps]
+        best = [b or static_optimum(job, e, optima) for b, e in zip(own, eps)]
         if eps and all(best):
             ratio, ratio_sem, _ = task_sem(eps, [e["reward"] / b for e, b in zip(eps, best)])
         else:
@@ -79,6 +80,7 @@ def rows_of(jobs: list[Job], optima: dict) -> list[dict]:
                      "predictor": job.config.get("predictor", {}).get("name", "?"),
                      "episodes": len(eps), "expected": job.expected, "tasks": tasks, "repeats": repeats,
                      "reward": reward, "sem": sem, "ratio": ratio, "ratio_sem": ratio_sem,
+                     "optimum_of": "own" if eps and all(own) else "static",
                      "decision_time": median([s["decision_time"] for e in eps for s in e["steps"]]),
                      **_depths(eps, job.config)})
     order = {name: i for i, name in enumerate(MODEL_ORDER)}
@@ -141,9 +143,12 @@ def render(rows: list[dict], root: Path) -> str:
     lines.append("Depth reached and budget ran out: over the decisions with at least the planner's depth of "
                  "blocks left, the mean depth its search completed and the share stopped by the budget.")
     lines.append("")
+    fallback = sorted({r["job"] for r in rows if r["optimum_of"] == "static" and not math.isnan(r["ratio"])})
     lines.append("Mean over all episodes; ± is the SEM across tasks (of each task's mean over its runs). "
-                 "Reward / optimum divides by the task's optimum in the shipped optima (found with the static "
-                 "physics; under the tiered world it is an estimate).")
+                 "Reward / optimum divides by the task's optimum under the physics and resolution the job used "
+                 "(`overhang_framework/data/optima.json`, computed by `python -m overhang_framework.optimum`)"
+                 + (f"; for {', '.join(fallback)} that physics has no stored optimum for every task, and the "
+                    "static physics' optimum stands in (an estimate)." if fallback else "."))
     if missing:
         lines.append("")
         lines.append("Not complete (rerun the same command to resume): "
