@@ -85,10 +85,14 @@ class Expansion:
     (:func:`settled_scores`, :func:`lookahead_value`), which keeps the result exact.
     """
 
-    def __init__(self, actions: list, children: list, p, overhang: np.ndarray, settle=None):
+    def __init__(self, actions: list, children: list, p, overhang: np.ndarray, settle=None, classify=None):
         self.actions, self.children, self.overhang = actions, children, overhang
         self._p = np.asarray(p, dtype=float)
         self._settle = settle
+        self._classify = classify
+        # with ``classify`` every answer starts unknown; :meth:`look` takes the cheap first look (1, 0, or
+        # still unknown) for the children a search may need, and :meth:`settle` the dear one
+        self._looked = np.zeros(len(self._p), dtype=bool) if classify is not None else np.ones(len(self._p), bool)
         self.settled = 0  # children whose answer was settled on demand
 
     @property
@@ -107,8 +111,18 @@ class Expansion:
         """Upper bounds of :attr:`p`: the known answers, 1 for unknown ones."""
         return np.where(np.isnan(self._p), 1.0, self._p)
 
+    def look(self, indices) -> None:
+        """The cheap first look at the children ``indices`` not looked at yet, in one call."""
+        todo = [int(i) for i in indices if not self._looked[int(i)]]
+        if todo:
+            stage = np.asarray(self._classify(todo))
+            known = stage >= 0
+            self._p[np.asarray(todo)[known]] = stage[known].astype(float)
+            self._looked[todo] = True
+
     def settle(self, indices) -> None:
         """Compute the answers of the children ``indices`` that are not known yet, in one call."""
+        self.look(indices)
         todo = [int(i) for i in indices if np.isnan(self._p[int(i)])]
         if todo:
             self._p[todo] = np.asarray(self._settle(todo), dtype=float)
@@ -169,11 +183,11 @@ class Expander:
         actions = self.world.legal_actions(state, self.resolution)
         if self.mirror and is_symmetric(state):
             actions = [a for a in actions if a.x >= 0]
-        settle = None
+        settle = classify = None
         if actions:
             lazy = getattr(self.predictor, "predict_lazy", None) if self.lazy else None
             if lazy is not None:
-                p, settle = lazy(canonical_state(state), actions, node_rng(self.seed, key))
+                p, settle, classify = lazy(canonical_state(state), actions, node_rng(self.seed, key))
             else:
                 p = self.predictor.predict(canonical_state(state), actions, node_rng(self.seed, key))
             p = np.asarray(p, dtype=float)
@@ -181,7 +195,7 @@ class Expander:
             self.stats.predictor_calls += 1
         else:
             p = np.zeros(0)
-        expansion = self._expansion(state, actions, p, settle)
+        expansion = self._expansion(state, actions, p, settle, classify)
         self._memo[key] = expansion
         return expansion
 
@@ -227,14 +241,14 @@ class Expander:
                 self.stats.predictor_calls += 1
             self._memo[key] = self._expansion(state, actions, p)
 
-    def _expansion(self, state: State, actions: list, p: np.ndarray, settle=None) -> Expansion:
+    def _expansion(self, state: State, actions: list, p: np.ndarray, settle=None, classify=None) -> Expansion:
         children = [self.world.successor(state, a) for a in actions]
         base = overhang(state.geometry)
         width = state.next_width or 0.0
         reach = np.array([abs(a.x) + width / 2 for a in actions], dtype=float)
         self.stats.actions_scored += len(actions)
         self.stats.nodes_expanded += 1
-        return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach, settle)
+        return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach, settle, classify)
 
 
 def max_reach(world: World, state: State, resolution: Optional[float] = None) -> float:
@@ -286,6 +300,11 @@ def settled_scores(expansion: Expansion, values: np.ndarray, floor: float = 0.0,
     unknown = expansion.unknown
     if exact_all or not unknown.any():
         return expansion.p * values
+    upper = expansion.upper * values
+    known = ~unknown
+    best = float(upper[known].max()) if known.any() else 0.0
+    expansion.look([i for i in np.flatnonzero(unknown) if not _below(upper[i], max(best, floor))])
+    unknown = expansion.unknown
     upper = expansion.upper * values
     scores = upper.copy()
     known = ~unknown
@@ -341,6 +360,8 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     else:
         upper = expansion.upper
         bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
+        expansion.look([i for i in range(len(upper)) if upper[i] > 0 and not _below(upper[i] * bounds[i], threshold)])
+        upper = expansion.upper
         order = np.argsort(-_products(upper, bounds), kind="stable")[:beam]
         if depth == 2 and prefetch:
             floor = threshold
@@ -373,7 +394,8 @@ def _settle_next(expander: Expander, expansion: Expansion, order, n: int, upper,
     for j in order[n + 1:]:
         if len(group) >= expander.settle_batch:
             break
-        if np.isnan(expansion._p[j]) and upper[j] > 0 and not _below(upper[j] * bounds[j], floor):
+        if np.isnan(expansion._p[j]) and expansion._looked[j] and upper[j] > 0 \
+                and not _below(upper[j] * bounds[j], floor):
             group.append(j)
     expansion.settle(group)
 
@@ -412,6 +434,7 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
                               batch=expander.settle_batch)
     if exact_all:
         expansion.p  # every root score must be exact: settle them all at once
+    expansion.look(range(n))
     upper = expansion.upper
     bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
     order = list(np.argsort(-_products(upper, bounds), kind="stable"))

@@ -362,13 +362,16 @@ class VeridicalPredictor(IPEPredictor):
         return None
 
     def _predict_lazy(self, state: State, actions: Sequence[Action], rng: np.random.Generator):
-        """The verdicts the world knows cheaply (1 or 0; NaN where only the reference can tell), and a
-        function that settles given actions' verdicts (see :class:`~overhang_framework.search.Expansion`)."""
+        """Every verdict unknown for now, with the functions that give given actions' verdicts: ``classify``
+        what the world knows cheaply (1, 0, or -1 where only the reference can tell) and ``settle`` the
+        verdict itself; a search asks only for what can change its result
+        (:class:`~overhang_framework.search.Expansion`)."""
         geometries = self.successors(state, actions)
-        known = np.asarray(self.world.stability_bounds(geometries))
-        p = np.where(known < 0, np.nan, known.astype(float))
+
+        def classify(indices):
+            return np.asarray(self.world.stability_bounds([geometries[i] for i in indices]))
 
         def settle(indices):
             return np.asarray(self.world.stable_batch([geometries[i] for i in indices]), dtype=float)
 
-        return p, settle
+        return np.full(len(actions), np.nan), settle, classify
