@@ -143,7 +143,7 @@ def render(rows: list[dict], root: Path) -> str:
     lines.append("Depth reached and budget ran out: over the decisions with at least the planner's depth of "
                  "blocks left, the mean depth its search completed and the share stopped by the budget.")
     lines.append("")
-    fallback = sorted({r["job"] for r in rows if r["optimum_of"] == "static" and not math.isnan(r["ratio"])})
+    fallback = sorted({r["job"] for r in rows if r.get("optimum_of") == "static" and not math.isnan(r["ratio"])})
     lines.append("Mean over all episodes; ± is the SEM across tasks (of each task's mean over its runs). "
                  "Reward / optimum divides by the task's optimum under the physics and resolution the job used "
                  "(`overhang_framework/data/optima.json`, computed by `python -m overhang_framework.optimum`)"
