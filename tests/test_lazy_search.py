@@ -1,7 +1,7 @@
 """Searches that settle unsure verdicts only where they matter give the exhaustive search's answers.
 
 The world here is the static physics with about half of its verdicts hidden behind a "reference"
-(``stability_bounds`` says -1 for them, and ``stable_batch`` reveals them): the same situation as the
+(``stability_bounds`` says -1 for them, and ``settle`` reveals them): the same situation as the
 tiered physics' band, at the cost of static checks, so that many random states can be compared.
 """
 
@@ -22,7 +22,7 @@ from overhang_builtins.world import OverhangWorld
 
 
 class HidingWorld(OverhangWorld):
-    """Static physics whose verdicts, for about half the geometries, only :meth:`stable_batch` reveals."""
+    """Static physics whose verdicts, for about half the geometries, only :meth:`settle` reveals."""
 
     deferred_verdicts = True
 
@@ -38,10 +38,10 @@ class HidingWorld(OverhangWorld):
         verdicts = np.asarray(self.backend.stable_batch(list(geometries)), dtype=np.int8)
         return np.where([self.hidden(g) for g in geometries], -1, verdicts).astype(np.int8)
 
-    def stable_batch(self, geometries):
+    def settle(self, geometries):
         geometries = list(geometries)
         self.revealed += len(geometries)
-        return super().stable_batch(geometries)
+        return super().settle(geometries)
 
 
 def random_states(n: int, seed: int):

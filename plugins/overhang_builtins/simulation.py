@@ -372,6 +372,6 @@ class VeridicalPredictor(IPEPredictor):
             return np.asarray(self.world.stability_bounds([geometries[i] for i in indices]))
 
         def settle(indices):
-            return np.asarray(self.world.stable_batch([geometries[i] for i in indices]), dtype=float)
+            return np.asarray(self.world.settle([geometries[i] for i in indices]), dtype=float)
 
         return np.full(len(actions), np.nan), settle, classify

@@ -91,6 +91,20 @@ class OverhangWorld(World):
         """:meth:`is_stable` of many geometries in one physics call (reference runs on the pool with workers > 1)."""
         return np.asarray(self.backend.stable_batch(list(geometries)), dtype=bool)
 
+    def settle(self, geometries) -> "np.ndarray":
+        """The verdicts of geometries that :meth:`stability_bounds` left unsure (-1): the reference runs
+        them (on the pool with workers > 1), and they are cached; counted once, as its misses were."""
+        from overhang_framework.physics.cache import CachedBackend, verdict_key
+
+        geometries = list(geometries)
+        backend = self.backend
+        if not isinstance(backend, CachedBackend):
+            return self.stable_batch(geometries)
+        verdicts = np.asarray(backend.backend.stable_batch(geometries), dtype=bool)
+        for g, v in zip(geometries, verdicts):
+            backend.cache.put(verdict_key(g, None, None, backend._context), bool(v))
+        return verdicts
+
     def stability_bounds(self, geometries) -> "np.ndarray":
         """What is known about each geometry's verdict without running the reference: 1 stands, 0 falls,
         -1 only the full-window reference can tell (the tiered physics' band near a tipping point).
@@ -110,7 +124,7 @@ class OverhangWorld(World):
         for i, g in enumerate(geometries):
             if isinstance(backend, CachedBackend):
                 key = verdict_key(g, None, None, backend._context)
-                verdict = backend.cache.peek(key)
+                verdict = backend.cache.get(key)  # counted: a miss is a verdict this world computes
                 if verdict is not None:
                     out[i] = verdict
                     continue
