@@ -29,7 +29,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import GRID_HALF_WIDTH, Action, Geometry, overhang
+from overhang_framework.geometry import GRID_HALF_WIDTH, Geometry, overhang
 from overhang_framework.interfaces import Budget, Predictor, Spend, State, Value, World
 
 #: Relative tolerance under which two scores count as tied (and a bound as not below a score).

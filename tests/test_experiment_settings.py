@@ -12,7 +12,6 @@ import pytest
 from overhang_framework.errors import ConfigError
 from overhang_framework.experiment.settings import ADMIN_ENV, load_settings
 from overhang_framework.geometry import Action
-from overhang_framework.interfaces import Task
 from overhang_framework.plugins import Registry
 
 

@@ -12,11 +12,9 @@ from __future__ import annotations
 
 import hmac
 from contextlib import asynccontextmanager
-import math
 import re
 import secrets
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Annotated, Literal, Optional
 
 import numpy as np
