@@ -30,7 +30,7 @@ def run_notes(cfg: DictConfig, tasks: Sequence[Task], models: dict[str, Any]) ->
     if cfg.planner.get("name") == "optimal" and not _answers_from_stored_optima(cfg, tasks, models):
         physics = cfg.world.get("physics")
         cost = ("one task's optimum took from 13 s to 16 min to prove" if physics == "static" else
-                "one 6-block decision ran for over 11 minutes without finishing; a paper20 run takes hours")
+                "one paper20 task's optimum took from 1.5 to 21 min to prove")
         notes.append(f"planner=optimal proves each decision by exhaustive search over every remaining "
                      f"placement: with predictor={cfg.predictor.get('name')} and world.physics={physics}, "
                      f"{cost} on 2 cores (docs/planners.md); the bar shows each decision's predictor calls "
