@@ -32,11 +32,13 @@ def register_planners(register):
     from overhang_builtins.mcts import MCTSPlanner
     from overhang_builtins.myopic import MyopicPlanner
     from overhang_builtins.optimal import OptimalPlanner
+    from overhang_builtins.policy import PolicyPlanner
 
     register("myopic", MyopicPlanner)
     register("lookahead", LookaheadPlanner)
     register("mcts", MCTSPlanner)
     register("optimal", OptimalPlanner)
+    register("policy", PolicyPlanner)
 
 
 @hookimpl

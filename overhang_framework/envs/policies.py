@@ -1,0 +1,84 @@
+"""Saving and loading trained policies with what the environment showed them.
+
+A policy is a Stable-Baselines3 model (the ``[rl]`` extra). :func:`save_policy`
+stores, inside the model's own zip file, the algorithm and the environment's
+:class:`~overhang_framework.envs.spaces.TowerSpaces`, so the ``policy`` planner
+shows the policy the same observation and reads its action the same way.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+from typing import Any
+
+from overhang_framework.envs.spaces import TowerSpaces
+
+ALGORITHMS = ("PPO", "A2C", "SAC", "TD3", "DDPG")
+KEY = "overhang_framework"
+INSTALL = "pip install 'overhang-framework[rl]'"
+
+
+class PolicyFileError(ValueError):
+    """A policy file that cannot be read, with the reason in one line."""
+
+
+def _sb3():
+    try:
+        import stable_baselines3
+    except ImportError:
+        raise PolicyFileError(f"playing or training a policy needs Stable-Baselines3: {INSTALL}") from None
+    return stable_baselines3
+
+
+def save_policy(model: Any, path: str | os.PathLike, env: Any, **extra: Any) -> Path:
+    """Save the Stable-Baselines3 ``model`` trained on ``env`` (an ``OverhangTower-v0``, wrapped or not)
+    to ``path`` (``.zip``), atomically; ``extra`` plain data is kept with it (e.g. training figures)."""
+    algorithm = type(model).__name__
+    if algorithm not in ALGORITHMS:
+        raise PolicyFileError(f"unsupported algorithm {algorithm}; allowed: {', '.join(ALGORITHMS)}")
+    inner = env.unwrapped if hasattr(env, "unwrapped") else env
+    if hasattr(env, "get_attr"):  # a Stable-Baselines3 vectorised env
+        spaces = env.get_attr("spaces")[0]
+    else:
+        spaces = inner.spaces
+    path = Path(path)
+    if path.suffix != ".zip":
+        path = path.with_name(path.name + ".zip")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    setattr(model, KEY, {"algorithm": algorithm, "spaces": spaces.spec(), **extra})
+    tmp = path.with_name(f".{path.name}.tmp.zip")
+    model.save(tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def policy_info(path: str | os.PathLike) -> dict:
+    """What :func:`save_policy` kept with the policy at ``path``."""
+    path = Path(path)
+    if not path.is_file():
+        raise PolicyFileError(f"no policy file at {path}; train one with python -m overhang_framework.envs.ppo")
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = json.loads(z.read("data"))
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise PolicyFileError(f"{path} is not a Stable-Baselines3 policy file ({err})") from None
+    info = data.get(KEY)
+    if not isinstance(info, dict) or info.get("algorithm") not in ALGORITHMS or not isinstance(info.get("spaces"), dict):
+        raise PolicyFileError(f"{path} was not saved with overhang_framework.envs.save_policy, so the "
+                              "observation it was trained on is unknown")
+    return info
+
+
+def load_policy(path: str | os.PathLike) -> tuple[Any, TowerSpaces, dict]:
+    """``(model, spaces, info)`` of the policy at ``path``, on the CPU."""
+    info = policy_info(path)
+    sb3 = _sb3()
+    try:
+        spaces = TowerSpaces(**info["spaces"])
+    except (TypeError, ValueError) as err:
+        raise PolicyFileError(f"{path}: the stored observation is not readable ({err})") from None
+    model = getattr(sb3, info["algorithm"]).load(str(path), device="cpu")
+    return model, spaces, info

@@ -1,0 +1,184 @@
+"""Train a PPO agent on the Overhang Tower environment and compare it with the paper's models.
+
+    python -m overhang_framework.envs.ppo --steps 200000 --out runs/ppo
+
+Needs the ``[rl]`` extra (Stable-Baselines3). Trains on CPU (``--threads``
+torch threads, 1 by default: fair on a shared machine) on ``--tasks``
+(``random``: a new six-block sequence each episode, so the test set stays
+unseen), saves the policy with :func:`~overhang_framework.envs.policies.save_policy`,
+then plays ``--test`` (paper20) through the main job with ``planner=policy``
+beside the myopic and depth-2 lookahead models (veridical predictor, the same
+physics), and writes ``comparison.csv`` and ``training.json`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+MODELS = {
+    "myopic": ["planner=myopic"],
+    "lookahead_d2": ["planner=lookahead", "planner.depth=2"],
+    "lookahead_d3": ["planner=lookahead", "planner.depth=3"],
+}
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def make_env(tasks: str, physics: str, reward: str, resolution: float, seed: int, n_envs: int):
+    """The vectorised flat environment PPO trains on."""
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from overhang_framework.envs.wrappers import flat_env
+
+    kwargs = {"tasks": tasks, "physics": physics, "reward": reward, "resolution": resolution}
+    return make_vec_env(lambda: flat_env(**kwargs), n_envs=n_envs, seed=seed)
+
+
+def train(args) -> tuple[Path, dict]:
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm import tqdm
+
+    from overhang_framework.envs.policies import save_policy
+
+    torch.set_num_threads(args.threads)
+    env = make_env(args.tasks, args.physics, args.reward, args.resolution, args.seed, args.envs)
+
+    class Progress(BaseCallback):
+        def _on_training_start(self):
+            self.bar = tqdm(total=args.steps, unit="step", desc="training", file=sys.stderr)
+
+        def _on_step(self):
+            self.bar.update(self.training_env.num_envs)
+            return True
+
+        def _on_training_end(self):
+            self.bar.close()
+
+    model = PPO("MlpPolicy", env, n_steps=args.n_steps, batch_size=256, gamma=1.0, gae_lambda=0.95,
+                learning_rate=3e-4, ent_coef=0.0, seed=args.seed, device="cpu", verbose=0)
+    started = time.perf_counter()
+    model.learn(total_timesteps=args.steps, callback=Progress())
+    seconds = time.perf_counter() - started
+    figures = {"steps": int(model.num_timesteps), "seconds": round(seconds, 1),
+               "steps_per_second": round(model.num_timesteps / seconds, 1), "threads": args.threads,
+               "envs": args.envs, "tasks": args.tasks, "physics": args.physics, "reward": args.reward,
+               "resolution": args.resolution, "seed": args.seed}
+    path = save_policy(model, args.out / "policy.zip", env, training=figures)
+    env.close()
+    return path, figures
+
+
+def env_reward(policy: Path, tasks: str, physics: str) -> tuple[float, int]:
+    """Mean paper reward of ``policy`` played in the environment on ``tasks`` (an illegal action is a
+    failure there), and the number of illegal actions."""
+    import gymnasium as gym
+
+    from overhang_framework.envs import ENV_ID
+    from overhang_framework.envs.policies import load_policy
+
+    model, spaces, _ = load_policy(policy)
+    env = gym.make(ENV_ID, tasks=tasks, physics=physics, resolution=spaces.resolution,
+                   max_blocks=spaces.max_blocks)
+    total, illegal = 0.0, 0
+    for k in range(len(env.unwrapped.tasks)):
+        obs, _ = env.reset(seed=k, options={"task": k})
+        done = False
+        while not done:
+            flat = gym.spaces.flatten(env.observation_space, obs)
+            action, _ = model.predict(flat, deterministic=True)
+            obs, reward, done, _, info = env.step(spaces.unflatten(action))
+            total += reward
+            illegal += info["illegal"] is not None
+    env.close()
+    return total / len(env.unwrapped.tasks), illegal
+
+
+def main_job(overrides: list[str], out_dir: Path) -> dict:
+    """Run the main job for ``overrides`` into ``out_dir``; its summary."""
+    from overhang_framework.app import run
+    from overhang_framework.config import compose_config
+
+    cfg = compose_config(overrides + ["progress=false", "overwrite=true"])
+    return run(cfg, out_dir)
+
+
+def parse(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m overhang_framework.envs.ppo", description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=int, default=200_000, help="environment steps of training (default 200000)")
+    parser.add_argument("--out", type=Path, default=Path("runs/ppo"), help="output directory (default runs/ppo)")
+    parser.add_argument("--tasks", default="random", help="training tasks: random or a task set (default random)")
+    parser.add_argument("--test", default="paper20", help="task set the agent and the models are compared on")
+    parser.add_argument("--physics", default="static", help="world physics for training and test (default static)")
+    parser.add_argument("--reward", default="shaped", choices=("paper", "shaped"), help="training reward")
+    parser.add_argument("--resolution", type=float, default=0.1, help="x grid of the actions (default 0.1)")
+    parser.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
+    parser.add_argument("--n-steps", type=int, default=512, help="PPO rollout length per environment")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--compare", default="myopic,lookahead_d2",
+                        help=f"models run beside the agent, comma-separated from {', '.join(MODELS)}")
+    parser.add_argument("--skip-training", action="store_true", help="compare the policy already in --out")
+    args = parser.parse_args(argv)
+    for name in ("steps", "envs", "n_steps", "threads"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1, got {getattr(args, name)}")
+    compare = [m for m in args.compare.split(",") if m]
+    unknown = [m for m in compare if m not in MODELS]
+    if unknown:
+        parser.error(f"unknown model(s) {', '.join(unknown)} in --compare; allowed: {', '.join(MODELS)}")
+    args.compare = compare
+    return args
+
+
+def main(argv=None) -> int:
+    from overhang_framework.envs.policies import PolicyFileError, policy_info
+
+    args = parse(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        if args.skip_training:
+            path = args.out / "policy.zip"
+            figures = policy_info(path).get("training", {})
+        else:
+            path, figures = train(args)
+            print(f"trained {figures['steps']} steps in {figures['seconds']} s "
+                  f"({figures['steps_per_second']} steps/s); policy: {path}")
+    except PolicyFileError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    _write(args.out / "training.json", json.dumps(figures, indent=2) + "\n")
+    rows = []
+    world = [f"world.physics={args.physics}", f"tasks={args.test}"]
+    started = time.perf_counter()
+    summary = main_job(world + ["planner=policy", f"planner.path={path.resolve()}"], args.out / "test" / "policy")
+    reward_env, illegal = env_reward(path, args.test, args.physics)
+    rows.append(("ppo (policy planner)", summary["reward_mean"], summary["reward_sem"],
+                 time.perf_counter() - started))
+    for name in args.compare:
+        started = time.perf_counter()
+        summary = main_job(world + MODELS[name], args.out / "test" / name)
+        rows.append((name, summary["reward_mean"], summary["reward_sem"], time.perf_counter() - started))
+    lines = ["model,reward_mean,reward_sem,seconds"] + [f"{n},{m:.4f},{s:.4f},{t:.1f}" for n, m, s, t in rows]
+    _write(args.out / "comparison.csv", "\n".join(lines) + "\n")
+    print(f"\n{args.test} under physics={args.physics} (reward: mean +- sem over tasks)")
+    for n, m, s, t in rows:
+        print(f"  {n:<22} {m:.3f} +- {s:.3f}   ({t:.0f} s)")
+    print(f"  ppo in the environment {reward_env:.3f}   ({illegal} illegal actions, each a failure there; "
+          f"the planner plays the nearest legal one instead)")
+    print(f"written: {args.out / 'comparison.csv'}, {args.out / 'training.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
