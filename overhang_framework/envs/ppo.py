@@ -44,6 +44,7 @@ def make_env(tasks: str, physics: str, reward: str, resolution: float, seed: int
 
 
 def train(args) -> tuple[Path, dict]:
+    import numpy as np
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
@@ -56,11 +57,20 @@ def train(args) -> tuple[Path, dict]:
 
     class Progress(BaseCallback):
         def _on_training_start(self):
+            self.curve = []
             self.bar = tqdm(total=args.steps, unit="step", desc="training", file=sys.stderr)
 
         def _on_step(self):
-            self.bar.update(self.training_env.num_envs)
+            self.bar.update(min(self.training_env.num_envs, args.steps - self.bar.n))
             return True
+
+        def _on_rollout_end(self):
+            recent = list(self.model.ep_info_buffer)
+            if recent:
+                self.bar.set_postfix_str(f"return {np.mean([e['r'] for e in recent]):.2f}, "
+                                         f"length {np.mean([e['l'] for e in recent]):.2f}")
+                self.curve.append((int(self.model.num_timesteps), round(float(np.mean([e['r'] for e in recent])), 3),
+                                   round(float(np.mean([e['l'] for e in recent])), 2)))
 
         def _on_training_end(self):
             self.bar.close()
@@ -68,12 +78,14 @@ def train(args) -> tuple[Path, dict]:
     model = PPO("MlpPolicy", env, n_steps=args.n_steps, batch_size=256, gamma=1.0, gae_lambda=0.95,
                 learning_rate=3e-4, ent_coef=0.0, seed=args.seed, device="cpu", verbose=0)
     started = time.perf_counter()
-    model.learn(total_timesteps=args.steps, callback=Progress())
+    progress = Progress()
+    model.learn(total_timesteps=args.steps, callback=progress)
     seconds = time.perf_counter() - started
     figures = {"steps": int(model.num_timesteps), "seconds": round(seconds, 1),
                "steps_per_second": round(model.num_timesteps / seconds, 1), "threads": args.threads,
                "envs": args.envs, "tasks": args.tasks, "physics": args.physics, "reward": args.reward,
-               "resolution": args.resolution, "seed": args.seed}
+               "resolution": args.resolution, "seed": args.seed,
+               "curve": [{"steps": n, "return": r, "length": ln} for n, r, ln in progress.curve[:: max(1, len(progress.curve) // 50)]]}
     path = save_policy(model, args.out / "policy.zip", env, training=figures)
     env.close()
     return path, figures
@@ -97,7 +109,7 @@ def env_reward(policy: Path, tasks: str, physics: str) -> tuple[float, int]:
         while not done:
             flat = gym.spaces.flatten(env.observation_space, obs)
             action, _ = model.predict(flat, deterministic=True)
-            obs, reward, done, _, info = env.step(spaces.unflatten(action))
+            obs, reward, done, _, info = env.step(spaces.unflatten(action, env.unwrapped.state))
             total += reward
             illegal += info["illegal"] is not None
     env.close()

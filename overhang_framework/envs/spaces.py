@@ -16,13 +16,15 @@ Observation (a ``Dict``):
   raster renderer, the one the CNN sees.
 
 Action (a ``Dict``): ``x``, a ``(1,)`` float32 in ``[-4, 4]`` (the x of the
-block's centre), and ``layer``, a ``Discrete`` layer of the grid. With a
-``resolution``, x is rounded to that grid step before it is placed.
+block's centre), and ``layer``, a ``Discrete`` layer of the grid. x is taken
+to the micrometre (so a float32 ``0.3`` places a block at 0.3), or, with a
+``resolution``, rounded to that grid step.
 
 :meth:`TowerSpaces.flat_action_space` is the same action as a ``Box`` in
 ``[-1, 1]^2`` for libraries that support only ``Box`` actions: the first value
 scaled to x, the second split into equal bins, one per layer a block can reach
-(layers 1 to ``max_blocks - 1``).
+in the current state (layer 1 up to one above the highest block), so that
+every layer the flat action names could hold the block.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from overhang_framework.geometry import GRID_HALF_WIDTH, MAX_LAYER, WIDTHS, Action
+from overhang_framework.geometry import GRID_HALF_WIDTH, KEY_DECIMALS, MAX_LAYER, WIDTHS, Action
 from overhang_framework.interfaces import State
 
 OBSERVATIONS = ("arrays", "image")
@@ -114,29 +116,30 @@ class TowerSpaces:
         return spaces.Dict({"x": spaces.Box(-GRID_HALF_WIDTH, GRID_HALF_WIDTH, (1,), np.float32),
                             "layer": spaces.Discrete(MAX_LAYER + 1)})
 
-    @property
-    def top_layer(self) -> int:
-        """The highest layer a block of a ``max_blocks`` task can reach."""
-        return min(MAX_LAYER, self.max_blocks - 1)
+    @staticmethod
+    def reachable_layers(state: State) -> int:
+        """How many layers a block can go to in ``state``: 1 up to one above the highest block."""
+        return max(1, min(MAX_LAYER, max((b.layer for b in state.geometry.blocks), default=0) + 1))
 
     def flat_action_space(self):
         from gymnasium import spaces
 
         return spaces.Box(-1.0, 1.0, (2,), np.float32)
 
-    def unflatten(self, flat: Any) -> dict[str, Any]:
-        """The ``Dict`` action of a flat ``[x, layer]`` action in ``[-1, 1]^2`` (values outside are clipped)."""
+    def unflatten(self, flat: Any, state: State) -> dict[str, Any]:
+        """The ``Dict`` action of a flat ``[x, layer]`` action in ``[-1, 1]^2`` in ``state`` (values outside
+        are clipped): x scaled to ``[-4, 4]``, and the layer one of :meth:`reachable_layers` equal bins."""
         a = np.asarray(flat, dtype=np.float64).reshape(-1)
         if a.shape != (2,) or not np.all(np.isfinite(a)):
             return {"x": np.array([np.nan], np.float32), "layer": 0}
         a = np.clip(a, -1.0, 1.0)
-        bins = self.top_layer
+        bins = self.reachable_layers(state)
         layer = 1 + min(bins - 1, int(math.floor((a[1] + 1.0) / 2.0 * bins)))
         return {"x": np.array([a[0] * GRID_HALF_WIDTH], np.float32), "layer": layer}
 
-    def flatten_action(self, action: Action) -> np.ndarray:
-        """A flat action that :meth:`unflatten` maps back to ``action``'s layer and x (for layers 1 to top)."""
-        bins = self.top_layer
+    def flatten_action(self, action: Action, state: State) -> np.ndarray:
+        """A flat action that :meth:`unflatten` maps back to ``action`` in ``state`` (a reachable layer)."""
+        bins = self.reachable_layers(state)
         return np.array([action.x / GRID_HALF_WIDTH, ((action.layer - 0.5) / bins) * 2.0 - 1.0], np.float32)
 
     def to_action(self, action: Any) -> tuple[Optional[Action], Optional[str]]:
@@ -161,4 +164,6 @@ class TowerSpaces:
             return None, f"layer must be a whole number, got {raw_layer!r}"
         if self.resolution is not None:
             x = round(round(x / self.resolution) * self.resolution, 10)
+        else:  # to the micrometre: a float32 x such as 0.3 is the 0.3 it stands for
+            x = round(x, KEY_DECIMALS) + 0.0
         return Action(x, int(raw_layer)), None

@@ -51,11 +51,12 @@ class OverhangTowerEnv(gym.Env):
     * ``resolution`` -- ``None``: x is continuous; a step in metres: x is rounded
       to that grid (the planners' action set at the world's ``0.1``).
     * ``reward`` -- ``paper``: the final overhang at the end of the sequence when
-      every placement stood, else 0, all other rewards 0. ``shaped``: each step
-      gives the change of the standing tower's overhang, a collapse or an
-      illegal action the loss of all of it; an episode's return is then the
-      paper's reward minus the first block's half width (potential-based
-      shaping, so the best policies are the same).
+      every placement stood, else 0, all other rewards 0. ``shaped``: each
+      placement that stands gives the overhang it gained, and a collapse or an
+      illegal action costs ``failure_penalty``; a successful episode's return is
+      then the paper's reward minus the first block's half width. It gives a
+      learner credit for towers that stand part of the way, which the paper's
+      reward does not.
     * ``observation`` -- ``arrays`` or ``image`` (see :mod:`overhang_framework.envs.spaces`);
       ``max_blocks`` -- the observation's padding (default: the longest task).
     * ``render_mode`` -- ``rgb_array``: :meth:`render` returns an ``(H, W, 3)``
@@ -75,13 +76,17 @@ class OverhangTowerEnv(gym.Env):
                  world: Optional[Mapping[str, Any]] = None, reward: str = "paper",
                  observation: str = "arrays", max_blocks: Optional[int] = None,
                  image_size: Sequence[int] = (32, 160), render_mode: Optional[str] = None,
-                 random_length: int = 6):
+                 random_length: int = 6, failure_penalty: float = 1.0):
         from overhang_framework.config import compose_config
         from overhang_framework.plugins import Registry
         from overhang_framework.tasks import tasks_from_config
 
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; allowed: {', '.join(REWARDS)}")
+        if isinstance(failure_penalty, bool) or not isinstance(failure_penalty, (int, float)) \
+                or not np.isfinite(failure_penalty):
+            raise ValueError(f"failure_penalty must be a finite number, got {failure_penalty!r}")
+        self.failure_penalty = float(failure_penalty)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unknown render_mode {render_mode!r}; allowed: rgb_array or None")
         if world is not None and not isinstance(world, Mapping):
@@ -168,14 +173,14 @@ class OverhangTowerEnv(gym.Env):
             why = self.world.illegal_reason(self.state, placed)
         if why is not None:
             self._over = True
-            reward = -before if self.reward_mode == "shaped" else 0.0
+            reward = -self.failure_penalty if self.reward_mode == "shaped" else 0.0
             return self._observe(), float(reward), True, False, self._info(stable=True, illegal=why)
         self.state = self.world.successor(self.state, placed)
         stable = bool(self.world.is_stable(self.state.geometry))
         done = self.state.done or not stable
         self._over = done
         if self.reward_mode == "shaped":
-            reward = self._potential() - before if stable else -before
+            reward = self._potential() - before if stable else -self.failure_penalty
         else:
             reward = self.world.reward(self.state.geometry, True) if (done and stable) else 0.0
         return self._observe(), float(reward), done, False, self._info(stable=stable, illegal=None)

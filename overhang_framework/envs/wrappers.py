@@ -8,17 +8,18 @@ import gymnasium as gym
 import numpy as np
 
 
-class FlattenAction(gym.ActionWrapper):
+class FlattenAction(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
     """The ``Dict`` action as a ``Box`` in ``[-1, 1]^2``: x scaled to the grid, and the layer as equal
-    bins over the layers a block can reach (see :meth:`TowerSpaces.unflatten`)."""
+    bins over the layers a block can reach now (see :meth:`TowerSpaces.unflatten`)."""
 
     def __init__(self, env: gym.Env):
-        super().__init__(env)
+        gym.utils.RecordConstructorArgs.__init__(self)
+        gym.ActionWrapper.__init__(self, env)
         self.tower_spaces = env.unwrapped.spaces
         self.action_space = self.tower_spaces.flat_action_space()
 
     def action(self, action: Any) -> dict:
-        return self.tower_spaces.unflatten(action)
+        return self.tower_spaces.unflatten(action, self.env.unwrapped.state)
 
 
 def flat_env(env_id_or_env: Any = None, **kwargs) -> gym.Env:

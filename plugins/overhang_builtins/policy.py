@@ -70,7 +70,7 @@ class PolicyPlanner(Planner):
 
             torch.manual_seed(int(rng.integers(2**63)))
         flat, _ = self.model.predict(self._observation(state), deterministic=self.deterministic)
-        action, why = self.spaces.to_action(self.spaces.unflatten(flat))
+        action, why = self.spaces.to_action(self.spaces.unflatten(flat, state))
         if action is None or self.world.illegal_reason(state, action) is not None:
             action = self._nearest_legal(state, action or Action(0.0, 1))
             self.replaced += 1

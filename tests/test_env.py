@@ -1,0 +1,220 @@
+"""OverhangTower-v0: Gymnasium's checker, the paper's reward, illegal actions, seeding, rendering, vectors."""
+
+import json
+import math
+from importlib import resources
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import overhang_framework  # noqa: F401  (registers the environment)
+from overhang_framework.envs import ENV_ID
+from overhang_framework.envs.spaces import TowerSpaces
+from overhang_framework.envs.tower import OverhangTowerEnv
+from overhang_framework.envs.wrappers import FlattenAction, flat_env
+from overhang_framework.geometry import Action
+
+
+def make(**kwargs):
+    kwargs.setdefault("physics", "static")
+    return gym.make(ENV_ID, **kwargs)
+
+
+def stored_optimum(task_id: str, physics: str = "static") -> dict:
+    data = json.loads(resources.files("overhang_framework.data").joinpath("optima.json").read_text())
+    for entry in data["optima"].values():
+        if entry["task_id"] == task_id and entry["physics"] == physics and entry["resolution"] == 0.1:
+            return entry
+    raise LookupError(task_id)
+
+
+def test_registered_when_the_package_is_imported():
+    assert ENV_ID in gym.registry
+    env = gym.make(ENV_ID, tasks="example", physics="static")
+    assert env.unwrapped.tasks[0].sequence == (0.6, 1.8, 1.2, 1.8, 0.6, 1.8)
+
+
+@pytest.mark.parametrize("observation", ["arrays", "image"])
+def test_passes_gymnasiums_checker(observation):
+    check_env(make(observation=observation, render_mode="rgb_array").unwrapped, skip_render_check=False)
+
+
+def test_flat_env_passes_the_checker_and_has_box_spaces():
+    env = flat_env(physics="static")
+    assert isinstance(env.action_space, gym.spaces.Box) and env.action_space.shape == (2,)
+    assert isinstance(env.observation_space, gym.spaces.Box)
+    check_env(env)
+
+
+def test_paper_reward_along_a_stored_optimal_path():
+    entry = stored_optimum("paper03")
+    env = make(tasks="paper20")
+    obs, info = env.reset(seed=0, options={"task": "paper03"})
+    assert tuple(env.unwrapped.task.sequence) == tuple(entry["sequence"])
+    rewards = []
+    for x, layer in entry["actions"]:
+        obs, reward, terminated, truncated, info = env.step({"x": np.array([x], np.float32), "layer": layer})
+        rewards.append(reward)
+        assert info["illegal"] is None and info["stable"]
+    assert terminated and not truncated
+    assert rewards[:-1] == [0.0] * (len(rewards) - 1)
+    assert rewards[-1] == pytest.approx(entry["optimum"], abs=1e-6)
+
+
+def test_shaped_return_of_a_success_is_the_paper_reward_minus_the_first_half_width():
+    entry = stored_optimum("paper03")
+    env = make(tasks="paper20", reward="shaped")
+    env.reset(seed=0, options={"task": "paper03"})
+    total = 0.0
+    for x, layer in entry["actions"]:
+        _, reward, terminated, _, _ = env.step({"x": [x], "layer": layer})
+        total += reward
+    assert terminated
+    assert total == pytest.approx(entry["optimum"] - entry["sequence"][0] / 2, abs=1e-6)
+
+
+@pytest.mark.parametrize("reward", ["paper", "shaped"])
+def test_a_collapse_ends_the_episode_with_nothing(reward):
+    env = make(sequences=[1.8, 1.8, 1.8], reward=reward, failure_penalty=1.0)
+    env.reset(seed=0)
+    _, r1, done1, _, _ = env.step({"x": [0.6], "layer": 1})   # stands, overhang 1.5
+    _, r2, done2, _, info = env.step({"x": [1.8], "layer": 2})  # its centre of mass is off the block below
+    assert not done1 and done2 and not info["stable"]
+    if reward == "paper":
+        assert r1 == 0.0 and r2 == 0.0
+    else:
+        assert r1 == pytest.approx(0.6) and r2 == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("action, why", [
+    ({"x": [3.9], "layer": 1}, "outside the grid"),
+    ({"x": [2.5], "layer": 1}, "supports"),
+    ({"x": [0.0], "layer": 3}, "supports"),
+    ({"x": [0.0], "layer": 0}, "ground"),
+    ({"x": [0.0], "layer": 40}, "outside the grid"),
+    ({"x": [float("nan")], "layer": 1}, "finite"),
+    ({"x": [0.0], "layer": 1.5}, "whole number"),
+    ({"x": [0.0, 1.0], "layer": 1}, "single values"),
+    ({"layer": 1}, "keys 'x' and 'layer'"),
+    ("left", "keys 'x' and 'layer'"),
+    (None, "keys 'x' and 'layer'"),
+])
+def test_an_illegal_action_ends_the_episode_as_a_failure(action, why):
+    env = make(sequences=[1.8, 1.2, 0.6]).unwrapped
+    obs0, _ = env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(action)
+    assert terminated and not truncated and reward == 0.0
+    assert why in info["illegal"]
+    np.testing.assert_array_equal(obs["blocks"], obs0["blocks"])  # nothing was placed
+
+
+def test_overlap_is_illegal_and_a_finished_episode_asks_for_reset():
+    env = make(sequences=[1.8, 0.6, 0.6]).unwrapped
+    env.reset(seed=0)
+    env.step({"x": [0.0], "layer": 1})
+    _, reward, terminated, _, info = env.step({"x": [0.3], "layer": 1})
+    assert terminated and reward == 0.0 and "overlaps" in info["illegal"]
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step({"x": [0.0], "layer": 2})
+
+
+def test_reset_with_a_seed_is_reproducible():
+    env = make(tasks="paper20")
+    a = [env.reset(seed=s)[1]["task_id"] for s in range(8)]
+    b = [env.reset(seed=s)[1]["task_id"] for s in range(8)]
+    assert a == b and len(set(a)) > 1
+    rnd = make(tasks="random")
+    seqs = [rnd.unwrapped.task.sequence for s in (1, 1, 2) if rnd.reset(seed=s)]
+    assert seqs[0] == seqs[1] != seqs[2]
+
+
+def test_resolution_rounds_x_to_the_grid():
+    env = make(sequences=[1.8, 0.6], resolution=0.1)
+    env.reset(seed=0)
+    env.step({"x": [0.3337], "layer": 1})
+    assert env.unwrapped.state.geometry.blocks[-1].x == pytest.approx(0.3)
+    free = make(sequences=[1.8, 0.6, 0.6])
+    free.reset(seed=0)
+    free.step({"x": np.array([0.3], np.float32), "layer": 1})
+    assert free.unwrapped.state.geometry.blocks[-1].x == 0.3  # the float32 0.3, to the micrometre
+    _, _, _, _, info = free.step({"x": np.array([-0.3], np.float32), "layer": 1})  # touching it exactly
+    assert info["illegal"] is None and free.unwrapped.state.geometry.blocks[-1].x == -0.3
+    fine = make(sequences=[1.8, 0.6])
+    fine.reset(seed=0)
+    fine.step({"x": [0.3337], "layer": 1})
+    assert fine.unwrapped.state.geometry.blocks[-1].x == 0.3337
+
+
+def test_observation_holds_the_tower_and_the_remaining_blocks():
+    env = make(sequences=[1.2, 0.6, 1.8])
+    obs, _ = env.reset(seed=0)
+    np.testing.assert_allclose(obs["remaining"], [0.6, 1.8, 0.0])
+    obs, *_ = env.step({"x": [0.2], "layer": 1})
+    np.testing.assert_allclose(obs["blocks"], [[1.2, 0.0, 0.0], [0.6, 0.2, 1.0], [0.0, 0.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(obs["remaining"], [1.8, 0.0, 0.0])
+
+
+def test_image_observation_and_render_draw_the_tower():
+    env = make(sequences=[1.2, 0.6, 1.8], observation="image", render_mode="rgb_array")
+    obs, _ = env.reset(seed=0)
+    frame = env.render()
+    assert obs["image"].shape == (3, 32, 160) and obs["image"].dtype == np.uint8
+    assert frame.shape == (240, 400, 3) and frame.dtype == np.uint8
+    obs2, *_ = env.step({"x": [0.2], "layer": 1})
+    assert (obs2["image"] != obs["image"]).any() and (env.render() != frame).any()
+
+
+def test_bad_arguments_are_refused_in_one_line():
+    for kwargs, message in [({"reward": "dense"}, "unknown reward 'dense'; allowed: paper, shaped"),
+                            ({"observation": "pixels"}, "unknown observation 'pixels'"),
+                            ({"sequences": [1.8, 1.0]}, "illegal block width 1.0"),
+                            ({"tasks": "paper20", "max_blocks": 4}, "max_blocks >= 6"),
+                            ({"render_mode": "human"}, "unknown render_mode 'human'")]:
+        with pytest.raises(Exception, match=message.replace("(", r"\(")) as err:
+            OverhangTowerEnv(physics="static", **kwargs)
+        assert "\n" not in str(err.value)
+
+
+def test_flat_actions_reach_every_layer_and_x():
+    from overhang_framework.geometry import Block, Geometry
+    from overhang_framework.interfaces import State
+
+    spaces = TowerSpaces(max_blocks=6)
+    tower = State(Geometry((Block(1.2, 0.0, 0), Block(0.6, 0.3, 1), Block(0.6, 0.3, 2), Block(1.2, 0.0, 3))), (0.6,))
+    for layer in range(1, 5):
+        for x in (-3.1, 0.0, 0.45, 3.3):
+            back, why = spaces.to_action(spaces.unflatten(spaces.flatten_action(Action(x, layer), tower), tower))
+            assert why is None and back.layer == layer and back.x == pytest.approx(x, abs=1e-6)
+    assert spaces.unflatten([5.0, -7.0], tower)["layer"] == 1 and spaces.unflatten([5.0, 7.0], tower)["layer"] == 4
+    start = State(Geometry((Block(1.2, 0.0, 0),)), (0.6,))
+    assert {spaces.unflatten([0.0, a], start)["layer"] for a in np.linspace(-1, 1, 9)} == {1}
+    assert math.isnan(spaces.unflatten([float("nan"), 0.0], tower)["x"][0])
+
+
+@pytest.mark.parametrize("mode", ["sync", "async"])
+def test_a_vectorised_rollout_matches_single_environments(mode):
+    n, steps = 2, 12
+    vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode, physics="static", tasks="paper20",
+                       wrappers=[FlattenAction])
+    obs, _ = vec.reset(seed=[10, 11])
+    singles = [FlattenAction(make(tasks="paper20")) for _ in range(n)]
+    single_obs = [env.reset(seed=s)[0] for env, s in zip(singles, (10, 11))]
+    rng = np.random.default_rng(0)
+    ended = 0
+    for _ in range(steps):
+        actions = rng.uniform(-0.3, 0.3, size=(n, 2)).astype(np.float32)
+        actions[:, 1] = -0.95  # layer 1, near the centre: mostly legal
+        obs, rewards, terms, truncs, infos = vec.step(actions)
+        for i, env in enumerate(singles):
+            if single_obs[i] is None:  # the vector env resets this one on this step (next-step autoreset)
+                single_obs[i] = env.reset()[0]
+                continue
+            o, r, t, _, _ = env.step(actions[i])
+            assert r == pytest.approx(rewards[i]) and t == terms[i]
+            np.testing.assert_allclose(obs["blocks"][i], o["blocks"])
+            single_obs[i] = None if t else o
+            ended += t
+    vec.close()
+    assert ended >= 2
