@@ -21,7 +21,7 @@ import argparse
 import json
 import sys
 import time
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -61,7 +61,7 @@ def measure(physics: str, agent: str, steps: int, seed: int = 0) -> dict:
             "illegal": illegal, "reference_runs": int(stages.get("reference", 0))}
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m overhang_framework.bench.env", description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=2000, help="steps per static-physics measurement (default 2000)")
     parser.add_argument("--tiered-steps", type=int, default=300,

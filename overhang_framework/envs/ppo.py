@@ -8,7 +8,8 @@ torch threads, 1 by default: fair on a shared machine) on ``--tasks``
 unseen), saves the policy with :func:`~overhang_framework.envs.policies.save_policy`,
 then plays ``--test`` (paper20) through the main job with ``planner=policy``
 beside the myopic and depth-2 lookahead models (veridical predictor, the same
-physics), and writes ``comparison.csv`` and ``training.json`` to ``--out``.
+physics), and writes ``comparison.csv``, ``training.json`` and ``summary.json`` (every figure) to
+``--out``.
 """
 
 from __future__ import annotations
@@ -76,7 +77,8 @@ def train(args) -> tuple[Path, dict]:
             self.bar.close()
 
     model = PPO("MlpPolicy", env, n_steps=args.n_steps, batch_size=256, gamma=1.0, gae_lambda=0.95,
-                learning_rate=3e-4, ent_coef=0.0, seed=args.seed, device="cpu", verbose=0)
+                learning_rate=3e-4, ent_coef=0.0, seed=args.seed, device="cpu", verbose=0,
+                policy_kwargs={"log_std_init": args.log_std_init})
     started = time.perf_counter()
     progress = Progress()
     model.learn(total_timesteps=args.steps, callback=progress)
@@ -84,7 +86,7 @@ def train(args) -> tuple[Path, dict]:
     figures = {"steps": int(model.num_timesteps), "seconds": round(seconds, 1),
                "steps_per_second": round(model.num_timesteps / seconds, 1), "threads": args.threads,
                "envs": args.envs, "tasks": args.tasks, "physics": args.physics, "reward": args.reward,
-               "resolution": args.resolution, "seed": args.seed,
+               "resolution": args.resolution, "seed": args.seed, "log_std_init": args.log_std_init,
                "curve": [{"steps": n, "return": r, "length": ln} for n, r, ln in progress.curve[:: max(1, len(progress.curve) // 50)]]}
     path = save_policy(model, args.out / "policy.zip", env, training=figures)
     env.close()
@@ -136,6 +138,8 @@ def parse(argv=None):
     parser.add_argument("--resolution", type=float, default=0.1, help="x grid of the actions (default 0.1)")
     parser.add_argument("--envs", type=int, default=4, help="environments stepped together (default 4)")
     parser.add_argument("--n-steps", type=int, default=512, help="PPO rollout length per environment")
+    parser.add_argument("--log-std-init", type=float, default=-1.5,
+                        help="initial log standard deviation of the actions (default -1.5: x spread about 0.9 m)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--compare", default="myopic,lookahead_d2",
@@ -183,12 +187,17 @@ def main(argv=None) -> int:
         rows.append((name, summary["reward_mean"], summary["reward_sem"], time.perf_counter() - started))
     lines = ["model,reward_mean,reward_sem,seconds"] + [f"{n},{m:.4f},{s:.4f},{t:.1f}" for n, m, s, t in rows]
     _write(args.out / "comparison.csv", "\n".join(lines) + "\n")
+    models = {("ppo" if i == 0 else n): {"reward_mean": m, "reward_sem": s, "seconds": round(t, 1)}
+              for i, (n, m, s, t) in enumerate(rows)}
+    _write(args.out / "summary.json", json.dumps({"training": figures, "test": args.test, "physics": args.physics,
+                                                  "models": models, "env_reward": reward_env,
+                                                  "env_illegal": illegal}, indent=2) + "\n")
     print(f"\n{args.test} under physics={args.physics} (reward: mean +- sem over tasks)")
     for n, m, s, t in rows:
         print(f"  {n:<22} {m:.3f} +- {s:.3f}   ({t:.0f} s)")
     print(f"  ppo in the environment {reward_env:.3f}   ({illegal} illegal actions, each a failure there; "
           f"the planner plays the nearest legal one instead)")
-    print(f"written: {args.out / 'comparison.csv'}, {args.out / 'training.json'}")
+    print(f"written: {args.out / 'comparison.csv'}, {args.out / 'training.json'}, {args.out / 'summary.json'}")
     return 0
 
 

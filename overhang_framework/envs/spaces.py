@@ -31,11 +31,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
-from overhang_framework.geometry import GRID_HALF_WIDTH, KEY_DECIMALS, MAX_LAYER, WIDTHS, Action
+from overhang_framework.geometry import (
+    GRID_HALF_WIDTH,
+    KEY_DECIMALS,
+    MAX_LAYER,
+    WIDTHS,
+    Action,
+)
 from overhang_framework.interfaces import State
 
 OBSERVATIONS = ("arrays", "image")
@@ -47,7 +53,7 @@ class TowerSpaces:
 
     max_blocks: int = 6
     observation: str = "arrays"
-    resolution: Optional[float] = None
+    resolution: float | None = None
     image_size: tuple = field(default=(32, 160))
 
     def __post_init__(self):
@@ -142,7 +148,7 @@ class TowerSpaces:
         bins = self.reachable_layers(state)
         return np.array([action.x / GRID_HALF_WIDTH, ((action.layer - 0.5) / bins) * 2.0 - 1.0], np.float32)
 
-    def to_action(self, action: Any) -> tuple[Optional[Action], Optional[str]]:
+    def to_action(self, action: Any) -> tuple[Action | None, str | None]:
         """``(Action, None)`` for a well-formed ``Dict`` action (x rounded to ``resolution`` when set),
         else ``(None, why)``."""
         try:

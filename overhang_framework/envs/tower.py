@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Optional, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -15,7 +16,7 @@ REWARDS = ("paper", "shaped")
 RANDOM = "random"  # tasks="random": a new sequence of random_length widths, drawn at each reset
 
 
-def _tasks(tasks: Optional[str], sequences: Optional[Sequence[Any]]) -> tuple[list[Task], Optional[str]]:
+def _tasks(tasks: str | None, sequences: Sequence[Any] | None) -> tuple[list[Task], str | None]:
     from overhang_framework.tasks import parse_tasks
 
     if tasks == RANDOM:
@@ -71,11 +72,11 @@ class OverhangTowerEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
 
-    def __init__(self, tasks: Optional[str] = None, sequences: Optional[Sequence[Any]] = None,
-                 physics: str = "tiered", resolution: Optional[float] = None,
-                 world: Optional[Mapping[str, Any]] = None, reward: str = "paper",
-                 observation: str = "arrays", max_blocks: Optional[int] = None,
-                 image_size: Sequence[int] = (32, 160), render_mode: Optional[str] = None,
+    def __init__(self, tasks: str | None = None, sequences: Sequence[Any] | None = None,
+                 physics: str = "tiered", resolution: float | None = None,
+                 world: Mapping[str, Any] | None = None, reward: str = "paper",
+                 observation: str = "arrays", max_blocks: int | None = None,
+                 image_size: Sequence[int] = (32, 160), render_mode: str | None = None,
                  random_length: int = 6, failure_penalty: float = 1.0):
         from overhang_framework.config import compose_config
         from overhang_framework.plugins import Registry
@@ -122,13 +123,13 @@ class OverhangTowerEnv(gym.Env):
         self.action_space = self.spaces.action_space()
         self._renderer = self.spaces.renderer()
         self._view = None
-        self.task: Optional[Task] = None
-        self.state: Optional[State] = None
+        self.task: Task | None = None
+        self.state: State | None = None
         self._over = True
 
     # -- the episode ----------------------------------------------------------------------------
 
-    def _choose_task(self, options: Optional[Mapping[str, Any]]) -> Task:
+    def _choose_task(self, options: Mapping[str, Any] | None) -> Task:
         wanted = (options or {}).get("task")
         if self.random_length is not None:
             if wanted is not None:
@@ -147,7 +148,7 @@ class OverhangTowerEnv(gym.Env):
                 return t
         raise ValueError(f"unknown task {wanted!r}; known: {', '.join(t.id for t in self.tasks)}")
 
-    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.task = self._choose_task(options)
         self.state = self.world.initial_state(self.task)
@@ -157,7 +158,7 @@ class OverhangTowerEnv(gym.Env):
     def _observe(self) -> dict[str, np.ndarray]:
         return self.spaces.observe(self.state, self._renderer)
 
-    def _info(self, stable: bool, illegal: Optional[str]) -> dict:
+    def _info(self, stable: bool, illegal: str | None) -> dict:
         return {"task_id": self.task.id, "overhang": float(self.world.overhang(self.state.geometry)),
                 "placed": len(self.state.geometry) - 1, "stable": stable, "illegal": illegal}
 

@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Optional
 
 import numpy as np
 
 from overhang_framework.geometry import Action
-from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, Spend, State, Value, World
+from overhang_framework.interfaces import (
+    Budget,
+    Decision,
+    Planner,
+    Predictor,
+    Spend,
+    State,
+    Value,
+    World,
+)
 from overhang_framework.rules import legal_xs
 
 log = logging.getLogger(__name__)
@@ -29,7 +37,7 @@ class PolicyPlanner(Planner):
     the episode's ``predicted_stability``. Budgets and the value are not used.
     """
 
-    def __init__(self, world: World, path: Optional[str] = None, deterministic: bool = True):
+    def __init__(self, world: World, path: str | None = None, deterministic: bool = True):
         from overhang_framework.envs.policies import load_policy
 
         if not path:
