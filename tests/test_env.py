@@ -218,3 +218,19 @@ def test_a_vectorised_rollout_matches_single_environments(mode):
             ended += t
     vec.close()
     assert ended >= 2
+
+
+def test_the_speed_benchmark_prints_both_physics_in_one_json_line():
+    import json as _json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "overhang_framework.bench.env", "--steps", "50",
+                           "--tiered-steps", "20", "--quiet"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = _json.loads(done.stdout.strip().splitlines()[-1])["rows"]
+    assert {(r["agent"], r["physics"]) for r in rows} == {(a, p) for a in ("legal", "sample")
+                                                          for p in ("tiered", "static")}
+    legal = [r for r in rows if r["agent"] == "legal"]
+    assert all(r["illegal"] == 0 and r["steps_per_second"] > 0 for r in legal)
+    assert all(r["illegal"] > 0 for r in rows if r["agent"] == "sample")

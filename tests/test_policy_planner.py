@@ -128,3 +128,19 @@ def test_unreadable_policy_files_are_refused_in_one_line(tmp_path, content, mess
     assert "\n" not in str(err.value)
     with pytest.raises(ConfigError, match="planner.path must name a policy file"):
         Registry().create("planner", {"name": "policy"}, world=world)
+
+
+def test_the_ppo_example_trains_saves_and_compares(tmp_path):
+    out = tmp_path / "ppo"
+    done = subprocess.run([sys.executable, "-m", "overhang_framework.envs.ppo", "--steps", "2048", "--envs", "2",
+                           "--n-steps", "256", "--compare", "myopic", "--test", "example", "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["models"]) == {"ppo", "myopic"}
+    assert summary["training"]["steps"] >= 2048 and summary["training"]["curve"]
+    myopic = json.loads((out / "test" / "myopic" / "metrics.json").read_text())
+    assert summary["models"]["myopic"]["reward_mean"] == myopic["reward_mean"]
+    model, spaces, info = load_policy(out / "policy.zip")
+    assert info["training"]["tasks"] == "random" and spaces.resolution == 0.1
+    assert "ppo (policy planner)" in done.stdout and (out / "comparison.csv").read_text().startswith("model,")

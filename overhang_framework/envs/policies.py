@@ -25,7 +25,8 @@ class PolicyFileError(ValueError):
     """A policy file that cannot be read, with the reason in one line."""
 
 
-def _sb3():
+def stable_baselines3():
+    """The Stable-Baselines3 module, or :class:`PolicyFileError` saying how to install it."""
     try:
         import stable_baselines3
     except ImportError:
@@ -75,7 +76,7 @@ def policy_info(path: str | os.PathLike) -> dict:
 def load_policy(path: str | os.PathLike) -> tuple[Any, TowerSpaces, dict]:
     """``(model, spaces, info)`` of the policy at ``path``, on the CPU."""
     info = policy_info(path)
-    sb3 = _sb3()
+    sb3 = stable_baselines3()
     try:
         spaces = TowerSpaces(**info["spaces"])
     except (TypeError, ValueError) as err:

@@ -158,11 +158,12 @@ def parse(argv=None):
 
 
 def main(argv=None) -> int:
-    from overhang_framework.envs.policies import PolicyFileError, policy_info
+    from overhang_framework.envs.policies import PolicyFileError, policy_info, stable_baselines3
 
     args = parse(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
     try:
+        stable_baselines3()
+        args.out.mkdir(parents=True, exist_ok=True)
         if args.skip_training:
             path = args.out / "policy.zip"
             figures = policy_info(path).get("training", {})
