@@ -36,9 +36,10 @@ def test_registered_when_the_package_is_imported():
     assert env.unwrapped.tasks[0].sequence == (0.6, 1.8, 1.2, 1.8, 0.6, 1.8)
 
 
-@pytest.mark.parametrize("observation", ["arrays", "image"])
-def test_passes_gymnasiums_checker(observation):
-    check_env(make(observation=observation, render_mode="rgb_array").unwrapped, skip_render_check=False)
+@pytest.mark.parametrize("observation, physics", [("arrays", "static"), ("image", "static"), ("arrays", "tiered")])
+def test_passes_gymnasiums_checker(observation, physics):
+    check_env(make(observation=observation, physics=physics, render_mode="rgb_array").unwrapped,
+              skip_render_check=False)
 
 
 def test_flat_env_passes_the_checker_and_has_box_spaces():
@@ -96,16 +97,21 @@ def test_a_collapse_ends_the_episode_with_nothing(reward):
     ({"x": [0.0], "layer": 40}, "outside the grid"),
     ({"x": [float("nan")], "layer": 1}, "finite"),
     ({"x": [0.0], "layer": 1.5}, "whole number"),
+    ({"x": [0.0], "layer": "1"}, "whole number"),
+    ({"x": ["0.3"], "layer": 1}, "x must be a number"),
+    ({"x": [1e308], "layer": 1}, "far outside the grid"),
+    ({"x": [12.0], "layer": 1}, "outside the grid"),
     ({"x": [0.0, 1.0], "layer": 1}, "single values"),
     ({"layer": 1}, "keys 'x' and 'layer'"),
     ("left", "keys 'x' and 'layer'"),
     (None, "keys 'x' and 'layer'"),
 ])
-def test_an_illegal_action_ends_the_episode_as_a_failure(action, why):
-    env = make(sequences=[1.8, 1.2, 0.6]).unwrapped
+@pytest.mark.parametrize("reward, resolution", [("paper", None), ("shaped", 0.1)])
+def test_an_illegal_action_ends_the_episode_as_a_failure(action, why, reward, resolution):
+    env = make(sequences=[1.8, 1.2, 0.6], reward=reward, resolution=resolution, failure_penalty=0.7).unwrapped
     obs0, _ = env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step(action)
-    assert terminated and not truncated and reward == 0.0
+    assert terminated and not truncated and reward == (0.0 if env.reward_mode == "paper" else -0.7)
     assert why in info["illegal"]
     np.testing.assert_array_equal(obs["blocks"], obs0["blocks"])  # nothing was placed
 
@@ -125,6 +131,18 @@ def test_reset_with_a_seed_is_reproducible():
     a = [env.reset(seed=s)[1]["task_id"] for s in range(8)]
     b = [env.reset(seed=s)[1]["task_id"] for s in range(8)]
     assert a == b and len(set(a)) > 1
+
+    def rollout(seed):
+        obs, _ = env.reset(seed=seed)
+        seen = [obs["remaining"].tolist()]
+        for x in (0.1, 0.2, 0.3):
+            obs, reward, done, _, _ = env.step({"x": [x], "layer": len(seen)})
+            seen.append((obs["blocks"].tolist(), reward, done))
+            if done:
+                break
+        return seen
+
+    assert rollout(4) == rollout(4)
     rnd = make(tasks="random")
     seqs = [rnd.unwrapped.task.sequence for s in (1, 1, 2) if rnd.reset(seed=s)]
     assert seqs[0] == seqs[1] != seqs[2]
@@ -171,8 +189,13 @@ def test_bad_arguments_are_refused_in_one_line():
                             ({"observation": "pixels"}, "unknown observation 'pixels'"),
                             ({"sequences": [1.8, 1.0]}, "illegal block width 1.0"),
                             ({"tasks": "paper20", "max_blocks": 4}, "max_blocks >= 6"),
-                            ({"render_mode": "human"}, "unknown render_mode 'human'")]:
-        with pytest.raises(Exception, match=message.replace("(", r"\(")) as err:
+                            ({"render_mode": "human"}, "unknown render_mode 'human'"),
+                            ({"tasks": "bogus"}, "unknown task set 'bogus'; allowed: example, paper20, random"),
+                            ({"sequences": [0.6] * 14}, "has 14 blocks; at most 13 fit the grid"),
+                            ({"world": {"physics": "tiered"}}, "not inside world"),
+                            ({"reward": "shaped", "failure_penalty": -1}, "failure_penalty must be a finite number >= 0"),
+                            ({"world": {"resolution": -1}}, "resolution must be a positive number")]:
+        with pytest.raises(ValueError, match=message.replace("(", r"\(")) as err:
             OverhangTowerEnv(physics="static", **kwargs)
         assert "\n" not in str(err.value)
 
@@ -195,29 +218,41 @@ def test_flat_actions_reach_every_layer_and_x():
 
 @pytest.mark.parametrize("mode", ["sync", "async"])
 def test_a_vectorised_rollout_matches_single_environments(mode):
-    n, steps = 2, 12
+    from overhang_framework.rules import random_legal_action
+
+    n, steps = 2, 16
     vec = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode, physics="static", tasks="paper20",
                        wrappers=[FlattenAction])
     obs, _ = vec.reset(seed=[10, 11])
     singles = [FlattenAction(make(tasks="paper20")) for _ in range(n)]
-    single_obs = [env.reset(seed=s)[0] for env, s in zip(singles, (10, 11))]
+    pending = [False] * n  # the vector env resets this one on its next step (next-step autoreset)
+    for i, (env, s) in enumerate(zip(singles, (10, 11))):
+        np.testing.assert_allclose(obs["blocks"][i], env.reset(seed=s)[0]["blocks"])
     rng = np.random.default_rng(0)
-    ended = 0
+    spaces = singles[0].unwrapped.spaces
+    ended = placed = 0
     for _ in range(steps):
-        actions = rng.uniform(-0.3, 0.3, size=(n, 2)).astype(np.float32)
-        actions[:, 1] = -0.95  # layer 1, near the centre: mostly legal
-        obs, rewards, terms, truncs, infos = vec.step(actions)
+        actions = np.zeros((n, 2), np.float32)
         for i, env in enumerate(singles):
-            if single_obs[i] is None:  # the vector env resets this one on this step (next-step autoreset)
-                single_obs[i] = env.reset()[0]
-                continue
-            o, r, t, _, _ = env.step(actions[i])
-            assert r == pytest.approx(rewards[i]) and t == terms[i]
+            state = env.unwrapped.state
+            if not pending[i]:  # a legal placement, near the centre so that towers grow as well as fall
+                a = random_legal_action(state.geometry, state.next_width, 0.1, rng)
+                actions[i] = spaces.flatten_action(Action(float(np.clip(a.x, -0.6, 0.6)), a.layer), state)
+        obs, rewards, terms, _, _ = vec.step(actions)
+        for i, env in enumerate(singles):
+            if pending[i]:
+                o, _ = env.reset()
+                pending[i] = False
+            else:
+                o, r, t, _, info = env.step(actions[i])
+                assert r == pytest.approx(rewards[i]) and t == terms[i]
+                pending[i] = t
+                ended += t
+                placed += info["illegal"] is None
             np.testing.assert_allclose(obs["blocks"][i], o["blocks"])
-            single_obs[i] = None if t else o
-            ended += t
+            np.testing.assert_allclose(obs["remaining"][i], o["remaining"])
     vec.close()
-    assert ended >= 2
+    assert ended >= 2 and placed >= 8
 
 
 def test_the_speed_benchmark_prints_both_physics_in_one_json_line():

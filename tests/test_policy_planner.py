@@ -46,7 +46,7 @@ class TestPolicyPlanner(PlannerContract):
 def env_actions(path, task_set: str):
     """What the policy does in the environment on each task of ``task_set``: [(x, layer, legal), ...]."""
     model, spaces, _ = load_policy(path)
-    env = gym.make(ENV_ID, tasks=task_set, physics="static", resolution=spaces.resolution)
+    env = gym.make(ENV_ID, tasks=task_set, physics="static", **spaces.env_kwargs())
     out = {}
     for task in env.unwrapped.tasks:
         obs, _ = env.reset(seed=0, options={"task": task.id})
@@ -97,7 +97,7 @@ def test_an_illegal_choice_becomes_the_nearest_legal_action(policy_file):
     planner = Registry().create("planner", {"name": "policy", "path": str(policy_file)}, world=world)
     state = world.initial_state(Task("t", (1.2, 0.6)))
 
-    class Fixed:  # a policy that always asks for x = 3.0 on layer 2
+    class Fixed:  # a policy that always asks for x = 3.0 on the top reachable layer
         def predict(self, obs, deterministic=True):
             return np.array([0.75, 0.9], np.float32), None  # x = 3.0, the top reachable layer
 
@@ -144,3 +144,16 @@ def test_the_ppo_example_trains_saves_and_compares(tmp_path):
     model, spaces, info = load_policy(out / "policy.zip")
     assert info["training"]["tasks"] == "random" and spaces.resolution == 0.1
     assert "ppo (policy planner)" in done.stdout and (out / "comparison.csv").read_text().startswith("model,")
+
+
+def test_a_sampling_policy_is_reproducible_by_seed_and_long_tasks_are_refused(policy_file):
+    world = Registry().create("world", {"name": "overhang", "physics": "static"})
+    planner = Registry().create("planner", {"name": "policy", "path": str(policy_file), "deterministic": False},
+                                world=world)
+    predictor = Registry().create("predictor", {"name": "veridical"}, world=world)
+    state = world.initial_state(Task("t", (1.8, 1.2, 0.6)))
+    draws = [planner.plan(state, predictor, None, Budget(), np.random.default_rng(s)).action for s in (1, 1, 2, 3, 4)]
+    assert draws[0] == draws[1] and len(set(draws[1:])) > 1
+    with pytest.raises(ValueError, match="at most 6 blocks; this task has 7"):
+        planner.plan(world.initial_state(Task("long", (1.8,) * 7)), predictor, None, Budget(),
+                     np.random.default_rng(0))

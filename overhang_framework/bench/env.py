@@ -1,6 +1,6 @@
 """Environment steps per second of ``OverhangTower-v0``, on the default physics and the static physics.
 
-Two agents play paper20 tasks (drawn by the environment's generator):
+Two agents, or three, play paper20 tasks (drawn by the environment's generator):
 
 * ``legal`` draws one of the world's legal actions at x resolution 0.1 (whole episodes; the towers
   a learner meets once it has learned the rules);
@@ -29,7 +29,7 @@ from collections.abc import Sequence
 import numpy as np
 
 
-def measure(physics: str, agent: str, steps: int, seed: int = 0, policy: Optional[str] = None) -> dict:
+def measure(physics: str, agent: str, steps: int, seed: int = 0, policy: str | None = None) -> dict:
     """Play ``steps`` environment steps with ``agent``; the figures."""
     import gymnasium as gym
 
@@ -45,8 +45,7 @@ def measure(physics: str, agent: str, steps: int, seed: int = 0, policy: Optiona
         torch.set_num_threads(1)
         torch.manual_seed(seed)
         model, spaces, _ = load_policy(policy)
-    env = gym.make(ENV_ID, tasks="paper20", physics=physics,
-                   **({"resolution": spaces.resolution, "max_blocks": spaces.max_blocks} if spaces else {}))
+    env = gym.make(ENV_ID, tasks="paper20", physics=physics, **(spaces.env_kwargs() if spaces else {}))
     obs = None
     world = env.unwrapped.world
     rng = np.random.default_rng(seed)

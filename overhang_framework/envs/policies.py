@@ -49,7 +49,13 @@ def save_policy(model: Any, path: str | os.PathLike, env: Any, **extra: Any) -> 
     if path.suffix != ".zip":
         path = path.with_name(path.name + ".zip")
     path.parent.mkdir(parents=True, exist_ok=True)
-    setattr(model, KEY, {"algorithm": algorithm, "spaces": spaces.spec(), **extra})
+    info = {"algorithm": algorithm, "spaces": spaces.spec(), **extra}
+    for key, value in extra.items():
+        try:
+            json.dumps(value, allow_nan=False)
+        except (TypeError, ValueError):
+            raise PolicyFileError(f"save_policy keeps plain JSON data only; {key}={value!r} is not") from None
+    setattr(model, KEY, info)
     tmp = path.with_name(f".{path.name}.tmp.zip")
     model.save(tmp)
     os.replace(tmp, path)

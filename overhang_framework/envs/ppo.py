@@ -102,8 +102,7 @@ def env_reward(policy: Path, tasks: str, physics: str) -> tuple[float, int]:
     from overhang_framework.envs.policies import load_policy
 
     model, spaces, _ = load_policy(policy)
-    env = gym.make(ENV_ID, tasks=tasks, physics=physics, resolution=spaces.resolution,
-                   max_blocks=spaces.max_blocks)
+    env = gym.make(ENV_ID, tasks=tasks, physics=physics, **spaces.env_kwargs())
     total, illegal = 0.0, 0
     for k in range(len(env.unwrapped.tasks)):
         obs, _ = env.reset(seed=k, options={"task": k})

@@ -68,6 +68,11 @@ class TowerSpaces:
             raise ValueError(f"resolution must be a positive number of metres or null, got {self.resolution!r}")
         object.__setattr__(self, "image_size", tuple(int(v) for v in self.image_size))
 
+    def env_kwargs(self) -> dict:
+        """The environment parameters that show a policy these spaces (``gym.make(ENV_ID, **env_kwargs, ...)``)."""
+        return {"max_blocks": self.max_blocks, "observation": self.observation, "resolution": self.resolution,
+                "image_size": list(self.image_size)}
+
     def spec(self) -> dict:
         """Plain data that ``TowerSpaces(**spec)`` turns back into these spaces (saved with a policy)."""
         out = asdict(self)
@@ -152,22 +157,22 @@ class TowerSpaces:
         """``(Action, None)`` for a well-formed ``Dict`` action (x rounded to ``resolution`` when set),
         else ``(None, why)``."""
         try:
-            x = np.asarray(action["x"], dtype=np.float64).reshape(-1)
+            x_arr = np.asarray(action["x"]).reshape(-1)
             layer_arr = np.asarray(action["layer"]).reshape(-1)
         except (TypeError, KeyError, IndexError, ValueError):
             return None, f"an action is a dict with keys 'x' and 'layer', got {action!r}"
-        if x.size != 1 or layer_arr.size != 1:
+        if x_arr.size != 1 or layer_arr.size != 1:
             return None, f"x and layer must be single values, got x={action['x']!r}, layer={action['layer']!r}"
-        x = float(x[0])
+        if x_arr.dtype.kind not in "iuf":
+            return None, f"x must be a number, got {action['x']!r}"
+        x = float(x_arr[0])
         if not math.isfinite(x):
             return None, f"x must be a finite number, got {x!r}"
+        if abs(x) > 1e6:
+            return None, f"x={x:g} is far outside the grid [-{GRID_HALF_WIDTH:g}, {GRID_HALF_WIDTH:g}]"
         raw_layer = layer_arr[0]
-        try:
-            whole = float(raw_layer).is_integer()
-        except (TypeError, ValueError):
-            whole = False
-        if not whole:
-            return None, f"layer must be a whole number, got {raw_layer!r}"
+        if layer_arr.dtype.kind not in "iuf" or not float(raw_layer).is_integer():
+            return None, f"layer must be a whole number, got {action['layer']!r}"
         if self.resolution is not None:
             x = round(round(x / self.resolution) * self.resolution, 10)
         else:  # to the micrometre: a float32 x such as 0.3 is the 0.3 it stands for

@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 
 from overhang_framework.envs.spaces import TowerSpaces
-from overhang_framework.geometry import WIDTHS
+from overhang_framework.geometry import MAX_LAYER, WIDTHS
 from overhang_framework.interfaces import State, Task
 
 REWARDS = ("paper", "shaped")
@@ -26,8 +26,11 @@ def _tasks(tasks: str | None, sequences: Sequence[Any] | None) -> tuple[list[Tas
     if sequences is not None:
         if tasks is not None:
             raise ValueError("give tasks (a task set name) or sequences, not both")
-        seqs = list(sequences)
-        if seqs and all(isinstance(w, (int, float)) and not isinstance(w, bool) for w in seqs):
+        seqs = [np.asarray(q).tolist() if isinstance(q, np.ndarray) else q for q in sequences]
+        seqs = [[float(w) if isinstance(w, np.floating | np.integer) else w for w in q]
+                if isinstance(q, list | tuple) else (float(q) if isinstance(q, np.floating | np.integer) else q)
+                for q in seqs]
+        if seqs and all(isinstance(w, int | float) and not isinstance(w, bool) for w in seqs):
             seqs = [seqs]  # one sequence
         return parse_tasks(seqs, prefix="seq"), None
     return [], tasks or "paper20"
@@ -84,9 +87,9 @@ class OverhangTowerEnv(gym.Env):
 
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; allowed: {', '.join(REWARDS)}")
-        if isinstance(failure_penalty, bool) or not isinstance(failure_penalty, (int, float)) \
-                or not np.isfinite(failure_penalty):
-            raise ValueError(f"failure_penalty must be a finite number, got {failure_penalty!r}")
+        if isinstance(failure_penalty, bool) or not isinstance(failure_penalty, int | float) \
+                or not np.isfinite(failure_penalty) or failure_penalty < 0:
+            raise ValueError(f"failure_penalty must be a finite number >= 0, got {failure_penalty!r}")
         self.failure_penalty = float(failure_penalty)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"unknown render_mode {render_mode!r}; allowed: rgb_array or None")
@@ -94,8 +97,17 @@ class OverhangTowerEnv(gym.Env):
             raise ValueError(f"world must be a mapping of world parameters, got {world!r}")
         task_list, task_set = _tasks(tasks, sequences)
         world = dict(world or {})
+        if "physics" in world:
+            raise ValueError("give the physics as physics=..., not inside world")
         overrides = [f"world={world.pop('name', 'overhang')}", f"world.physics={physics}"]
         if task_set is not None:
+            from overhang_framework.config import group_options
+
+            known = group_options("tasks")
+            if task_set not in known or task_set == "custom":
+                allowed = [k for k in known if k != "custom"] + [RANDOM]
+                raise ValueError(f"unknown task set {task_set!r}; allowed: {', '.join(allowed)} "
+                                 "(or sequences=[...] for your own)")
             overrides.append(f"tasks={task_set}")
         cfg = compose_config(overrides)
         if task_set is not None:
@@ -115,6 +127,9 @@ class OverhangTowerEnv(gym.Env):
         self.reward_mode = reward
         self.render_mode = render_mode
         longest = max(len(t.sequence) for t in self.tasks)
+        if longest > MAX_LAYER + 1:
+            too_long = next(t for t in self.tasks if len(t.sequence) == longest)
+            raise ValueError(f"task {too_long.id} has {longest} blocks; at most {MAX_LAYER + 1} fit the grid")
         self.spaces = TowerSpaces(max_blocks=longest if max_blocks is None else max_blocks,
                                   observation=observation, resolution=resolution, image_size=tuple(image_size))
         for t in self.tasks:

@@ -19,7 +19,10 @@ class FlattenAction(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
         self.action_space = self.tower_spaces.flat_action_space()
 
     def action(self, action: Any) -> dict:
-        return self.tower_spaces.unflatten(action, self.env.unwrapped.state)
+        state = self.env.unwrapped.state
+        if state is None:
+            raise RuntimeError("the episode has not started; call reset() first")
+        return self.tower_spaces.unflatten(action, state)
 
 
 def flat_env(env_id_or_env: Any = None, **kwargs) -> gym.Env:
