@@ -388,6 +388,18 @@ def check_command_line(args: Sequence[str], check_config: Optional[Callable] = N
     _check_output_dir(configs[0], multirun)
 
 
+def overrides_problem(overrides: Sequence[str]) -> Optional[str]:
+    """What is wrong with the config ``overrides`` of a command that composes a run config but runs no
+    Hydra job (a benchmark, an analysis), in one line; ``None`` when nothing is."""
+    from overhang_framework.errors import OverhangError
+
+    try:
+        check_command_line([*overrides, "--cfg", "job"])
+    except OverhangError as err:
+        return str(err)
+    return None
+
+
 def _config_sweep(words: Sequence[str]) -> tuple[bool, list[str]]:
     """Whether the chosen configs make the command a multirun (``hydra.mode: MULTIRUN``), and the
     sweeps their ``hydra.sweeper.params`` add (as override words; a key the command line sets wins)."""

@@ -51,3 +51,13 @@ def test_edge_creep_is_reported_against_the_rest_speed():
     for c in creep:
         assert c["passes_threshold_s"] is not None  # every exactly edge-balanced tower falls in the window
     assert creep[0]["speed_0.1_0.5s"][1] < creep[0]["rest_speed"] < creep[0]["speed_2s"]
+
+
+@pytest.mark.parametrize("module", ["overhang_framework.bench.planners", "overhang_framework.bench.reference_search"])
+def test_benchmarks_refuse_a_wrong_override_in_one_line(module):
+    proc = subprocess.run([sys.executable, "-m", module, "world.resoluton=0.05", "--quiet"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        "error: unknown config key 'world.resoluton' (did you mean 'world.resolution'?); keys of world 'overhang': "
+        "cache, name, physics, pybullet, resolution, static, tiered, verdict_file, workers"]

@@ -97,13 +97,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.states < 1:
         print(f"error: --states must be a whole number >= 1, got {args.states}", file=sys.stderr)
         return 2
-    from overhang_framework.errors import OverhangError
-    from overhang_framework.preflight import check_command_line
+    from overhang_framework.preflight import overrides_problem
 
-    try:
-        check_command_line([*args.overrides, "--cfg", "job"])
-    except OverhangError as err:
-        print(f"error: {err}", file=sys.stderr)
+    problem = overrides_problem(args.overrides)
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     try:
         import torch  # noqa: F401  (when present, one thread, so figures do not depend on the other core)

@@ -63,14 +63,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print("error: --states and --depth must be whole numbers >= 1", file=sys.stderr)
         return 2
     from overhang_framework.bench.planners import mid_episode_states
-    from overhang_framework.errors import OverhangError
-    from overhang_framework.preflight import check_command_line
+    from overhang_framework.preflight import overrides_problem
     from overhang_framework.progress import progress_bar
 
-    try:
-        check_command_line([*args.overrides, "--cfg", "job"])
-    except OverhangError as err:
-        print(f"error: {err}", file=sys.stderr)
+    problem = overrides_problem(args.overrides)
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     states = mid_episode_states(args.overrides, args.states)
     kinds = ["lazy"] if args.lazy_only else ["lazy", "exhaustive"]
