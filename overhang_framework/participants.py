@@ -212,11 +212,11 @@ def app(cfg: DictConfig) -> Optional[dict]:
     return summary
 
 
-def _one_line(err: BaseException) -> str:
-    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-    lines = [line for line in lines if not line.startswith(("See https://", "full_key:", "object_type=",
-                                                           "Config search path", "Available options"))]
-    return "; ".join(lines) or type(err).__name__
+def compose_problem(err: BaseException) -> str:
+    """A failed compose's message on one line, without Hydra's search path and option listing."""
+    from overhang_framework.preflight import one_line
+
+    return one_line(err, drop=("Config search path", "Available options")) or type(err).__name__
 
 
 def _compose_error(err: BaseException) -> str:
@@ -229,7 +229,7 @@ def _compose_error(err: BaseException) -> str:
     cause = err.__cause__
     full_key = getattr(cause, "full_key", None)
     if not (isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and full_key):
-        return _one_line(err)
+        return compose_problem(err)
     parent, _, leaf = str(full_key).rpartition(".")
     base = compose_config(config_name=CONFIG_NAME)
     node = OmegaConf.select(base, parent) if parent else base
@@ -244,12 +244,12 @@ def preflight(args: Sequence[str]) -> None:
     """Compose every job's config and check its values before Hydra runs (one :class:`OverhangError` otherwise)."""
     from overhang_framework.config import compose_config
     from overhang_framework.preflight import (check_flags, check_group_choices, check_writable, is_multirun,
-                                              override_words, runs_job)
+                                              override_words, runs_job, sweep_variants)
 
     check_flags(args)
     words = override_words(args)
     check_group_choices(args)
-    variants = _sweep_variants(words) if is_multirun(args) else [list(words)]
+    variants = sweep_variants(words, is_multirun(args))
     configs = []
     for variant in variants:
         try:
@@ -267,26 +267,6 @@ def preflight(args: Sequence[str]) -> None:
         return
     if directory is not None:
         check_writable(directory)
-
-
-def _sweep_variants(words: Sequence[str]) -> list[list[str]]:
-    """Single-valued override lists that together use every value of every simple sweep (``key=a,b``)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    parser = OverridesParser.create()
-    variants: list[list[str]] = [[]]
-    for word in words:
-        try:
-            (ov,) = parser.parse_overrides([word])
-            values = [str(v) for v in ov.sweep_string_iterator()] if ov.is_sweep_override() else None
-        except Exception:
-            values = None
-        if values is None:
-            variants = [v + [word] for v in variants]
-        else:
-            prefix = word.split("=", 1)[0]
-            variants = [v + [f"{prefix}={value}"] for v in variants for value in values]
-    return variants
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:

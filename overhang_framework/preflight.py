@@ -242,10 +242,12 @@ def _key_error(full_key: str, cfg, problem: str = "unknown config key") -> str:
     return f"{problem} '{full_key}'{hint}; {where}: {', '.join(keys) if keys else '(none)'}"
 
 
-def one_line(text: str) -> str:
+def one_line(text, drop: tuple[str, ...] = ()) -> str:
+    """``text`` (or an exception's message) on one line, without Hydra's and OmegaConf's pointer lines and
+    without lines starting with any of ``drop``."""
     lines = [line.strip() for line in str(text).splitlines() if line.strip()]
-    lines = [line for line in lines if not line.startswith(("See https://", "full_key:", "object_type="))]
-    return "; ".join(lines)
+    skip = ("See https://", "full_key:", "object_type=", *drop)
+    return "; ".join(line for line in lines if not line.startswith(skip))
 
 
 def _compose_error(words: Sequence[str], err: Exception) -> str:

@@ -200,7 +200,7 @@ def command_words(args: Sequence[str]) -> list[str]:
 
 def preflight(words: Sequence[str]) -> None:
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import _one_line
+    from overhang_framework.participants import compose_problem
     from overhang_framework.preflight import check_flags, split_flags, sweep_variants
 
     check_flags(words)
@@ -209,7 +209,7 @@ def preflight(words: Sequence[str]) -> None:
         try:
             cfg = compose_config(variant, config_name=CONFIG_NAME)
         except Exception as err:  # Hydra raises several kinds
-            raise OverhangError(_one_line(err)) from None
+            raise OverhangError(compose_problem(err)) from None
         check_config(cfg)
 
 
