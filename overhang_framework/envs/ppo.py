@@ -7,7 +7,7 @@ torch threads, 1 by default: fair on a shared machine) on ``--tasks``
 (``random``: a new six-block sequence each episode, so the test set stays
 unseen), saves the policy with :func:`~overhang_framework.envs.policies.save_policy`,
 then plays ``--test`` (paper20) through the main job with ``planner=policy``
-beside the myopic and depth-2 lookahead models (veridical predictor, the same
+beside the myopic and depth-2 and depth-3 lookahead models (veridical predictor, the same
 physics), and writes ``comparison.csv``, ``training.json`` and ``summary.json`` (every figure) to
 ``--out``.
 """
@@ -141,7 +141,7 @@ def parse(argv=None):
                         help="initial log standard deviation of the actions (default -1.5: x spread about 0.9 m)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--compare", default="myopic,lookahead_d2",
+    parser.add_argument("--compare", default="myopic,lookahead_d2,lookahead_d3",
                         help=f"models run beside the agent, comma-separated from {', '.join(MODELS)}")
     parser.add_argument("--skip-training", action="store_true", help="compare the policy already in --out")
     args = parser.parse_args(argv)
