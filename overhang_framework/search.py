@@ -128,6 +128,14 @@ class Expansion:
             self._p[todo] = np.asarray(self._settle(todo), dtype=float)
             self.settled += len(todo)
 
+    def is_known(self, i: int) -> bool:
+        """Whether child ``i``'s answer is known (looked at and sure, or settled)."""
+        return not np.isnan(self._p[i])
+
+    def awaits_settling(self, i: int) -> bool:
+        """Whether child ``i`` was looked at and is still unknown: only the dear answer will tell."""
+        return bool(np.isnan(self._p[i]) and self._looked[i])
+
     def p_at(self, i: int) -> float:
         """The probability of child ``i`` (settled first when unknown)."""
         self.settle([i])
@@ -373,7 +381,7 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
                 expander.stats.leaves_pruned += 1
                 continue
             _settle_next(expander, expansion, order, n, upper, bounds, floor)
-            p_i = float(expansion._p[i])
+            p_i = expansion.p_at(i)  # settled just above
             if p_i <= 0:
                 continue
             child = lookahead_value(expander, value, expansion.children[i], depth - 1,
@@ -388,13 +396,13 @@ def _settle_next(expander: Expander, expansion: Expansion, order, n: int, upper,
     """Settle child ``order[n]`` if unknown, with the next unknown children that the bound does not skip
     at ``floor`` (up to the expander's batch)."""
     i = order[n]
-    if not np.isnan(expansion._p[i]):
+    if expansion.is_known(i):
         return
     group = [i]
     for j in order[n + 1:]:
         if len(group) >= expander.settle_batch:
             break
-        if np.isnan(expansion._p[j]) and expansion._looked[j] and upper[j] > 0 \
+        if expansion.awaits_settling(j) and upper[j] > 0 \
                 and not _below(upper[j] * bounds[j], floor):
             group.append(j)
     expansion.settle(group)
@@ -452,7 +460,7 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
             scores[i] = upper[i] * bounds[i]
             continue
         _settle_next(expander, expansion, order, k, upper, bounds, floor)
-        p_i = float(expansion._p[i])
+        p_i = expansion.p_at(i)  # settled just above
         if p_i <= 0:
             continue
         scores[i] = p_i * lookahead_value(expander, value, expansion.children[i], depth - 1,
