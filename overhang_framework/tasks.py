@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Iterable, Mapping, Optional, Sequence
 
 import numpy as np
@@ -35,7 +36,7 @@ def parse_tasks(sequences: Optional[Sequence[Any]], ids: Optional[Sequence[Any]]
         if len(seq) < 2:
             raise TaskError(f"task {task_id}: a sequence needs the ground block and at least one more, got {seq!r}")
         for w in seq:
-            if isinstance(w, bool) or not isinstance(w, (int, float)):
+            if isinstance(w, bool) or not isinstance(w, numbers.Real):
                 raise TaskError(f"task {task_id}: width {w!r} is not a number; allowed widths are "
                                 f"{', '.join(map(str, WIDTHS))}")
         try:

@@ -165,6 +165,11 @@ def test_resolution_rounds_x_to_the_grid():
     assert fine.unwrapped.state.geometry.blocks[-1].x == 0.3337
 
 
+def test_numpy_sequences_are_tasks_like_lists():
+    for given in (np.array([1.2, 0.6, 1.8], np.float32), [np.float64(1.2), 0.6, 1.8], np.array([[1.2, 0.6, 1.8]])):
+        assert make(sequences=given).unwrapped.tasks[0].sequence == (1.2, 0.6, 1.8)
+
+
 def test_observation_holds_the_tower_and_the_remaining_blocks():
     env = make(sequences=[1.2, 0.6, 1.8])
     obs, _ = env.reset(seed=0)

@@ -46,7 +46,7 @@ class TestPolicyPlanner(PlannerContract):
 def env_actions(path, task_set: str):
     """What the policy does in the environment on each task of ``task_set``: [(x, layer, legal), ...]."""
     model, spaces, _ = load_policy(path)
-    env = gym.make(ENV_ID, tasks=task_set, physics="static", **spaces.env_kwargs())
+    env = gym.make(ENV_ID, tasks=task_set, physics="static", **spaces.spec())
     out = {}
     for task in env.unwrapped.tasks:
         obs, _ = env.reset(seed=0, options={"task": task.id})

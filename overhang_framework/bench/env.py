@@ -40,13 +40,12 @@ def measure(physics: str, agent: str, steps: int, seed: int = 0, policy: str | N
     if agent == "policy":
         import torch
 
-        from overhang_framework.envs.policies import load_policy
+        from overhang_framework.envs.policies import load_policy, policy_action
 
         torch.set_num_threads(1)
         torch.manual_seed(seed)
         model, spaces, _ = load_policy(policy)
-    env = gym.make(ENV_ID, tasks="paper20", physics=physics, **(spaces.env_kwargs() if spaces else {}))
-    obs = None
+    env = gym.make(ENV_ID, tasks="paper20", physics=physics, **(spaces.spec() if spaces else {}))
     world = env.unwrapped.world
     rng = np.random.default_rng(seed)
     env.action_space.seed(seed)
@@ -59,8 +58,8 @@ def measure(physics: str, agent: str, steps: int, seed: int = 0, policy: str | N
             a = random_legal_action(state.geometry, state.next_width, 0.1, rng)
             action = {"x": np.array([a.x], np.float32), "layer": a.layer}
         elif agent == "policy":
-            flat, _ = model.predict(gym.spaces.flatten(env.observation_space, obs), deterministic=False)
-            action = spaces.unflatten(flat, env.unwrapped.state)
+            action = policy_action(model, spaces, env.observation_space, obs, env.unwrapped.state,
+                                   deterministic=False)
         else:
             action = env.action_space.sample()
         obs, _, done, _, info = env.step(action)

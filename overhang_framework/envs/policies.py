@@ -79,6 +79,16 @@ def policy_info(path: str | os.PathLike) -> dict:
     return info
 
 
+def policy_action(model: Any, spaces: TowerSpaces, observation_space: Any, observation: dict, state: Any,
+                  deterministic: bool = True) -> dict:
+    """The ``Dict`` action ``model`` takes in ``state``, shown ``observation`` flattened as :func:`flat_env`
+    shows it, with its flat action read as :class:`FlattenAction` reads it."""
+    import gymnasium as gym
+
+    flat, _ = model.predict(gym.spaces.flatten(observation_space, observation), deterministic=deterministic)
+    return spaces.unflatten(flat, state)
+
+
 def load_policy(path: str | os.PathLike) -> tuple[Any, TowerSpaces, dict]:
     """``(model, spaces, info)`` of the policy at ``path``, on the CPU."""
     info = policy_info(path)

@@ -99,18 +99,17 @@ def env_reward(policy: Path, tasks: str, physics: str) -> tuple[float, int]:
     import gymnasium as gym
 
     from overhang_framework.envs import ENV_ID
-    from overhang_framework.envs.policies import load_policy
+    from overhang_framework.envs.policies import load_policy, policy_action
 
     model, spaces, _ = load_policy(policy)
-    env = gym.make(ENV_ID, tasks=tasks, physics=physics, **spaces.env_kwargs())
+    env = gym.make(ENV_ID, tasks=tasks, physics=physics, **spaces.spec())
     total, illegal = 0.0, 0
     for k in range(len(env.unwrapped.tasks)):
         obs, _ = env.reset(seed=k, options={"task": k})
         done = False
         while not done:
-            flat = gym.spaces.flatten(env.observation_space, obs)
-            action, _ = model.predict(flat, deterministic=True)
-            obs, reward, done, _, info = env.step(spaces.unflatten(action, env.unwrapped.state))
+            action = policy_action(model, spaces, env.observation_space, obs, env.unwrapped.state)
+            obs, reward, done, _, info = env.step(action)
             total += reward
             illegal += info["illegal"] is not None
     env.close()

@@ -68,13 +68,9 @@ class TowerSpaces:
             raise ValueError(f"resolution must be a positive number of metres or null, got {self.resolution!r}")
         object.__setattr__(self, "image_size", tuple(int(v) for v in self.image_size))
 
-    def env_kwargs(self) -> dict:
-        """The environment parameters that show a policy these spaces (``gym.make(ENV_ID, **env_kwargs, ...)``)."""
-        return {"max_blocks": self.max_blocks, "observation": self.observation, "resolution": self.resolution,
-                "image_size": list(self.image_size)}
-
     def spec(self) -> dict:
-        """Plain data that ``TowerSpaces(**spec)`` turns back into these spaces (saved with a policy)."""
+        """Plain data that ``TowerSpaces(**spec)`` turns back into these spaces (saved with a policy); also the
+        environment parameters that show a policy these spaces (``gym.make(ENV_ID, **spec, ...)``)."""
         out = asdict(self)
         out["image_size"] = list(self.image_size)
         return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -26,11 +27,8 @@ def _tasks(tasks: str | None, sequences: Sequence[Any] | None) -> tuple[list[Tas
     if sequences is not None:
         if tasks is not None:
             raise ValueError("give tasks (a task set name) or sequences, not both")
-        seqs = [np.asarray(q).tolist() if isinstance(q, np.ndarray) else q for q in sequences]
-        seqs = [[float(w) if isinstance(w, np.floating | np.integer) else w for w in q]
-                if isinstance(q, list | tuple) else (float(q) if isinstance(q, np.floating | np.integer) else q)
-                for q in seqs]
-        if seqs and all(isinstance(w, int | float) and not isinstance(w, bool) for w in seqs):
+        seqs = list(sequences)
+        if seqs and all(isinstance(w, numbers.Real) and not isinstance(w, bool) for w in seqs):
             seqs = [seqs]  # one sequence
         return parse_tasks(seqs, prefix="seq"), None
     return [], tasks or "paper20"

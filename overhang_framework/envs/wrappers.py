@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
 
 class FlattenAction(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
@@ -33,7 +32,3 @@ def flat_env(env_id_or_env: Any = None, **kwargs) -> gym.Env:
     env = env_id_or_env if isinstance(env_id_or_env, gym.Env) else gym.make(env_id_or_env or ENV_ID, **kwargs)
     return gym.wrappers.FlattenObservation(FlattenAction(env))
 
-
-def flat_observation(spaces, observation: dict) -> np.ndarray:
-    """What :func:`flat_env` shows a policy for ``observation``."""
-    return gym.spaces.flatten(spaces.observation_space(), observation)

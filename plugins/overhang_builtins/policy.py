@@ -18,6 +18,7 @@ from overhang_framework.interfaces import (
     Value,
     World,
 )
+from overhang_framework.envs.policies import policy_action
 from overhang_framework.rules import legal_xs
 
 log = logging.getLogger(__name__)
@@ -49,15 +50,9 @@ class PolicyPlanner(Planner):
         self.path = str(path)
         self.deterministic = deterministic
         self.model, self.spaces, self.info = load_policy(path)
-        self._flat_space = self.spaces.observation_space()
+        self._observation_space = self.spaces.observation_space()
+        self._renderer = self.spaces.renderer()
         self.replaced = 0
-
-    def _observation(self, state: State) -> np.ndarray:
-        import gymnasium as gym
-
-        if not hasattr(self, "_renderer"):
-            self._renderer = self.spaces.renderer()
-        return gym.spaces.flatten(self._flat_space, self.spaces.observe(state, self._renderer))
 
     def _nearest_legal(self, state: State, wanted: Action) -> Action:
         xs, layers = legal_xs(state.geometry, state.next_width, self.world.resolution)
@@ -77,8 +72,9 @@ class PolicyPlanner(Planner):
             import torch
 
             torch.manual_seed(int(rng.integers(2**63)))
-        flat, _ = self.model.predict(self._observation(state), deterministic=self.deterministic)
-        action, why = self.spaces.to_action(self.spaces.unflatten(flat, state))
+        chosen = policy_action(self.model, self.spaces, self._observation_space,
+                               self.spaces.observe(state, self._renderer), state, self.deterministic)
+        action, _ = self.spaces.to_action(chosen)
         if action is None or self.world.illegal_reason(state, action) is not None:
             action = self._nearest_legal(state, action or Action(0.0, 1))
             self.replaced += 1
