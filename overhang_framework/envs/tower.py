@@ -61,8 +61,8 @@ class OverhangTowerEnv(gym.Env):
       reward does not.
     * ``observation`` -- ``arrays`` or ``image`` (see :mod:`overhang_framework.envs.spaces`);
       ``max_blocks`` -- the observation's padding (default: the longest task).
-    * ``render_mode`` -- ``rgb_array``: :meth:`render` returns an ``(H, W, 3)``
-      uint8 image of the tower.
+    * ``render_mode`` -- ``rgb_array``: :meth:`render` returns a ``(240, 400, 3)``
+      uint8 picture of the tower, drawn as the reports draw towers.
 
     An illegal action (off the grid, unsupported, overlapping, malformed) ends
     the episode as a failure with reward 0 and ``info["illegal"]`` saying why;
@@ -135,7 +135,7 @@ class OverhangTowerEnv(gym.Env):
         self.observation_space = self.spaces.observation_space()
         self.action_space = self.spaces.action_space()
         self._renderer = self.spaces.renderer()
-        self._view = None
+        self._stood = True
         self.task: Task | None = None
         self.state: State | None = None
         self._over = True
@@ -166,6 +166,7 @@ class OverhangTowerEnv(gym.Env):
         self.task = self._choose_task(options)
         self.state = self.world.initial_state(self.task)
         self._over = False
+        self._stood = True
         return self._observe(), self._info(stable=True, illegal=None)
 
     def _observe(self) -> dict[str, np.ndarray]:
@@ -191,6 +192,7 @@ class OverhangTowerEnv(gym.Env):
             return self._observe(), float(reward), True, False, self._info(stable=True, illegal=why)
         self.state = self.world.successor(self.state, placed)
         stable = bool(self.world.is_stable(self.state.geometry))
+        self._stood = stable
         done = self.state.done or not stable
         self._over = done
         if self.reward_mode == "shaped":
@@ -202,13 +204,22 @@ class OverhangTowerEnv(gym.Env):
     # -- drawing --------------------------------------------------------------------------------
 
     def render(self):
+        """The tower as the reports draw it (blocks red once it fell, the overhang marked), ``(240, 400, 3)`` uint8."""
         if self.render_mode != "rgb_array" or self.state is None:
             return None
-        from overhang_framework.render import make_renderer, to_uint8
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
 
-        if self._view is None:
-            self._view = make_renderer({"name": "raster", "size": [240, 400]})
-        return to_uint8(self._view.render(self.state.geometry))
+        from overhang_framework.geometry import BLOCK_HEIGHT
+        from overhang_framework.report.build import draw_tower
+
+        fig = Figure(figsize=(4.0, 2.4), dpi=100)
+        canvas = FigureCanvasAgg(fig)
+        ax = fig.add_axes((0.13, 0.12, 0.85, 0.86))
+        draw_tower(ax, self.state.geometry, fell=not self._stood,
+                   z_max=self.spaces.max_blocks * BLOCK_HEIGHT + 1.2)
+        canvas.draw()
+        return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
     def close(self):
         backend = getattr(self.world, "backend", None)
