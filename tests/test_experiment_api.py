@@ -51,10 +51,10 @@ def database(request, tmp_path):
 def make_client(base_settings, database):
     clients = []
 
-    def make(**changes):
+    def make(clock=None, **changes):
         settings = base_settings.__class__(**{**base_settings.__dict__, "database": database, **changes})
         store = Store(database)
-        client = TestClient(create_app(settings, store=store))
+        client = TestClient(create_app(settings, store=store, **({"clock": clock} if clock else {})))
         client.store = store
         clients.append(client)
         return client
@@ -78,16 +78,30 @@ def auth(session):
     return {"Authorization": f"Bearer {session['token']}"}
 
 
-def place(client, session, phase, trial, step, x, layer, attempt=1, **extra):
+def begin(client, session, phase, trial, step, attempt=1):
+    """Start a step as the page does before a decision (the server's clock)."""
+    body = {"phase": phase, "trial": trial, "attempt": attempt, "step": step}
+    return client.post("/api/steps/start", json=body, headers=auth(session))
+
+
+def place(client, session, phase, trial, step, x, layer, attempt=1, start=True, **extra):
+    """A placement; ``start`` first starts the step, as the page does (a step already started is not restarted)."""
+    if start:
+        begin(client, session, phase, trial, step, attempt)
     body = {"phase": phase, "trial": trial, "attempt": attempt, "step": step, "x": x, "layer": layer,
             "decision_time": 1.0, **extra}
     return client.post("/api/placements", json=body, headers=auth(session))
 
 
+def practice_tower(client, k):
+    """Practice trial ``k``'s shown tower: a tower that passes."""
+    return client.app.state.settings.practice[k - 1].shown_tower
+
+
 def pass_practice(client, session):
     reply = None
     for pt in session["practice"]:
-        for step, (_, x, layer) in enumerate(pt["optimal_tower"][1:], 1):
+        for step, (_, x, layer) in enumerate(practice_tower(client, pt["trial"])[1:], 1):
             reply = place(client, session, "practice", pt["trial"], step, x, layer)
             assert reply.status_code == 200, reply.json()
     return reply.json()
@@ -99,6 +113,10 @@ def stack(client, session, trial, sequence):
         reply = place(client, session, "main", trial, step, 0.0, step)
         assert reply.status_code == 200, reply.json()
     return reply.json()
+
+
+def without_clock(reply: dict) -> dict:
+    return {k: v for k, v in reply.items() if k != "clock"}
 
 
 def rows(client):
@@ -164,7 +182,7 @@ def test_conditions_are_balanced(client):
 def test_a_placement_is_checked_run_and_stored(client, base_settings):
     s = start(client).json()
     pt = s["practice"][0]
-    _, x, layer = pt["optimal_tower"][1]
+    _, x, layer = practice_tower(client, 1)[1]
     reply = place(client, s, "practice", 1, 1, x, layer, trajectory=[[0, 0.0, 2.0], [0.5, x, 0.9]],
                   dwell=[[x, layer, 0.4]])
     assert reply.status_code == 200
@@ -187,7 +205,9 @@ def test_a_falling_tower_is_the_worlds_verdict_and_is_animated(client, base_sett
     assert not world.is_stable(rules.place(tower, width, Action(x, 1)))
     out = place(client, s, "practice", 1, 1, x, 1).json()
     assert out["stable"] is False and out["trial_over"] is True and out["reward"] == 0
-    assert out["passed"] is False and out["optimum"] == pt["optimum"] and out["optimal_tower"] == pt["optimal_tower"]
+    settings = client.app.state.settings
+    assert out["passed"] is False and out["optimum"] == settings.practice[0].optimum
+    assert out["shown_tower"] == practice_tower(client, 1) and out["pass_reward"] == settings.practice[0].pass_reward
     poses = out["frames"]["poses"]
     assert len(poses) > 10 and len(poses[0]) == 2
     assert poses[0][1][:2] == pytest.approx([x, 0.9], abs=1e-3)
@@ -214,7 +234,7 @@ def test_illegal_actions_are_refused_and_nothing_is_written(client, x, layer, wo
 def test_overlap_in_a_layer_is_refused(client):
     s = start(client).json()
     pt = s["practice"][0]
-    _, x, layer = pt["optimal_tower"][1]
+    _, x, layer = practice_tower(client, 1)[1]
     place(client, s, "practice", 1, 1, x, layer)
     assert "overlaps" in error(place(client, s, "practice", 1, 2, x, layer), 422)
     assert rows(client) == 1
@@ -231,17 +251,19 @@ def test_steps_must_come_in_order(client):
 
 def test_a_retry_returns_the_stored_reply_and_stores_nothing_twice(client):
     s = start(client).json()
-    _, x, layer = s["practice"][0]["optimal_tower"][1]
+    _, x, layer = practice_tower(client, 1)[1]
     first = place(client, s, "practice", 1, 1, x, layer)
     again = place(client, s, "practice", 1, 1, x, layer)
-    assert first.json() == again.json() and rows(client) == 1
+    assert without_clock(first.json()) == without_clock(again.json()) and rows(client) == 1
+    # the retry's clock is the next step's as it is now: started by the first reply, not restarted
+    assert again.json()["clock"]["step"] == 2 and again.json()["clock"]["elapsed"] >= first.json()["clock"]["elapsed"]
     assert "different placement" in error(place(client, s, "practice", 1, 1, x + 0.1, layer), 409)
     assert rows(client) == 1
 
 
 def test_simultaneous_retries_store_one_placement(client):
     s = start(client).json()
-    _, x, layer = s["practice"][0]["optimal_tower"][1]
+    _, x, layer = practice_tower(client, 1)[1]
     replies = []
     threads = [threading.Thread(target=lambda: replies.append(place(client, s, "practice", 1, 1, x, layer)))
                for _ in range(6)]
@@ -250,7 +272,7 @@ def test_simultaneous_retries_store_one_placement(client):
     for t in threads:
         t.join()
     assert all(r.status_code == 200 for r in replies), [r.text for r in replies]
-    assert len({str(r.json()) for r in replies}) == 1 and rows(client) == 1
+    assert len({str(without_clock(r.json())) for r in replies}) == 1 and rows(client) == 1
 
 
 @pytest.mark.parametrize("headers, status", [({}, 401), ({"Authorization": "Bearer nope"}, 403),
@@ -264,7 +286,7 @@ def test_placements_need_the_participants_token(client, headers, status):
 
 def test_one_participant_cannot_change_anothers_data(client):
     a, b = start(client, "A").json(), start(client, "B").json()
-    _, x, layer = a["practice"][0]["optimal_tower"][1]
+    _, x, layer = practice_tower(client, 1)[1]
     place(client, a, "practice", 1, 1, x, layer)
     # B's token addresses B's own position only: A's step 2 is not B's next step
     assert "out of order" in error(place(client, b, "practice", 1, 2, 0.0, 2), 409)
@@ -302,14 +324,14 @@ def test_practice_is_retried_until_passed_then_the_main_trials_follow(client):
     # attempt 2: a low tower, stacked centred, stands but stays under the threshold
     for step in range(1, len(pt["sequence"])):
         out = place(client, s, "practice", 1, step, 0.0, step, attempt=2).json()
-    assert out["reward"] < s["practice_threshold"] * pt["optimum"] or out["passed"]
+    assert out["reward"] < client.app.state.settings.practice[0].pass_reward or out["passed"]
     attempt = 2 if out["passed"] else 3
     if not out["passed"]:
-        for step, (_, x, layer) in enumerate(pt["optimal_tower"][1:], 1):
+        for step, (_, x, layer) in enumerate(practice_tower(client, 1)[1:], 1):
             out = place(client, s, "practice", 1, step, x, layer, attempt=3).json()
     assert out["passed"] is True and out["position"]["trial"] == 2 and attempt >= 2
     for k in (2, 3):
-        for step, (_, x, layer) in enumerate(s["practice"][k - 1]["optimal_tower"][1:], 1):
+        for step, (_, x, layer) in enumerate(practice_tower(client, k)[1:], 1):
             out = place(client, s, "practice", k, step, x, layer).json()
     assert out["position"]["phase"] == "main" and out["position"]["trial"] == 1
 
@@ -319,7 +341,6 @@ def test_a_timeout_ends_the_trial_with_reward_zero(make_client):
     s = start(client).json()
     assert s["time_limit"] == 5.0
     pass_practice(client, s)
-    assert "over the time limit" in error(place(client, s, "main", 1, 1, 0.0, 1, decision_time=6.0), 422)
     assert "x and layer null" in error(place(client, s, "main", 1, 1, 0.0, 1, timed_out=True, decision_time=5.0), 422)
     out = place(client, s, "main", 1, 1, None, None, timed_out=True, decision_time=5.0).json()
     assert out["trial_over"] is True and out["reward"] == 0 and out["stable"] is None
@@ -381,3 +402,175 @@ def test_an_unfinished_trial_is_left_out_of_the_export(client):
     place(client, s, "main", 2, 1, 0.0, 1)
     text, unfinished = export_jsonl(client.store)
     assert unfinished == 1 and text.count("\n") == len(s["trials"][0]["sequence"]) - 1
+
+
+# the server's clock ------------------------------------------------------------------------------------------
+class FakeClock:
+    """The server's clock, moved by the test."""
+
+    def __init__(self, now=1_000_000.0):
+        self.now = now
+
+    def __call__(self):
+        return self.now
+
+
+def fall_x(client, k=1):
+    seq = client.app.state.settings.practice[k - 1].task.sequence
+    return seq[0] / 2 + seq[1] / 2 - 0.05  # resting on 5 cm of the ground block's edge: it falls
+
+
+def test_a_reload_continues_the_servers_clock_and_a_late_placement_is_a_timeout(make_client):
+    clock = FakeClock()
+    client = make_client(clock=clock, conditions=["time_limited"])
+    s = start(client).json()
+    pass_practice(client, s)
+    # the trial-ending reply does not start the next trial: its first step starts when the page starts it
+    assert client.get("/api/session", headers=auth(s)).json()["clock"] is None
+    clock.now += 30  # the participant reads the main part's instructions
+    started = begin(client, s, "main", 1, 1).json()["clock"]
+    assert started["elapsed"] == 0 and started["time_left"] == 5.0
+    clock.now += 1.0
+    out = place(client, s, "main", 1, 1, 0.0, 1, start=False).json()
+    assert out["timed_out"] is False and out["server_time"] == 1.0
+    assert out["clock"] == {"phase": "main", "trial": 1, "attempt": 1, "step": 2, "elapsed": 0.0, "time_left": 5.0}
+    clock.now += 3.0  # three seconds into step 2, the page is reloaded
+    again = start(client, token=s["token"]).json()
+    assert again["position"]["step"] == 2 and again["clock"]["elapsed"] == 3.0 and again["clock"]["time_left"] == 2.0
+    clock.now += 0.5  # the page starts the step again: the clock goes on
+    assert begin(client, s, "main", 1, 2).json()["clock"]["time_left"] == 1.5
+    clock.now += 2.0 + 0.6  # past the limit and the grace
+    late = place(client, s, "main", 1, 2, 0.0, 2, start=False, decision_time=2.0)
+    assert late.status_code == 200, late.text  # stored, not refused
+    out = late.json()
+    assert out["timed_out"] is True and out["late"] is True and out["reward"] == 0 and out["trial_over"] is True
+    assert out["position"]["trial"] == 2 and out["position"]["step"] == 1
+    row = [r for r in client.store.placements("P1") if r.phase == "main" and r.step == 2][0]
+    assert row.timed_out and row.x is None and row.late_action == [0.0, 2]
+    assert row.server_time == pytest.approx(6.1) and row.decision_time == 2.0
+
+
+def test_a_placement_within_the_grace_counts(make_client):
+    clock = FakeClock()
+    client = make_client(clock=clock, conditions=["time_limited"])
+    s = start(client).json()
+    begin(client, s, "practice", 1, 1)
+    clock.now += 5.0 + client.app.state.settings.time_grace - 0.01
+    out = place(client, s, "practice", 1, 1, 0.0, 1, start=False).json()
+    assert out["timed_out"] is False and out["stable"] is True
+
+
+def test_a_step_must_be_started_before_it_is_placed(client):
+    s = start(client).json()
+    assert "not been started" in error(place(client, s, "practice", 1, 1, 0.0, 1, start=False), 409)
+    assert "out of order" in error(begin(client, s, "practice", 1, 2), 409)
+    assert rows(client) == 0
+
+
+@pytest.mark.parametrize("condition", ["time_limited", "unconstrained"])
+def test_the_export_gives_the_servers_decision_time_beside_the_pages(make_client, condition):
+    from overhang_framework.experiment.export import export_jsonl
+
+    clock = FakeClock()
+    client = make_client(clock=clock, conditions=[condition])
+    s = start(client).json()
+    pass_practice(client, s)
+    for t in s["trials"]:
+        for step in range(1, len(t["sequence"])):
+            if step == 1:
+                begin(client, s, "main", t["trial"], 1)
+            clock.now += 2.5
+            if condition == "time_limited" and t["trial"] == 2 and step == 2:
+                clock.now += 2.6  # the page's timer ran out: 5.1 s by the server's clock
+                place(client, s, "main", t["trial"], step, None, None, start=False, timed_out=True, decision_time=5.0)
+                break
+            place(client, s, "main", t["trial"], step, 0.0, step, start=False, decision_time=0.7)
+    text, _ = export_jsonl(client.store, time_limit=5.0)
+    log = read_log_text(text)
+    placed = log[~log.timed_out]
+    assert set(placed.decision_time) == {2.5} and set(placed.page_decision_time) == {0.7}
+    if condition == "time_limited":
+        out = log[log.timed_out].iloc[0]
+        assert out.decision_time == 5.0 and out.server_time == pytest.approx(5.1)  # capped at the limit
+
+
+# practice: screening out ---------------------------------------------------------------------------------------
+def test_practice_attempts_used_up_screen_the_participant_out(make_client):
+    from overhang_framework.experiment.export import export_jsonl
+
+    client = make_client(practice_max_attempts=2, conditions=["unconstrained"])
+    s = start(client).json()
+    assert s["practice_max_attempts"] == 2
+    first = place(client, s, "practice", 1, 1, fall_x(client), 1).json()
+    assert first["position"]["phase"] == "practice" and first["position"]["attempt"] == 2
+    second = place(client, s, "practice", 1, 1, fall_x(client), 1, attempt=2).json()
+    assert second["position"]["phase"] == "screened_out" and second["screen_out_url"] == "/screened-out"
+    again = start(client, token=s["token"]).json()
+    assert again["position"]["phase"] == "screened_out" and again["screen_out_url"] == "/screened-out"
+    assert "used up" in error(place(client, s, "practice", 1, 1, 0.0, 1, attempt=3), 409)
+    assert "not finished" in error(client.post("/api/finish", headers=auth(s)), 409)
+    summary = client.get("/api/admin/participants", headers={"X-Admin-Token": ADMIN}).json()
+    assert summary[0]["phase"] == "screened_out" and summary[0]["screened_out"] is True
+    assert client.store.participant("P1").screened_out_at is not None
+    # another participant who passes is exported; the screened-out one only when asked
+    other = start(client, "P2").json()
+    pass_practice(client, other)
+    stack(client, other, 1, other["trials"][0]["sequence"])
+    text, _ = export_jsonl(client.store)
+    assert set(read_log_text(text).participant) == {"P2"}
+    text, _ = export_jsonl(client.store, include_screened_out=True)
+    log = read_log_text(text)
+    mine = log[log.participant == "P1"]
+    assert set(mine.phase) == {"practice"} and sorted(set(mine.attempt)) == [1, 2] and sorted(set(mine.trial)) == [1, 2]
+
+
+def test_practice_without_a_limit_never_screens_out(make_client):
+    client = make_client(practice_max_attempts=None)
+    s = start(client).json()
+    for attempt in range(1, 8):
+        out = place(client, s, "practice", 1, 1, fall_x(client), 1, attempt=attempt).json()
+        assert out["position"]["phase"] == "practice" and out["position"]["attempt"] == attempt + 1
+
+
+def test_the_session_does_not_reveal_the_practice_towers_before_they_are_played(client):
+    s = start(client).json()
+    assert all(set(pt) == {"trial", "task_id", "sequence"} for pt in s["practice"])
+
+
+# another browser: a new link ---------------------------------------------------------------------------------
+def test_a_reissued_token_resumes_and_the_old_one_is_refused(client):
+    s = start(client).json()
+    place(client, s, "practice", 1, 1, *practice_tower(client, 1)[1][1:])
+    refused = start(client)  # a fresh browser: no token
+    assert refused.status_code == 403 and refused.json()["reason"] == "session_elsewhere"
+    assert refused.json()["contact"] == client.app.state.settings.contact
+    error(client.post("/api/admin/participants/P1/reissue"), 401)
+    assert "no participant 'P9'" in error(client.post("/api/admin/participants/P9/reissue",
+                                                      headers={"X-Admin-Token": ADMIN}), 404)
+    new = client.post("/api/admin/participants/P1/reissue", headers={"X-Admin-Token": ADMIN}).json()
+    assert new["token"] != s["token"] and f"token={new['token']}" in new["resume_url"]
+    assert "participant=P1" in new["resume_url"]
+    error(client.get("/api/session", headers=auth(s)), 403)  # the old token no longer works
+    error(start(client, token=s["token"]), 403)
+    resumed = start(client, token=new["token"])
+    assert resumed.status_code == 200 and resumed.json()["position"]["step"] == 2
+    rows_ = client.get("/api/admin/participants", headers={"X-Admin-Token": ADMIN}).json()
+    assert rows_[0]["tokens_issued"] == 2
+
+
+def test_a_reissued_link_for_a_recruitment_platform_keeps_its_parameters(client):
+    client.post("/api/sessions", json={"params": {"PROLIFIC_PID": "5f1a", "STUDY_ID": "st", "SESSION_ID": "se"}})
+    link = client.post("/api/admin/participants/5f1a/reissue", headers={"X-Admin-Token": ADMIN}).json()["resume_url"]
+    assert "PROLIFIC_PID=5f1a" in link and "STUDY_ID=st" in link and "SESSION_ID=se" in link
+
+
+# every refusal is {"error": ...} --------------------------------------------------------------------------------
+def test_unknown_paths_and_methods_are_refused_in_one_line(client):
+    assert "no such path: /api/nothing" in error(client.get("/api/nothing"), 404)
+    assert "not allowed" in error(client.get("/api/placements"), 405)
+
+
+def test_the_pages_outside_the_task_have_the_experiments_look(client):
+    for path in ("/complete", "/screened-out"):
+        page = client.get(path)
+        assert page.status_code == 200 and "<style>" in page.text and "<h1>" in page.text

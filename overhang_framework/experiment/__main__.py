@@ -2,11 +2,13 @@
 
     python -m overhang_framework.experiment [OVERRIDES...]                  # serve on localhost
     python -m overhang_framework.experiment export --out log.jsonl [OVERRIDES...] [--url URL]
+    python -m overhang_framework.experiment reissue PARTICIPANT [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment build                            # (re)build web/dist
 
 Overrides are keys of ``conf/serve.yaml`` (``port=8080``, ``database=postgresql+psycopg://...``,
 ``'tasks.only=[paper00,paper01]'``). ``export`` reads the database the config names, or with ``--url``
-asks a running server (with the admin token).
+asks a running server (with the admin token). ``reissue`` gives a participant a new session token (the old
+one stops working) and prints the link that resumes their session in any browser.
 """
 
 from __future__ import annotations
@@ -66,6 +68,9 @@ def app_factory():
 def _export(args) -> int:
     from overhang_framework.results import atomic_write_text
 
+    if args.url and args.include_screened_out:
+        print("error: --include-screened-out reads the database; leave out --url", file=sys.stderr)
+        return 2
     if args.url:
         import httpx
 
@@ -92,16 +97,13 @@ def _export(args) -> int:
     else:
         from overhang_framework.experiment.export import export_jsonl
         from overhang_framework.experiment.settings import load_settings
-        from overhang_framework.experiment.store import Store
 
-        settings = load_settings(args.overrides)
-        if settings.database.startswith("sqlite:///"):
-            path = Path(settings.database[len("sqlite:///"):])
-            if not path.exists():
-                print(f"error: no database at {path}; give the run_dir or database the server used", file=sys.stderr)
-                return 2
-        store = Store(settings.database)
-        text, unfinished = export_jsonl(store)
+        settings = load_settings(args.overrides, need_admin_token=False)
+        store = _open_store(settings)
+        if store is None:
+            return 2
+        text, unfinished = export_jsonl(store, time_limit=settings.time_limit,
+                                        include_screened_out=args.include_screened_out)
         store.close()
     atomic_write_text(args.out, text)
     lines = text.count("\n")
@@ -110,18 +112,88 @@ def _export(args) -> int:
     return 0
 
 
+def _open_store(settings):
+    """The study's store, or None (with the reason printed) when its SQLite file does not exist."""
+    from overhang_framework.experiment.store import Store
+
+    if settings.database.startswith("sqlite:///"):
+        path = Path(settings.database[len("sqlite:///"):])
+        if not path.exists():
+            print(f"error: no database at {path}; give the run_dir or database the server used", file=sys.stderr)
+            return None
+    return Store(settings.database)
+
+
+def _reissue(args) -> int:
+    if args.url:
+        import httpx
+
+        from overhang_framework.experiment.settings import ADMIN_ENV, compose
+        import os
+
+        cfg = compose(args.overrides)
+        token = cfg.admin_token or os.environ.get(ADMIN_ENV)
+        if not token:
+            print(f"error: no admin token: set admin_token=... or {ADMIN_ENV}", file=sys.stderr)
+            return 2
+        try:
+            reply = httpx.post(f"{args.url.rstrip('/')}/api/admin/participants/{args.participant}/reissue",
+                               headers={"X-Admin-Token": str(token)}, timeout=60)
+        except httpx.HTTPError as err:
+            print(f"error: cannot reach {args.url}: {err}", file=sys.stderr)
+            return 2
+        if reply.status_code != 200:
+            print(f"error: {args.url} refused ({reply.status_code}): {reply.json().get('error', reply.text)}",
+                  file=sys.stderr)
+            return 2
+        link = reply.json()["resume_url"]
+    else:
+        from overhang_framework.experiment.api import Refused, reissue
+        from overhang_framework.experiment.settings import load_settings
+
+        settings = load_settings(args.overrides, need_admin_token=False)
+        store = _open_store(settings)
+        if store is None:
+            return 2
+        try:
+            _, link = reissue(settings, store, args.participant)
+        except Refused as err:
+            print(f"error: {err.message}", file=sys.stderr)
+            return 2
+        finally:
+            store.close()
+    print(f"participant {args.participant}: a new session token; the old one no longer works. Resume link "
+          "(send it to the participant; it resumes where they stopped, in any browser):", file=sys.stderr)
+    print(link)
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from overhang_framework.errors import OverhangError
 
-    command = argv[0] if argv and argv[0] in ("serve", "export", "build") else "serve"
+    commands = ("serve", "export", "reissue", "build")
+    command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
+    elif argv and not argv[0].startswith("-"):
+        from overhang_framework.preflight import check_words
+
+        try:  # a misspelt command is no override either: one line naming the commands
+            check_words(argv[:1], commands)
+        except OverhangError as err:
+            print(f"error: {err}; commands: {', '.join(commands)}", file=sys.stderr)
+            return 2
     parser = argparse.ArgumentParser(prog=f"python -m overhang_framework.experiment {command}",
                                      description=__doc__.split("\n\n")[0])
+    if command == "reissue":
+        parser.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
     parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
     if command == "export":
         parser.add_argument("--out", required=True, help="the behaviour log to write (JSON Lines)")
+        parser.add_argument("--include-screened-out", action="store_true",
+                            help="add the practice attempts of participants screened out in the practice")
+    if command in ("export", "reissue"):
         parser.add_argument("--url", help="a running server to ask (default: read the database directly)")
     if command == "build":
         parser.add_argument("--force", action="store_true", help="build even when web/dist exists")
@@ -129,6 +201,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if command == "export":
             return _export(args)
+        if command == "reissue":
+            return _reissue(args)
         if command == "build":
             from overhang_framework.experiment.web import ensure_built
 

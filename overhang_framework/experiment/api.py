@@ -2,26 +2,36 @@
 
 The routes and their bodies are documented in ``docs/experiment.md``. Each
 placement is checked against the participant's position (derived from what is
-stored), the world's rules and the condition's time limit, then run through
-the world's physics and stored under its unique key (participant, phase,
-trial, attempt, step). Every refusal is ``{"error": "one line"}`` with a 4xx
-status, and nothing is written.
+stored) and the world's rules, then run through the world's physics and stored
+under its unique key (participant, phase, trial, attempt, step). Every refusal
+is ``{"error": "one line"}`` with a 4xx status, and nothing is written.
+
+The server keeps the clock. A step's decision time starts when the server first
+hands the step out: a step within a trial in the previous placement's reply, a
+trial's first step when the page starts it (``POST /api/steps/start``). A reload
+continues that clock. The time a placement took is the server's (its arrival
+less that start), stored beside the page's own measurement; in ``time_limited``
+a placement that arrives after the limit plus ``time_grace`` is stored as a
+timeout.
 """
 
 from __future__ import annotations
 
 import hmac
-from contextlib import asynccontextmanager
 import re
 import secrets
+import time
+from contextlib import asynccontextmanager
+from urllib.parse import urlencode
 from dataclasses import asdict, dataclass
-from typing import Annotated, Literal, Optional
+from typing import Annotated, Callable, Literal, Optional
 
 import numpy as np
 from fastapi import Depends, FastAPI, Header, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from overhang_framework import rules
 from overhang_framework.experiment.outcome import Outcomes
@@ -35,16 +45,24 @@ MAX_SAMPLES = 36_000
 
 
 class Refused(Exception):
-    """A request refused with ``status`` and a one-line ``message``."""
+    """A request refused with ``status`` and a one-line ``message`` (``extra``: more keys of the reply)."""
 
-    def __init__(self, status: int, message: str):
+    def __init__(self, status: int, message: str, **extra):
         super().__init__(message)
-        self.status, self.message = status, message
+        self.status, self.message, self.extra = status, message, extra
 
 
 class SessionIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     params: dict[str, str] = Field(default_factory=dict)
+
+
+class StepIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    phase: Literal["practice", "main"]
+    trial: int = Field(ge=1)
+    attempt: int = Field(default=1, ge=1)
+    step: int = Field(ge=1)
 
 
 class PlacementIn(BaseModel):
@@ -95,11 +113,16 @@ def _tower_after(sequence, rows) -> list:
 
 
 def position(settings: Settings, participant: Participant, rows: list[Placement]) -> Position:
-    """The position after ``rows`` (the participant's placements)."""
+    """The position after ``rows`` (the participant's placements).
+
+    ``phase`` is ``practice``, ``main``, ``done``, or ``screened_out`` once a practice trial has failed
+    ``practice_max_attempts`` times (``trial`` and ``attempt`` then name the last attempt).
+    """
     groups: dict[tuple, list[Placement]] = {}
     for r in sorted(rows, key=lambda r: (r.phase, r.trial, r.attempt, r.step)):
         groups.setdefault((r.phase, r.trial, r.attempt), []).append(r)
     total = sum(g[-1].reward or 0.0 for (phase, _, _), g in groups.items() if phase == "main" and g[-1].trial_over)
+    limit = settings.practice_max_attempts
     for k, practice in enumerate(settings.practice, 1):
         attempt = 1
         while True:
@@ -107,6 +130,8 @@ def position(settings: Settings, participant: Participant, rows: list[Placement]
             if done and done[-1].trial_over:
                 if done[-1].passed:
                     break
+                if limit is not None and attempt >= limit:
+                    return Position("screened_out", k, attempt, 0, [], total)
                 attempt += 1
                 continue
             return Position("practice", k, attempt, len(done) + 1, _tower_after(practice.task.sequence, done), total)
@@ -127,11 +152,36 @@ def main_tasks(settings: Settings, participant: Participant):
     return [by_id[i] for i in participant.order]
 
 
-def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Optional[Outcomes] = None) -> FastAPI:
+def resume_link(settings: Settings, participant: Participant, token: str) -> str:
+    """The address that resumes ``participant``'s session with ``token`` in any browser."""
+    base = settings.public_url or f"http://{settings.host}:{settings.port}"
+    if participant.study_id is not None or participant.session_id is not None:
+        params = {"PROLIFIC_PID": participant.id, "STUDY_ID": participant.study_id or "",
+                  "SESSION_ID": participant.session_id or ""}
+    else:
+        params = {"participant": participant.id}
+    return f"{base}/?{urlencode({**params, 'token': token})}"
+
+
+def reissue(settings: Settings, store: Store, pid: str) -> tuple[str, str]:
+    """A new session token for participant ``pid`` (the old one stops working) and its resume link."""
+    participant = store.participant(pid)
+    if participant is None:
+        known = [p.id for p in store.participants()]
+        shown = ", ".join(known[:10]) + (", ..." if len(known) > 10 else "")
+        raise Refused(404, f"no participant {pid!r}; the study has {len(known)}" + (f": {shown}" if known else ""))
+    token = secrets.token_urlsafe(24)
+    participant = store.set_token(pid, token)
+    return token, resume_link(settings, participant, token)
+
+
+def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Optional[Outcomes] = None,
+               clock: Callable[[], float] = time.time) -> FastAPI:
     """The FastAPI app of the experiment described by ``settings``.
 
-    ``store`` defaults to the database ``settings.database`` names, ``outcomes`` to the world's physics; the
-    front end in ``settings.web_dir`` is served at ``/`` when given.
+    ``store`` defaults to the database ``settings.database`` names, ``outcomes`` to the world's physics,
+    ``clock`` (seconds, shared by every server process) to the system's wall clock; the front end in
+    ``settings.web_dir`` is served at ``/`` when given.
     """
     store = store or Store(settings.database)
     outcomes = outcomes or Outcomes(settings.world, fps=settings.animation_fps, processes=settings.physics_processes)
@@ -147,7 +197,22 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     @app.exception_handler(Refused)
     async def _refused(_request: Request, err: Refused):
-        return JSONResponse({"error": err.message}, status_code=err.status)
+        return JSONResponse({"error": err.message, **err.extra}, status_code=err.status)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, err: StarletteHTTPException):
+        path = request.url.path
+        if err.status_code == 404:
+            message = f"no such path: {path}" + ("; the API's routes are in docs/experiment.md"
+                                                 if path.startswith("/api") else "")
+        elif err.status_code == 405:
+            message = f"{request.method} is not allowed on {path}"
+        else:
+            message = str(err.detail)
+        if path.startswith("/api") or "text/html" not in request.headers.get("accept", ""):
+            return JSONResponse({"error": message}, status_code=err.status_code, headers=getattr(err, "headers", None))
+        return HTMLResponse(info_page("Page not found", "<p>There is no page at this address. Please use the link "
+                                      "you were given to take part.</p>"), status_code=err.status_code)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_request: Request, err: RequestValidationError):
@@ -168,25 +233,46 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         if not hmac.compare_digest(x_admin_token.encode(), settings.admin_token.encode()):
             raise Refused(403, "wrong admin token")
 
+    def time_limit_of(p: Participant) -> Optional[float]:
+        return settings.time_limit if p.condition == "time_limited" else None
+
+    def clock_state(p: Participant, pos: Position, issued: Optional[float], now: float) -> Optional[dict]:
+        """The clock of the step at ``pos``: null when the step has not been handed out yet."""
+        if pos.phase not in ("practice", "main") or issued is None:
+            return None
+        elapsed = max(0.0, now - issued)
+        limit = time_limit_of(p)
+        return {"phase": pos.phase, "trial": pos.trial, "attempt": pos.attempt, "step": pos.step,
+                "elapsed": round(elapsed, 3),
+                "time_left": None if limit is None else round(max(0.0, limit - elapsed), 3)}
+
+    def current_clock(p: Participant, pos: Position) -> Optional[dict]:
+        if pos.phase not in ("practice", "main"):
+            return None
+        return clock_state(p, pos, store.clock(p.id, pos.phase, pos.trial, pos.attempt, pos.step), clock())
+
     def session_payload(p: Participant, token: Optional[str]) -> dict:
         pos = position(settings, p, store.steps(p.id))
         out = {
-            "participant": p.id, "condition": p.condition,
-            "time_limit": settings.time_limit if p.condition == "time_limited" else None,
+            "participant": p.id, "condition": p.condition, "time_limit": time_limit_of(p),
+            "time_grace": settings.time_grace,
             "grid": {"half_width": 4.0, "height": 8.0, "block_height": 0.6, "max_layer": MAX_LAYER},
             "mouse_hz": settings.mouse_hz, "bonus_per_unit": settings.bonus_per_unit, "currency": settings.currency,
             "practice_threshold": settings.practice_threshold,
-            "practice": [{"trial": k, "task_id": pt.task.id, "sequence": list(pt.task.sequence),
-                          "optimum": pt.optimum, "optimal_tower": pt.optimal_tower}
+            "practice_max_attempts": settings.practice_max_attempts,
+            "practice": [{"trial": k, "task_id": pt.task.id, "sequence": list(pt.task.sequence)}
                          for k, pt in enumerate(settings.practice, 1)],
             "trials": [{"trial": t, "task_id": task.id, "sequence": list(task.sequence)}
                        for t, task in enumerate(main_tasks(settings, p), 1)],
-            "position": asdict(pos), "completed": p.completed_at is not None,
+            "position": asdict(pos), "clock": current_clock(p, pos), "completed": p.completed_at is not None,
+            "contact": settings.contact,
         }
         if token is not None:
             out["token"] = token
         if p.completed_at is not None:
             out.update(completion_url=settings.completion_url, bonus=p.bonus)
+        if pos.phase == "screened_out":
+            out["screen_out_url"] = settings.screen_out_url
         return out
 
     @app.post("/api/sessions")
@@ -202,8 +288,9 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         known = store.participant(pid)
         if known is not None:
             if token is None or not hmac.compare_digest(token_hash(token), known.token_hash):
-                raise Refused(403, f"participant {pid} already has a session; it resumes only in the browser that "
-                                   "started it")
+                raise Refused(403, f"participant {pid} already has a session, held by another browser or an earlier "
+                                   "link; the researcher can issue a new link (experiment reissue)",
+                              reason="session_elsewhere", contact=settings.contact)
             return JSONResponse(session_payload(known, token), status_code=200)
         token = secrets.token_urlsafe(24)
         counts = store.condition_counts(settings.conditions)
@@ -222,6 +309,19 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     def current(p: Participant = Depends(participant_of)):
         return session_payload(p, None)
 
+    @app.post("/api/steps/start")
+    def start_step(body: StepIn, p: Participant = Depends(participant_of)):
+        pos = position(settings, p, store.steps(p.id))
+        if pos.phase not in ("practice", "main"):
+            raise Refused(409, f"nothing to start: the participant's phase is {pos.phase}")
+        if (body.phase, body.trial, body.attempt, body.step) != (pos.phase, pos.trial, pos.attempt, pos.step):
+            raise Refused(409, f"out of order: the next step is {pos.phase} trial {pos.trial} attempt {pos.attempt} "
+                               f"step {pos.step}, not {body.phase} trial {body.trial} attempt {body.attempt} "
+                               f"step {body.step}")
+        now = clock()
+        issued = store.start_clock(p.id, pos.phase, pos.trial, pos.attempt, pos.step, now)
+        return {"position": asdict(pos), "clock": clock_state(p, pos, issued, now)}
+
     @app.post("/api/placements")
     def place(body: PlacementIn, p: Participant = Depends(participant_of)):
         digest = request_hash(body.model_dump(mode="json"))
@@ -232,10 +332,13 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             if stored.request_hash != digest:
                 raise Refused(409, f"{body.phase} trial {body.trial} step {body.step} is already stored with a "
                                    "different placement")
-            return store.find(p.id, *key).response
+            return fresh_clock(p, store.find(p.id, *key).response)
         pos = position(settings, p, rows)
         if pos.phase == "done":
             raise Refused(409, "every trial is over; nothing more can be placed")
+        if pos.phase == "screened_out":
+            raise Refused(409, "the practice's attempts are used up; nothing more can be placed",
+                          screen_out_url=settings.screen_out_url)
         expected = (pos.phase, pos.trial, pos.attempt, pos.step)
         if (body.phase, body.trial, body.attempt, body.step) != expected:
             raise Refused(409, f"out of order: the next placement is {pos.phase} trial {pos.trial} attempt "
@@ -253,14 +356,18 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                 raise Refused(422, f"condition {p.condition} has no time limit, so no placement can time out")
             if body.x is not None or body.layer is not None:
                 raise Refused(422, "a timed-out placement has x and layer null")
-        else:
-            if body.x is None or body.layer is None:
-                raise Refused(422, "a placement needs x and layer (or timed_out: true)")
-            if limited and body.decision_time > settings.time_limit + settings.time_grace:
-                raise Refused(422, f"decision_time {body.decision_time:g} s is over the time limit of "
-                                   f"{settings.time_limit:g} s; send timed_out: true")
+        elif body.x is None or body.layer is None:
+            raise Refused(422, "a placement needs x and layer (or timed_out: true)")
+        issued = store.clock(p.id, pos.phase, pos.trial, pos.attempt, pos.step)
+        if issued is None:
+            raise Refused(409, f"{pos.phase} trial {pos.trial} step {pos.step} has not been started: "
+                               "POST /api/steps/start first")
+        now = clock()
+        server_time = round(max(0.0, now - issued), 3)
+        late = bool(limited and not body.timed_out and server_time > settings.time_limit + settings.time_grace)
+        timed_out = bool(body.timed_out or late)
         geometry = Geometry.from_tuples(pos.tower)
-        if body.timed_out:
+        if timed_out:
             stable, level, poses = None, None, [[[b.x, b.z, 0.0] for b in geometry.blocks]]
         else:
             reason = rules.illegal_reason(geometry, width, Action(float(body.x), int(body.layer)))
@@ -271,28 +378,48 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             result = outcomes(geometry)
             stable, level, poses = result.stable, round(overhang(geometry), 9), result.poses
         last = pos.step == len(task.sequence) - 1
-        trial_over = bool(body.timed_out or not stable or last)
-        reward = (0.0 if body.timed_out or not stable else float(level)) if trial_over else None
+        trial_over = bool(timed_out or not stable or last)
+        reward = (0.0 if timed_out or not stable else float(level)) if trial_over else None
         passed = None
         response: dict = {"stable": stable, "overhang": level, "reward": reward, "trial_over": trial_over,
+                          "timed_out": timed_out, "late": late, "server_time": server_time,
                           "frames": {"fps": settings.animation_fps, "poses": poses}}
         if practice is not None and trial_over:
-            passed = bool(reward >= settings.practice_threshold * practice.optimum - 1e-9)
-            response.update(optimum=practice.optimum, optimal_tower=practice.optimal_tower, passed=passed)
+            passed = bool(reward >= practice.pass_reward - 1e-9)
+            response.update(optimum=practice.optimum, shown_tower=practice.shown_tower,
+                            shown_reward=practice.shown_reward, pass_reward=practice.pass_reward, passed=passed)
         record = Placement(
             participant_id=p.id, phase=body.phase, trial=body.trial, attempt=body.attempt, step=body.step,
-            task_id=task.id, sequence=list(task.sequence), width=width, x=body.x, layer=body.layer,
-            timed_out=body.timed_out, decision_time=body.decision_time,
+            task_id=task.id, sequence=list(task.sequence), width=width,
+            x=None if timed_out else body.x, layer=None if timed_out else body.layer,
+            timed_out=timed_out, decision_time=body.decision_time, server_time=server_time,
+            late_action=[body.x, body.layer] if late else None,
             trajectory=[list(s) for s in body.trajectory], dwell=[list(d) for d in body.dwell],
             tower_before=pos.tower, stable=stable, overhang=level, reward=reward, trial_over=trial_over,
             passed=passed, request_hash=digest, response={})
         after = position(settings, p, [*rows, record])
-        response.update(total_reward=after.total_reward, position=asdict(after))
+        response.update(total_reward=after.total_reward, position=asdict(after), clock=None)
+        if after.phase == "screened_out":
+            response["screen_out_url"] = settings.screen_out_url
         record.response = response
         try:
-            return store.add_placement(record).response
+            stored = store.add_placement(record)
         except Conflict as err:
             raise Refused(409, str(err)) from None
+        if after.phase == "screened_out":
+            store.screen_out(p.id)
+        return fresh_clock(p, stored.response)
+
+    def fresh_clock(p: Participant, response: dict) -> dict:
+        """A placement's reply with the clock of the step it hands out: a step within the same trial starts
+        when its reply is first sent (a retry gets the clock as it is now); a trial's first step is started by
+        the page."""
+        nxt = Position(**response["position"])
+        if response["trial_over"] or nxt.phase not in ("practice", "main"):
+            return response
+        now = clock()
+        issued = store.start_clock(p.id, nxt.phase, nxt.trial, nxt.attempt, nxt.step, now)
+        return {**response, "clock": clock_state(p, nxt, issued, now)}
 
     @app.post("/api/finish")
     def finish(p: Participant = Depends(participant_of)):
@@ -308,8 +435,13 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     def export():
         from overhang_framework.experiment.export import export_jsonl
 
-        text, _ = export_jsonl(store)
+        text, _ = export_jsonl(store, time_limit=settings.time_limit)
         return PlainTextResponse(text, media_type="application/x-ndjson")
+
+    @app.post("/api/admin/participants/{pid}/reissue", dependencies=[Depends(admin)])
+    def reissue_token(pid: str):
+        token, link = reissue(settings, store, pid)
+        return {"participant": pid, "token": token, "resume_url": link}
 
     @app.get("/api/admin/participants", dependencies=[Depends(admin)])
     def participants():
@@ -317,22 +449,44 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         for p in store.participants():
             pos = position(settings, p, store.steps(p.id))
             rows.append({"participant": p.id, "study_id": p.study_id, "session_id": p.session_id,
-                         "condition": p.condition, "phase": pos.phase, "trial": pos.trial,
-                         "total_reward": pos.total_reward, "completed": p.completed_at is not None,
-                         "bonus": p.bonus})
+                         "condition": p.condition, "phase": pos.phase, "trial": pos.trial, "attempt": pos.attempt,
+                         "total_reward": pos.total_reward, "screened_out": p.screened_out_at is not None,
+                         "completed": p.completed_at is not None, "bonus": p.bonus,
+                         "tokens_issued": p.tokens_issued or 1})
         return rows
 
     @app.get("/complete", response_class=HTMLResponse)
     def complete():
-        return ("<!doctype html><meta charset='utf-8'><title>Thank you</title>"
-                "<p style='font:18px sans-serif;margin:4em auto;max-width:30em'>Thank you for taking part. "
-                "Your answers are saved; you can close this tab.</p>")
+        return info_page("Thank you", "<p>Thank you for taking part. Your answers are saved; you can close this "
+                                      "tab.</p>")
+
+    @app.get("/screened-out", response_class=HTMLResponse)
+    def screened_out():
+        return info_page("Thank you", "<p>Thank you for your time. The study needs the practice towers to be "
+                                      "passed, so it ends here for you. Your practice is saved; you can close "
+                                      "this tab.</p>")
 
     if settings.web_dir is not None:
         from fastapi.staticfiles import StaticFiles
 
         app.mount("/", StaticFiles(directory=str(settings.web_dir), html=True), name="web")
     return app
+
+
+def info_page(title: str, body_html: str) -> str:
+    """A page of the experiment's own look, for what the server shows outside the task."""
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{title}</title><link rel="icon" href="data:,">
+<style>
+html, body {{ margin: 0; font-family: system-ui, -apple-system, "Segoe UI", sans-serif; color: #1e293b;
+  background: #f8fafc; }}
+main {{ max-width: 34rem; margin: 5rem auto; padding: 2rem 2.5rem; background: #ffffff; border: 1px solid #e2e8f0;
+  border-radius: 10px; box-shadow: 0 1px 3px rgba(15, 23, 42, 0.08); line-height: 1.6; font-size: 1.1rem; }}
+h1 {{ margin-top: 0; font-size: 1.6rem; text-align: center; }}
+</style></head>
+<body><main><h1>{title}</h1>{body_html}</main></body></html>
+"""
 
 
 def _bearer(authorization: Optional[str]) -> Optional[str]:

@@ -3,42 +3,83 @@
 Only whole trials are exported: a trial a participant left before its end
 (a closed tab that never came back) would break the log's rule that every
 trial ends with its final placement, a collapse or a timeout. How many were
-left out is returned beside the text. Practice trials are not part of the log.
+left out is returned beside the text. Practice trials are not part of the log,
+and participants screened out in the practice are left out unless asked for
+(then their practice attempts are exported as trials with ``phase: practice``,
+each attempt a task of its own: ``practice1-attempt2``).
+
+``decision_time`` is the server's: from when the server handed the step out to
+when the placement arrived, which a reload of the page cannot restart (a
+timeout's is the time limit, the window it used up). The page's own
+measurement is kept beside it as ``page_decision_time``, and the server's
+unrounded elapsed time as ``server_time``.
 """
 
 from __future__ import annotations
+
+from typing import Optional
 
 from overhang_framework.behaviour.log import LOG_VERSION, log_text
 from overhang_framework.experiment.store import Store
 
 
-def log_records(store: Store) -> tuple[list[dict], int]:
-    """The behaviour-log records of every whole main trial, and the number of unfinished trials left out."""
-    conditions = {p.id: p for p in store.participants()}
+def decision_time(row, time_limit: Optional[float]) -> float:
+    """The server's decision time of a stored placement (a timeout's capped at ``time_limit``)."""
+    seconds = row.server_time if row.server_time is not None else row.decision_time
+    if row.timed_out and time_limit is not None:
+        seconds = min(seconds, time_limit)
+    return float(seconds)
+
+
+def log_records(store: Store, time_limit: Optional[float] = None,
+                include_screened_out: bool = False) -> tuple[list[dict], int]:
+    """The behaviour-log records of every whole main trial, and the number of unfinished trials left out.
+
+    ``time_limit`` is the study's (timeouts' decision times are capped at it); ``include_screened_out``
+    adds the practice attempts of the participants screened out in the practice.
+    """
+    people = {p.id: p for p in store.participants()}
+    screened = {pid for pid, p in people.items() if p.screened_out_at is not None}
     trials: dict[tuple, list] = {}
     for row in store.placements(phase="main"):
-        trials.setdefault((row.participant_id, row.trial), []).append(row)
+        if row.participant_id not in screened or include_screened_out:
+            trials.setdefault((row.participant_id, "main", row.trial, 1), []).append(row)
+    if include_screened_out:
+        for pid in sorted(screened):
+            for row in store.placements(pid, phase="practice"):
+                trials.setdefault((pid, "practice", row.trial, row.attempt), []).append(row)
     records, unfinished = [], 0
-    for (pid, _), rows in sorted(trials.items()):
+    numbers: dict[str, int] = {}
+    for (pid, phase, trial, attempt), rows in sorted(trials.items(), key=lambda kv: (kv[0][0], kv[0][1] != "practice",
+                                                                                       kv[0][2], kv[0][3])):
         rows.sort(key=lambda r: r.step)
         if not rows[-1].trial_over:
             unfinished += 1
             continue
-        p = conditions[pid]
+        p = people[pid]
+        if phase == "practice":
+            numbers[pid] = numbers.get(pid, 0) + 1
+            number, extra = numbers[pid], {"phase": "practice", "practice_trial": trial, "attempt": attempt}
+            task_id = f"{rows[0].task_id}-attempt{attempt}"  # each attempt a trial of its own in the log
+        else:
+            number, extra, task_id = trial, {}, rows[0].task_id
+        limit = time_limit if p.condition == "time_limited" else None
         for r in rows:
             records.append({
-                "log_version": LOG_VERSION, "participant": pid, "condition": p.condition, "task_id": r.task_id,
-                "sequence": list(r.sequence), "trial": r.trial, "step": r.step, "width": r.width, "x": r.x,
+                "log_version": LOG_VERSION, "participant": pid, "condition": p.condition, "task_id": task_id,
+                "sequence": list(r.sequence), "trial": number, "step": r.step, "width": r.width, "x": r.x,
                 "layer": r.layer, "tower_before": r.tower_before, "stable": r.stable, "overhang": r.overhang,
-                "reward": r.reward, "decision_time": r.decision_time, "timed_out": r.timed_out,
-                "trajectory": r.trajectory, "dwell": r.dwell, "source": "human",
+                "reward": r.reward, "decision_time": decision_time(r, limit), "timed_out": r.timed_out,
+                "trajectory": r.trajectory, "dwell": r.dwell, "source": "human", **extra,
+                "page_decision_time": r.decision_time, "server_time": r.server_time, "late_action": r.late_action,
                 "study_id": p.study_id, "session_id": p.session_id,
                 "received_at": r.received_at.isoformat() if r.received_at else None,
             })
     return records, unfinished
 
 
-def export_jsonl(store: Store) -> tuple[str, int]:
+def export_jsonl(store: Store, time_limit: Optional[float] = None,
+                 include_screened_out: bool = False) -> tuple[str, int]:
     """:func:`log_records` as checked JSON Lines text, and the number of unfinished trials left out."""
-    records, unfinished = log_records(store)
+    records, unfinished = log_records(store, time_limit, include_screened_out)
     return log_text(records), unfinished

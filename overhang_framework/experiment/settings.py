@@ -26,6 +26,9 @@ class PracticeTask:
     task: Task
     optimum: float
     optimal_tower: list  # [width, x, layer] per block, the ground block first
+    shown_tower: list  # the tower shown after an attempt, [width, x, layer] per block
+    shown_reward: float  # its overhang
+    pass_reward: float  # the reward that passes the trial
 
 
 @dataclass
@@ -34,12 +37,16 @@ class Settings:
     tasks: list[Task]
     practice: list[PracticeTask]
     practice_threshold: float
+    practice_max_attempts: Optional[int]
     conditions: list[str]
     time_limit: float
     time_grace: float
     database: str
     admin_token: str
     completion_url: str
+    screen_out_url: str
+    contact: str
+    public_url: Optional[str]
     bonus_per_unit: float
     currency: str
     mouse_hz: float
@@ -56,15 +63,12 @@ class Settings:
 
 
 def compose(overrides: Sequence[str] = ()) -> DictConfig:
-    """``conf/serve.yaml`` with ``overrides`` (Hydra syntax, as on the command line)."""
-    from hydra.errors import HydraException
+    """``conf/serve.yaml`` with ``overrides`` (Hydra syntax, as on the command line); a bad override is one
+    :class:`~overhang_framework.errors.OverhangError` line, as the main command gives it (an unknown key
+    with the closest existing one)."""
+    from overhang_framework.preflight import compose_checked
 
-    from overhang_framework.config import compose_config
-
-    try:
-        return compose_config(list(overrides), config_name="serve")
-    except HydraException as err:
-        raise ConfigError(str(err).splitlines()[0]) from None
+    return compose_checked(list(overrides), config_name="serve")
 
 
 def _number(cfg: DictConfig, key: str, minimum: float = 0.0, strict: bool = True) -> float:
@@ -100,12 +104,18 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
         for x, layer in row["actions"]:
             state = world.successor(state, Action(float(x), int(layer)))
         tower = [[b.width, b.x, b.layer] for b in state.geometry.blocks]
-        out.append(PracticeTask(task, float(row["optimum"]), tower))
+        optimum = float(row["optimum"])
+        out.append(PracticeTask(task, optimum, tower, tower, optimum, float(cfg.practice.threshold) * optimum))
     return out
 
 
-def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = None) -> Settings:
-    """Checked :class:`Settings` of ``conf/serve.yaml`` with ``overrides`` (or of a composed ``cfg``)."""
+def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = None,
+                  need_admin_token: bool = True) -> Settings:
+    """Checked :class:`Settings` of ``conf/serve.yaml`` with ``overrides`` (or of a composed ``cfg``).
+
+    ``need_admin_token=False`` is for commands that read the database directly (the export, reissuing a
+    token): they answer to whoever can read the database, not to the HTTP API's admin token.
+    """
     from overhang_framework.app import _params
     from overhang_framework.plugins import Registry
     from overhang_framework.tasks import tasks_from_config
@@ -128,10 +138,18 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         raise ConfigError(f"database must be an SQLAlchemy URL such as sqlite:///experiment.sqlite or "
                           f"postgresql+psycopg://user:password@host/db, got {database!r}")
     token = cfg.admin_token or os.environ.get(ADMIN_ENV)
-    if not token:
+    if not token and need_admin_token:
         raise ConfigError(f"no admin token: set admin_token=... or the environment variable {ADMIN_ENV}")
-    if len(str(token)) < 8:
+    if token and len(str(token)) < 8:
         raise ConfigError("the admin token must have at least 8 characters")
+    max_attempts = OmegaConf.select(cfg, "practice.max_attempts")
+    if max_attempts is not None and (isinstance(max_attempts, bool) or not isinstance(max_attempts, int)
+                                     or max_attempts < 1):
+        raise ConfigError(f"practice.max_attempts must be a whole number >= 1 or null (no limit), "
+                          f"got {max_attempts!r}")
+    public_url = cfg.get("public_url")
+    if public_url is not None and not str(public_url).startswith(("http://", "https://")):
+        raise ConfigError(f"public_url must start with http:// or https:// (or be null), got {public_url!r}")
     threshold = OmegaConf.select(cfg, "practice.threshold")
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 <= threshold <= 1:
         raise ConfigError(f"practice.threshold must be a number in [0, 1], got {threshold!r}")
@@ -157,9 +175,12 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
             raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
         counts[key] = value
     return Settings(
-        world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold), conditions=conditions,
+        world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold),
+        practice_max_attempts=max_attempts, conditions=conditions,
         time_limit=_number(cfg, "time_limit"), time_grace=_number(cfg, "time_grace", strict=False),
-        database=str(database), admin_token=str(token), completion_url=str(cfg.completion_url),
+        database=str(database), admin_token=str(token or ""), completion_url=str(cfg.completion_url),
+        screen_out_url=str(cfg.screen_out_url), contact=str(cfg.contact or ""),
+        public_url=str(public_url).rstrip("/") if public_url else None,
         bonus_per_unit=_number(cfg, "bonus_per_unit", strict=False), currency=str(cfg.currency),
         mouse_hz=_number(cfg, "mouse_hz"), animation_fps=_number(cfg, "animation_fps"), seed=int(cfg.seed),
         run_dir=run_dir, web_dir=web_dir, host=str(cfg.host), port=int(port), **counts,

@@ -1,12 +1,15 @@
 """The experiment's storage: participants and their placements, in any database SQLAlchemy 2 speaks.
 
-Two tables. ``participants`` holds who took part (the recruitment platform's
-ids, a hash of the session token, the condition, the order of the main
-trials, when they finished and their bonus). ``placements`` holds one row per
-placement, keyed by participant, phase, trial, attempt and step: a unique
-key, so a retried request can never store a placement twice, and two
-different requests for the same step cannot both be stored. Each row keeps
-the response that was sent for it, so a retry gets the same answer.
+Three tables. ``participants`` holds who took part (the recruitment
+platform's ids, a hash of the session token, the condition, the order of the
+main trials, when they were screened out or finished, and their bonus).
+``placements`` holds one row per placement, keyed by participant, phase,
+trial, attempt and step: a unique key, so a retried request can never store a
+placement twice, and two different requests for the same step cannot both be
+stored. Each row keeps the response that was sent for it, so a retry gets the
+same answer. ``clocks`` holds, under the same key, when the server first
+handed each step out: the start of that step's decision time, which a reload
+of the page cannot move.
 
 Where a participant is (which trial, which step, which tower) is derived from
 their placements, never stored apart from them.
@@ -45,6 +48,8 @@ class Participant(Base):
     order: Mapped[list] = mapped_column(JSON)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
     completed_at: Mapped[Optional[dt.datetime]] = mapped_column(DateTime(timezone=True))
+    screened_out_at: Mapped[Optional[dt.datetime]] = mapped_column(DateTime(timezone=True))
+    tokens_issued: Mapped[int] = mapped_column(Integer, default=1)
     total_reward: Mapped[Optional[float]] = mapped_column(Float)
     bonus: Mapped[Optional[float]] = mapped_column(Float)
 
@@ -66,6 +71,8 @@ class Placement(Base):
     layer: Mapped[Optional[int]] = mapped_column(Integer)
     timed_out: Mapped[bool] = mapped_column(Boolean)
     decision_time: Mapped[float] = mapped_column(Float)
+    server_time: Mapped[Optional[float]] = mapped_column(Float)
+    late_action: Mapped[Optional[list]] = mapped_column(JSON)
     trajectory: Mapped[Optional[list]] = mapped_column(JSON)
     dwell: Mapped[Optional[list]] = mapped_column(JSON)
     tower_before: Mapped[list] = mapped_column(JSON)
@@ -77,6 +84,21 @@ class Placement(Base):
     request_hash: Mapped[str] = mapped_column(String(64))
     response: Mapped[dict] = mapped_column(JSON)
     received_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
+
+
+class Clock(Base):
+    """When the server first handed a step out (seconds since the epoch, the server's clock)."""
+
+    __tablename__ = "clocks"
+    __table_args__ = (UniqueConstraint("participant_id", "phase", "trial", "attempt", "step", name="one_clock_per_step"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    participant_id: Mapped[str] = mapped_column(ForeignKey("participants.id"), index=True)
+    phase: Mapped[str] = mapped_column(String(20))
+    trial: Mapped[int] = mapped_column(Integer)
+    attempt: Mapped[int] = mapped_column(Integer)
+    step: Mapped[int] = mapped_column(Integer)
+    issued_at: Mapped[float] = mapped_column(Float)
 
 
 def token_hash(token: str) -> str:
@@ -122,6 +144,7 @@ class Store:
         if url.startswith("sqlite"):
             event.listen(self.engine, "connect", _sqlite_pragmas)
         Base.metadata.create_all(self.engine)
+        _check_columns(self.engine)
         self._session = sessionmaker(self.engine, expire_on_commit=False)
 
     def close(self) -> None:
@@ -159,6 +182,43 @@ class Store:
     def participants(self) -> list[Participant]:
         with self._session() as s:
             return list(s.scalars(select(Participant).order_by(Participant.created_at, Participant.id)))
+
+    def set_token(self, pid: str, token: str) -> Participant:
+        """Give a participant a new session token; the old one stops working."""
+        with self._session() as s:
+            p = s.get(Participant, pid, with_for_update=True)
+            p.token_hash = token_hash(token)
+            p.tokens_issued = (p.tokens_issued or 1) + 1
+            s.commit()
+            return p
+
+    def screen_out(self, pid: str) -> Participant:
+        """Record that a participant was screened out (once: a second call keeps the first time)."""
+        with self._session() as s:
+            p = s.get(Participant, pid, with_for_update=True)
+            if p.screened_out_at is None:
+                p.screened_out_at = _now()
+                s.commit()
+            return p
+
+    # clocks -------------------------------------------------------------------------------------------------
+    def clock(self, pid: str, phase: str, trial: int, attempt: int, step: int) -> Optional[float]:
+        """When the step was first handed out, or None when it has not been."""
+        with self._session() as s:
+            return s.scalar(select(Clock.issued_at).where(
+                Clock.participant_id == pid, Clock.phase == phase, Clock.trial == trial, Clock.attempt == attempt,
+                Clock.step == step))
+
+    def start_clock(self, pid: str, phase: str, trial: int, attempt: int, step: int, now: float) -> float:
+        """Start the step's clock at ``now`` unless it has started; when it started."""
+        with self._session() as s:
+            s.add(Clock(participant_id=pid, phase=phase, trial=trial, attempt=attempt, step=step, issued_at=now))
+            try:
+                s.commit()
+                return now
+            except IntegrityError:
+                s.rollback()
+        return self.clock(pid, phase, trial, attempt, step)
 
     def complete(self, pid: str, total_reward: float, bonus: float) -> Participant:
         """Mark a participant complete (once: a second call keeps the first record)."""
@@ -218,6 +278,22 @@ class Store:
         with self._session() as s:
             return {"participants": s.scalar(select(func.count()).select_from(Participant)),
                     "placements": s.scalar(select(func.count()).select_from(Placement))}
+
+
+def _check_columns(engine) -> None:
+    """Stop with one line when the database's tables lack columns this version stores."""
+    from sqlalchemy import inspect
+
+    from overhang_framework.errors import ConfigError
+
+    inspector = inspect(engine)
+    for table in Base.metadata.sorted_tables:
+        have = {c["name"] for c in inspector.get_columns(table.name)}
+        missing = [c.name for c in table.columns if c.name not in have]
+        if missing:
+            raise ConfigError(f"the database's table {table.name} lacks the column(s) {', '.join(missing)}: it was "
+                              "made by an earlier version of the experiment; finish that study with the version "
+                              "that started it, or give a new database")
 
 
 def _sqlite_pragmas(connection, _record) -> None:

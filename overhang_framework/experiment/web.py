@@ -22,10 +22,22 @@ def dist_dir(web_dir: Optional[Path] = None) -> Path:
     return Path(web_dir) if web_dir is not None else REPO_WEB / "dist"
 
 
+def _sources_changed(dist: Path) -> bool:
+    """Whether a source of the front end in ``web/`` is newer than the build in ``dist``."""
+    built = (dist / "index.html").stat().st_mtime
+    for path in REPO_WEB.rglob("*"):
+        if "node_modules" in path.parts or dist in path.parents or not path.is_file():
+            continue
+        if path.stat().st_mtime > built:
+            return True
+    return False
+
+
 def ensure_built(web_dir: Optional[Path] = None, force: bool = False) -> Path:
-    """The front end's build directory; built from ``web/`` first when it has no ``index.html`` (or ``force``)."""
+    """The front end's build directory; built from ``web/`` first when it has no ``index.html``, when a source
+    in ``web/`` is newer than the build, or with ``force``."""
     dist = dist_dir(web_dir)
-    if (dist / "index.html").exists() and not force:
+    if (dist / "index.html").exists() and not force and (web_dir is not None or not _sources_changed(dist)):
         return dist
     if web_dir is not None:
         raise ConfigError(f"web_dir {dist} has no index.html; build the front end there or leave web_dir null")

@@ -3,10 +3,12 @@
  */
 
 export class ApiError extends Error {
-  constructor(message, status) {
+  constructor(message, status, data = null) {
     super(message);
     this.name = "ApiError";
     this.status = status;
+    this.data = data;
+    this.reason = data?.reason ?? null;
   }
 }
 
@@ -49,9 +51,27 @@ export async function post(path, body, token = null) {
   }
   if (!response.ok) {
     const message = data?.error ?? `The server answered ${response.status} ${response.statusText}.`;
-    throw new ApiError(message, response.status);
+    throw new ApiError(message, response.status, data);
   }
   return data;
+}
+
+/**
+ * The page's URL parameters, without `token`: a token in the URL (a resume link the researcher
+ * reissued) is stored for the participant and removed from the address bar, so it is neither
+ * bookmarked nor shared with the screen.
+ */
+export function takeTokenFromUrl() {
+  const url = new URL(window.location.href);
+  const params = Object.fromEntries(url.searchParams);
+  const { token, ...rest } = params;
+  if (token) {
+    const participant = participantOf(rest);
+    if (participant) storeToken(participant, token);
+    url.searchParams.delete("token");
+    window.history.replaceState(window.history.state, "", url.pathname + url.search + url.hash);
+  }
+  return rest;
 }
 
 /** Starts or resumes the session of the participant named in the URL parameters. */

@@ -4,7 +4,9 @@
  *
  * The server's `position` drives the practice and main phases: every placement's response carries
  * the next position, and each trial starts from it. A reopened tab therefore continues where the
- * participant stopped.
+ * participant stopped. The server also keeps each step's clock: a trial's first step is started
+ * with `POST /api/steps/start`, later steps by the previous placement's reply, and the time left
+ * shown is the server's, so a reload does not give more time.
  */
 
 import { initJsPsych } from "jspsych";
@@ -12,11 +14,47 @@ import HtmlButtonResponsePlugin from "@jspsych/plugin-html-button-response";
 import InstructionsPlugin from "@jspsych/plugin-instructions";
 import OverhangTowerPlugin, { renderTower } from "@overhang-framework/jspsych-plugin-overhang-tower";
 
-import { openSession, post } from "./api.js";
+import { openSession, post, takeTokenFromUrl } from "./api.js";
 import { CONSENT_HTML, instructionPages } from "./text.js";
 import { tutorialTimeline } from "./tutorial.js";
 
 const target = document.getElementById("experiment");
+
+function showMessage(title, html, testid) {
+  target.innerHTML = `<div class="text-page notice" data-testid="${testid}"><h2>${title}</h2>${html}</div>`;
+}
+
+const escapeHtml = (text) =>
+  String(text).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+
+function showElsewhere(contact) {
+  showMessage(
+    "This study is open elsewhere",
+    `<p>Your session was started in another browser or on another device, so it cannot continue
+    here.</p>
+    <p>Please contact <b>${escapeHtml(contact || "the researcher")}</b> and ask for a new link. The new
+    link lets you continue exactly where you stopped, in this browser.</p>`,
+    "elsewhere",
+  );
+}
+
+function showScreenedOut(url) {
+  showMessage(
+    "Thank you for your time",
+    `<p>The main part of the study needs each practice tower to be passed, and the attempts for
+    this one are used up, so the study ends here for you.</p>
+    <p>This is no fault of yours: the task is hard to get used to. Please press the button to
+    return to the study platform.</p>`,
+    "screened-out",
+  );
+  const leave = document.createElement("button");
+  leave.className = "jspsych-btn";
+  leave.dataset.testid = "leave";
+  leave.dataset.href = url;
+  leave.textContent = "Return to the study platform";
+  leave.addEventListener("click", () => window.location.assign(url));
+  target.querySelector(".notice").append(leave);
+}
 
 function showError(message, retry = null) {
   target.replaceChildren();
@@ -44,12 +82,14 @@ const isAtStart = (session) => {
   return phase === "practice" && trial === session.practice[0]?.trial && attempt === 1 && step === 1;
 };
 
-function buildTimeline(jsPsych, session, { animationSpeed }) {
+function buildTimeline(jsPsych, session, state, { animationSpeed }) {
   const token = session.token;
   const money = (amount) => `${session.currency}${amount.toFixed(2)}`;
   let position = session.position;
+  state.position = position;
   let totalReward = position.total_reward ?? 0;
   let lastOutcome = null;
+  let lastOutcomeAt = 0;
   let context = null;
 
   const taskAt = ({ phase, trial }) =>
@@ -58,10 +98,25 @@ function buildTimeline(jsPsych, session, { animationSpeed }) {
   const place = async (payload) => {
     const body = { phase: position.phase, trial: position.trial, attempt: position.attempt, ...payload };
     const outcome = await post("api/placements", body, token);
-    if (outcome.position) position = outcome.position;
+    if (outcome.position) position = state.position = outcome.position;
     if (typeof outcome.total_reward === "number") totalReward = outcome.total_reward;
+    if (outcome.screen_out_url) state.screenOutUrl = outcome.screen_out_url;
     lastOutcome = outcome;
+    lastOutcomeAt = performance.now();
     return outcome;
+  };
+
+  /** The clock of the step about to begin: from the placement reply that handed it out, else from the server. */
+  const beginStep = async ({ step }) => {
+    const { phase, trial, attempt } = position;
+    const clock = lastOutcome?.clock;
+    if (clock && clock.phase === phase && clock.trial === trial && clock.attempt === attempt && clock.step === step) {
+      const since = (performance.now() - lastOutcomeAt) / 1000;
+      lastOutcome.clock = null; // once: a retried decision asks the server again
+      if (since < 2) return { ...clock, time_left: clock.time_left == null ? null : Math.max(0, clock.time_left - since) };
+    }
+    const reply = await post("api/steps/start", { phase, trial, attempt, step }, token);
+    return reply.clock;
   };
 
   const prompt = () => {
@@ -81,6 +136,7 @@ function buildTimeline(jsPsych, session, { animationSpeed }) {
     tower: () => position.tower,
     step: () => position.step,
     place,
+    begin_step: beginStep,
     time_limit: session.time_limit,
     grid: session.grid,
     mouse_hz: session.mouse_hz,
@@ -98,29 +154,41 @@ function buildTimeline(jsPsych, session, { animationSpeed }) {
     stimulus: () => {
       const passed = Boolean(lastOutcome?.passed);
       const reward = lastOutcome?.reward ?? 0;
-      const optimum = lastOutcome?.optimum ?? taskAt(context).optimum;
-      const needed = session.practice_threshold * optimum;
+      const shown = lastOutcome?.shown_reward ?? 0;
+      const needed = lastOutcome?.pass_reward ?? 0;
+      const screenedOut = lastOutcome?.position?.phase === "screened_out";
+      const timedOut = Boolean(lastOutcome?.timed_out);
+      const what = timedOut
+        ? "The time for a block ran out, so this tower earns nothing."
+        : lastOutcome?.stable === false
+          ? "A block fell, so this tower earns nothing."
+          : `Your tower reaches <b>${reward.toFixed(2)}</b>.`;
+      const next = passed
+        ? "Well done."
+        : screenedOut
+          ? "That was the last attempt for this tower."
+          : `Have another go at the same blocks.${timedOut ? " Remember: place each block within the time." : ""}`;
       return `
-        <div class="practice-feedback" data-testid="practice-feedback" data-passed="${passed}">
+        <div class="practice-feedback" data-testid="practice-feedback" data-passed="${passed}"
+             data-timed-out="${timedOut}">
           <h2>${passed ? "Passed!" : "Not passed yet"}</h2>
-          <p>Your reward: <b>${reward.toFixed(2)}</b>. The best possible tower reaches
-          <b>${optimum.toFixed(2)}</b>; to pass you need at least ${needed.toFixed(2)}.</p>
+          <p>${what} A good tower with these blocks reaches <b>${shown.toFixed(2)}</b>; to pass you
+          need at least <b>${needed.toFixed(2)}</b>.</p>
           <div class="tower-pair">
             <figure><canvas id="practice-yours"></canvas><figcaption>Your tower</figcaption></figure>
-            <figure><canvas id="practice-optimal"></canvas><figcaption>The best tower</figcaption></figure>
+            <figure><canvas id="practice-optimal"></canvas><figcaption>A good tower</figcaption></figure>
           </div>
-          <p>${passed ? "Well done." : "Have another go at the same blocks."}</p>
+          <p>${next}</p>
         </div>`;
     },
-    choices: () => [lastOutcome?.passed ? "Continue" : "Try again"],
+    choices: () => [lastOutcome?.passed || lastOutcome?.position?.phase !== "practice" ? "Continue" : "Try again"],
     button_html: button("continue"),
     on_load: () => {
       const last = jsPsych.data.get().filter({ trial_type: "overhang-tower" }).last(1).values()[0];
-      const task = taskAt(context);
-      const optimalTower = lastOutcome?.optimal_tower ?? task.optimal_tower;
+      const shownTower = lastOutcome?.shown_tower ?? [];
       const ppu = Math.min(32, Math.floor((window.innerWidth - 120) / 20));
       renderTower(document.getElementById("practice-yours"), { poses: last.final_poses, grid: session.grid, pixelsPerUnit: ppu });
-      renderTower(document.getElementById("practice-optimal"), { tower: optimalTower, grid: session.grid, pixelsPerUnit: ppu });
+      renderTower(document.getElementById("practice-optimal"), { tower: shownTower, grid: session.grid, pixelsPerUnit: ppu });
     },
     data: { phase: "practice-feedback" },
   };
@@ -132,6 +200,7 @@ function buildTimeline(jsPsych, session, { animationSpeed }) {
   };
 
   const mainIntro = {
+    conditional_function: () => position.phase === "main",
     type: HtmlButtonResponsePlugin,
     stimulus: `<div class="text-page">
       <h2>The main part</h2>
@@ -174,10 +243,9 @@ function practiceIntro(session) {
     type: HtmlButtonResponsePlugin,
     stimulus: `<div class="text-page">
       <h2>Practice</h2>
-      <p>Now ${session.practice.length} practice towers. After each one you will see the best
-      possible tower beside yours. To pass a practice tower you need a reward of at least
-      ${Math.round(session.practice_threshold * 100)}% of the best one; if you do not, you try the
-      same blocks again.</p></div>`,
+      <p>Now ${session.practice.length} practice towers. After each one you will see a good
+      tower beside yours, and the reward you need to pass; if you do not pass, you try the same
+      blocks again${session.practice_max_attempts ? ` (up to ${session.practice_max_attempts} attempts per tower)` : ""}.</p></div>`,
     choices: ["Start practice"],
     button_html: button("start-practice"),
   };
@@ -229,20 +297,26 @@ async function debrief(session) {
 }
 
 async function start() {
-  const params = Object.fromEntries(new URLSearchParams(window.location.search));
+  const params = takeTokenFromUrl();
   target.innerHTML = `<p class="loading">Loading…</p>`;
   let session;
   try {
     session = await openSession(params);
   } catch (error) {
-    showError(error.message, () => start());
+    if (error.reason === "session_elsewhere") showElsewhere(error.data?.contact);
+    else showError(error.message, () => start());
     return;
   }
   const animationSpeed = Number(params.animation_speed) > 0 ? Number(params.animation_speed) : 1;
-  if (session.position.phase !== "done" && !session.completed) {
+  const state = { position: session.position };
+  if (!["done", "screened_out"].includes(session.position.phase) && !session.completed) {
     target.replaceChildren();
     const jsPsych = initJsPsych({ display_element: target });
-    await jsPsych.run(buildTimeline(jsPsych, session, { animationSpeed }));
+    await jsPsych.run(buildTimeline(jsPsych, session, state, { animationSpeed }));
+  }
+  if (state.position.phase === "screened_out") {
+    showScreenedOut(session.screen_out_url ?? state.screenOutUrl ?? "/screened-out");
+    return;
   }
   await debrief(session);
 }

@@ -15,7 +15,8 @@ const info = {
     /**
      * `place(payload)` sends one placement and returns a Promise of its outcome.
      * payload: {step, x, layer, timed_out, decision_time, trajectory, dwell};
-     * outcome: {stable, overhang, reward, trial_over, frames: {fps, poses}, ...}.
+     * outcome: {stable, overhang, reward, trial_over, timed_out, frames: {fps, poses}, ...}; `timed_out`
+     * true means the placement came too late and counts as a timeout.
      */
     place: { type: ParameterType.FUNCTION, default: undefined },
     /** The tower the next placement goes on, `[width, x, layer]` per block; null: the ground block alone. */
@@ -24,6 +25,12 @@ const info = {
     step: { type: ParameterType.INT, default: 1 },
     /** Seconds per placement, or null for no limit. */
     time_limit: { type: ParameterType.FLOAT, default: null },
+    /**
+     * `begin_step({step})`, called as each decision begins, returns a Promise of the step's clock
+     * `{time_left}`: the seconds really left when a server keeps the time (after a reload, say). Null:
+     * every decision gets the whole `time_limit`, timed by the page.
+     */
+    begin_step: { type: ParameterType.FUNCTION, default: null },
     /** {half_width, height, block_height, max_layer}, in task units. */
     grid: { type: ParameterType.OBJECT, default: DEFAULT_GRID },
     /** Samples per second of the mouse trajectory. */
@@ -113,6 +120,15 @@ class TowerTrial {
     this.listen(this.canvas, "click", (event) => this.onClick(event));
     this.updateScores(overhang(this.tower), null);
     this.beginDecision();
+  }
+
+  /** The seconds this decision has: the server's clock when `begin_step` gives one, else `time_limit`. */
+  async timeAllowed() {
+    const limit = this.params.time_limit;
+    if (!this.params.begin_step) return limit;
+    const clock = await this.params.begin_step({ step: this.step });
+    if (limit == null) return null;
+    return typeof clock?.time_left === "number" ? clock.time_left : limit;
   }
 
   buildDom() {
@@ -205,13 +221,23 @@ class TowerTrial {
 
   // ---- one decision --------------------------------------------------------------------------
 
-  beginDecision() {
-    const start = performance.now();
-    this.decision = { start, trajectory: [], dwell: new Map(), dwellKey: null, dwellSince: start };
+  async beginDecision() {
     this.stepText.textContent = `Block ${this.step + 1} of ${this.sequence.length}`;
     this.container.dataset.step = String(this.step);
     this.container.dataset.tower = JSON.stringify(this.tower);
     this.message.textContent = "";
+    this.actions.replaceChildren();
+    let allowed;
+    try {
+      this.setState("waiting");
+      this.render();
+      allowed = await this.timeAllowed();
+    } catch (error) {
+      this.showError(error, () => this.beginDecision());
+      return;
+    }
+    const start = performance.now();
+    this.decision = { start, allowed, trajectory: [], dwell: new Map(), dwellKey: null, dwellSince: start };
     this.setState("deciding");
     this.updateGhost();
     this.render();
@@ -220,10 +246,9 @@ class TowerTrial {
     this.decision.sampler = this.every(() => this.sampleMouse(), 1000 / hz);
     this.sampleMouse();
 
-    const limit = this.params.time_limit;
-    if (limit != null) {
+    if (allowed != null) {
       this.decision.countdown = this.every(() => this.showTimeLeft(), 100);
-      this.decision.deadline = this.later(() => this.timeOut(), limit * 1000);
+      this.decision.deadline = this.later(() => this.timeOut(), Math.max(0, allowed) * 1000);
       this.showTimeLeft();
     }
   }
@@ -233,7 +258,7 @@ class TowerTrial {
   }
 
   showTimeLeft() {
-    const left = Math.max(0, this.params.time_limit - this.elapsed());
+    const left = Math.max(0, this.decision.allowed - this.elapsed());
     this.timerText.textContent = `Time left: ${left.toFixed(1)} s`;
     this.timerText.dataset.seconds = left.toFixed(1);
     this.timerText.classList.toggle("ot-urgent", left <= 1.5);
@@ -322,8 +347,8 @@ class TowerTrial {
       return;
     }
     this.message.classList.remove("ot-warning");
-    const limit = this.params.time_limit;
-    if (limit != null && this.elapsed() >= limit) {
+    const allowed = this.decision.allowed;
+    if (allowed != null && this.elapsed() >= allowed) {
       this.timeOut();
       return;
     }
@@ -336,12 +361,12 @@ class TowerTrial {
 
   timeOut() {
     if (this.state !== "deciding") return;
-    const { trajectory, dwell } = this.endDecision();
+    const { decisionTime, trajectory, dwell } = this.endDecision();
     this.timerText.textContent = "Time left: 0.0 s";
     this.timerText.dataset.seconds = "0.0";
     this.submit({
       step: this.step, x: null, layer: null, timed_out: true,
-      decision_time: this.params.time_limit, trajectory, dwell,
+      decision_time: round(decisionTime), trajectory, dwell,
     });
   }
 
@@ -357,13 +382,13 @@ class TowerTrial {
     try {
       outcome = await this.params.place(payload);
     } catch (error) {
-      this.showError(error, payload);
+      this.showError(error, () => this.submit(payload));
       return;
     }
     await this.applyOutcome(payload, outcome);
   }
 
-  showError(error, payload) {
+  showError(error, retry) {
     this.setState("error");
     this.message.replaceChildren();
     const text = document.createElement("span");
@@ -371,10 +396,12 @@ class TowerTrial {
     text.dataset.testid = "error";
     text.textContent = error?.message || String(error);
     this.message.append(text);
-    this.addButton("Try again", "retry", () => this.submit(payload));
+    this.addButton("Try again", "retry", retry);
   }
 
-  async applyOutcome(payload, outcome) {
+  async applyOutcome(sent, outcome) {
+    // a placement that reached the server after the time ran out counts as a timeout
+    const payload = outcome.timed_out && !sent.timed_out ? { ...sent, x: null, layer: null, timed_out: true, late: true } : sent;
     this.placements.push(payload);
     const { frames, ...rest } = outcome;
     this.outcomes.push({ ...rest, frame_count: frames?.poses?.length ?? 0 });
