@@ -2,9 +2,13 @@
 against the real server on loopback.
 
 Two scripted participants take the whole procedure (consent, instructions, the tutorial, practice until
-passed, the main trials, the debriefing and the completion redirect), one in each condition. The
-time-limited one lets the timer end a trial; the other reloads the page mid-trial and resumes. The export
-of both loads in the analysis toolkit.
+passed, the main trials, the debriefing and the completion redirect), one in each condition. Both let
+two seconds pass and reload the page mid-trial; the time-limited one sees the server's clock go on, and
+lets the timer end a trial. The export of both loads in the analysis toolkit. A third fails the practice
+until screened out; a fourth opens the study in a second browser, is told whom to contact, and resumes
+with a reissued link.
+
+With ``E2E_SHOTS=DIR`` set, the screens the participants meet are saved there as PNGs.
 
 The page is built from ``web/`` when needed (npm). Without Chromium or npm the test is skipped, except
 under CI, where it fails.
@@ -54,12 +58,14 @@ def server(dist, tmp_path_factory):
     from overhang_framework.experiment.api import create_app
 
     run = tmp_path_factory.mktemp("e2e")
-    settings = load_settings([f"run_dir={run}", f"admin_token={ADMIN}", f"tasks.only=[{','.join(TASKS)}]"])
+    settings = load_settings([f"run_dir={run}", f"admin_token={ADMIN}", f"tasks.only=[{','.join(TASKS)}]",
+                              "practice.max_attempts=3", "contact=lab@example.org"])
     settings.web_dir = dist
-    app = create_app(settings)
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    settings.public_url = f"http://127.0.0.1:{port}"
+    app = create_app(settings)
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=srv.run, daemon=True)
     thread.start()
@@ -84,6 +90,12 @@ def browser():
         b.close()
 
 
+def shot(page, name):
+    if os.environ.get("E2E_SHOTS"):
+        Path(os.environ["E2E_SHOTS"]).mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(Path(os.environ["E2E_SHOTS"]) / f"{name}.png"))
+
+
 class ScriptedParticipant:
     """Clicks through the page as a participant would, placing blocks with the mouse.
 
@@ -93,10 +105,14 @@ class ScriptedParticipant:
     never clicks; ``reload_at`` is one where the page is reloaded before the placement.
     """
 
-    def __init__(self, page, server, pid, hold=(), reload_at=None, collapse_first_practice=True):
+    def __init__(self, page, server, pid, hold=(), reload_at=None, collapse_first_practice=True,
+                 collapse_practice=False, reload_wait=2.0):
         self.page, self.server, self.pid = page, server, pid
-        self.hold, self.reload_at = set(hold), reload_at
+        self.hold, self.reload_at, self.reload_wait = set(hold), reload_at, reload_wait
         self.collapse_first_practice = collapse_first_practice
+        self.collapse_practice = collapse_practice
+        self.timer_after_reload = None
+        self.after_reload = False
         self.in_tutorial = True
         self.events: list[str] = []
         self.waits: dict = {}
@@ -138,7 +154,8 @@ class ScriptedParticipant:
             return tower[-1][1], max(b[2] for b in tower) + 1
         pos, participant = self.position()
         width = self.sequence(pos, participant)[step]
-        if pos.phase == "practice" and pos.trial == 1 and pos.attempt == 1 and self.collapse_first_practice:
+        if pos.phase == "practice" and pos.trial == 1 and (self.collapse_practice or (
+                pos.attempt == 1 and self.collapse_first_practice)):
             return tower[0][0] / 2 + width / 2 - 0.1, 1  # mostly beyond the ground block's edge: it falls
         return self.robust_action(tower, width)
 
@@ -163,14 +180,23 @@ class ScriptedParticipant:
         page = self.page
         deadline = time.time() + timeout
         while time.time() < deadline:
-            if page.url.endswith("/complete"):
+            if page.url.endswith(("/complete", "/screened-out")):
                 return
             if self.visible("[data-testid=error]"):
                 raise AssertionError(f"the page shows an error: {page.get_by_test_id('error').inner_text()}")
-            for testid in ("agree", "start-practice", "start-main", "resume", "continue", "finish"):
+            for testid in ("agree", "start-practice", "start-main", "resume", "continue", "finish", "leave"):
                 if self.visible(f"[data-testid={testid}]"):
                     if testid in ("start-practice", "resume"):
                         self.in_tutorial = False
+                    if testid == "continue" and self.visible("[data-testid=practice-feedback]"):
+                        feedback = page.get_by_test_id("practice-feedback")
+                        self.events.append(f"feedback passed={feedback.get_attribute('data-passed')} "
+                                           f"timed_out={feedback.get_attribute('data-timed-out')}")
+                        shot(page, f"{self.pid}-practice-feedback-{len(self.events)}")
+                    if testid == "leave":
+                        shot(page, f"{self.pid}-screened-out")
+                    if testid == "finish":
+                        shot(page, f"{self.pid}-debrief")
                     self.events.append(testid)
                     page.get_by_test_id(testid).first.click()
                     break
@@ -198,13 +224,22 @@ class ScriptedParticipant:
             if pos.phase == "main" and (pos.trial, step) == self.reload_at:
                 self.reload_at = None
                 self.events.append(f"reload main {pos.trial} {step}")
+                self.page.wait_for_timeout(int(self.reload_wait * 1000))  # thinking, then F5
                 self.page.reload()
+                self.after_reload = True
                 return
-            if pos.phase == "main" and (pos.trial, step) in self.hold and participant.condition == "time_limited":
-                self.events.append(f"hold main {pos.trial} {step}")
+            if self.after_reload:
+                self.after_reload = False
+                timer = self.page.get_by_test_id("timer")
+                if timer.is_visible():
+                    self.timer_after_reload = float(timer.get_attribute("data-seconds"))
+                    shot(self.page, f"{self.pid}-after-reload")
+            if (pos.phase, pos.trial, step) in self.hold and participant.condition == "time_limited":
+                self.hold.discard((pos.phase, pos.trial, step))
+                self.events.append(f"hold {pos.phase} {pos.trial} {step}")
                 started = time.time()
                 self.page.locator(".overhang-tower[data-state=done]").wait_for(timeout=15_000)
-                self.waits[(pos.trial, step)] = time.time() - started
+                self.waits[(pos.phase, pos.trial, step)] = time.time() - started
                 return
         x, layer = self.choose(tower, step)
         self.click_at(x, layer)
@@ -235,10 +270,12 @@ def test_two_participants_take_the_whole_experiment(browser, server, tmp_path):
 
     store, settings = server["store"], server["settings"]
     # conditions are balanced: the first participant's is random, the second gets the other
-    first, c1 = take_part(browser, server, "E2E-1", hold=[(1, 2)], reload_at=(2, 3))
-    second, c2 = take_part(browser, server, "E2E-2", hold=[(1, 2)], reload_at=(2, 3))
+    hold = [("main", 1, 2), ("practice", 2, 1)]
+    first, c1 = take_part(browser, server, "E2E-1", hold=hold, reload_at=(2, 3))
+    second, c2 = take_part(browser, server, "E2E-2", hold=hold, reload_at=(2, 3))
     assert {c1, c2} == {"time_limited", "unconstrained"}
     timed = first if c1 == "time_limited" else second
+    timed_pid = timed.pid
 
     for who in (first, second):
         rows = store.placements(who.pid)
@@ -246,6 +283,9 @@ def test_two_participants_take_the_whole_experiment(browser, server, tmp_path):
         main = [r for r in rows if r.phase == "main"]
         # practice: the first attempt collapsed, the next passed; all three practice trials passed
         assert [r.passed for r in practice if r.trial_over and r.trial == 1] == [False, True]
+        # the practice feedback says when the time ran out
+        timed_feedback = "feedback passed=false timed_out=true" in who.events
+        assert timed_feedback == (who.pid == timed_pid)
         assert sorted(r.trial for r in practice if r.trial_over and r.passed) == [1, 2, 3]
         # the main trials are over, in the participant's order
         assert {r.trial for r in main if r.trial_over} == {1, 2}
@@ -265,10 +305,16 @@ def test_two_participants_take_the_whole_experiment(browser, server, tmp_path):
 
     # the timer: in time_limited, the held step timed out at 5 s and ended the trial with reward 0
     timed_rows = {(r.trial, r.step): r for r in store.placements(timed.pid) if r.phase == "main"}
+    assert [r.passed for r in store.placements(timed.pid) if r.phase == "practice" and r.trial == 2
+            and r.trial_over] == [False, True]
     held = timed_rows[(1, 2)]
     assert held.timed_out and held.reward == 0 and held.trial_over and (1, 3) not in timed_rows
-    assert 4.9 <= held.decision_time <= 5.0 + settings.time_grace
-    assert 4.5 <= timed.waits[(1, 2)] <= 8.0
+    assert 4.9 <= held.server_time <= 5.0 + settings.time_grace
+    assert 4.5 <= timed.waits[("main", 1, 2)] <= 8.0
+    # the reload: the server's clock went on through the two seconds before it and the reload itself
+    assert timed.timer_after_reload is not None and timed.timer_after_reload <= 5.0 - 2.0 + 0.2
+    resumed = timed_rows[(2, 3)]
+    assert resumed.server_time >= 2.0 and resumed.server_time - resumed.decision_time >= 1.8
     untimed = first if timed is second else second
     assert not any(r.timed_out for r in store.placements(untimed.pid)) and untimed.waits == {}
 
@@ -283,3 +329,44 @@ def test_two_participants_take_the_whole_experiment(browser, server, tmp_path):
     assert analyze([str(log_path), "--out", str(tmp_path / "analysis"), "--only", "table1", "--quiet"]) == 0
     assert (tmp_path / "analysis" / "report.md").exists()
 
+
+
+def test_a_participant_who_fails_the_practice_is_screened_out(browser, server):
+    participant, _ = take_part(browser, server, "E2E-3", collapse_practice=True)
+    store = server["store"]
+    assert store.participant("E2E-3").screened_out_at is not None
+    attempts = [r for r in store.placements("E2E-3") if r.phase == "practice" and r.trial_over]
+    assert len(attempts) == 3 and not any(r.passed for r in attempts)
+    assert participant.events.count("leave") == 1
+    assert not any(r.phase == "main" for r in store.placements("E2E-3"))
+
+
+def test_another_browser_is_told_whom_to_contact_and_a_reissued_link_resumes(browser, server):
+    from overhang_framework.experiment.api import reissue
+
+    url = f"{server['url']}/?participant=E2E-4&animation_speed=40"
+    first = browser.new_context(viewport={"width": 1400, "height": 1000})
+    page = first.new_page()
+    page.goto(url)
+    page.get_by_test_id("agree").wait_for(timeout=30_000)
+    second = browser.new_context(viewport={"width": 1400, "height": 1000})
+    other = second.new_page()
+    other.goto(url)
+    notice = other.get_by_test_id("elsewhere")
+    notice.wait_for(timeout=30_000)
+    assert "lab@example.org" in notice.inner_text()
+    assert other.locator("button").count() == 0  # nothing to press that cannot work
+    shot(other, "E2E-4-elsewhere")
+
+    _, link = reissue(server["settings"], server["store"], "E2E-4")
+    assert link.startswith(server["url"]) and "token=" in link
+    other.goto(link + "&animation_speed=40")
+    other.get_by_test_id("agree").wait_for(timeout=30_000)
+    assert "token=" not in other.url  # taken from the address bar and kept in the browser
+    stored = other.evaluate("() => localStorage.getItem('overhang-tower:token:E2E-4')")
+    assert stored and stored in link
+    # the first browser's token no longer works
+    page.reload()
+    page.get_by_test_id("elsewhere").wait_for(timeout=30_000)
+    first.close()
+    second.close()
