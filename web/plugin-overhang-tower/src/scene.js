@@ -29,7 +29,8 @@ export const COLORS = Object.freeze({
   reach: "#64748b",
 });
 
-const SIDE_MARGIN = 1.0;
+// Room beside the grid for blocks that fall off it; blocks that land further out are marked at the edge.
+const SIDE_MARGIN = 2.0;
 const GROUND_DEPTH = 0.4;
 const TOP_PADDING = 0.25;
 const SEQUENCE_STRIP = 1.4;
@@ -104,6 +105,7 @@ export class TowerScene {
     }
     for (const [width, x, z, angle] of blocks) {
       this.drawBlock(width, x, z, angle, COLORS.block, COLORS.blockEdge);
+      this.markIfOutside(width, x, z);
     }
     if (ghost) {
       const z = (ghost.layer + 0.5) * this.grid.block_height;
@@ -150,6 +152,26 @@ export class TowerScene {
     ctx.lineTo(cx + 6, bottom + 10);
     ctx.closePath();
     ctx.fill();
+  }
+
+  /** An arrow at the canvas's edge for a block that lies (partly) beyond it, at the block's height. */
+  markIfOutside(width, x, z) {
+    const { ctx, ppu } = this;
+    const halfView = this.width / 2 / ppu;
+    if (Math.abs(x) + width / 2 <= halfView) return;
+    const side = Math.sign(x);
+    const size = Math.max(8, 0.22 * ppu);
+    const [, py] = this.toPixel(0, Math.min(Math.max(z, 0.3), this.grid.height));
+    const edgeX = side > 0 ? this.width - 2 : 2;
+    ctx.save();
+    ctx.fillStyle = COLORS.blockEdge;
+    ctx.beginPath();
+    ctx.moveTo(edgeX, py);
+    ctx.lineTo(edgeX - side * size, py - size * 0.7);
+    ctx.lineTo(edgeX - side * size, py + size * 0.7);
+    ctx.closePath();
+    ctx.fill();
+    ctx.restore();
   }
 
   drawBlock(width, x, z, angle, fill, edge, dash = []) {
