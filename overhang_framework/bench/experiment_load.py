@@ -410,9 +410,11 @@ def trajectory(think: float, hz: float, x: float, layer: int, rng: np.random.Gen
 
 
 class Participant:
-    def __init__(self, client, cfg: LoadConfig, rec: Record, k: int, deadline: float, rng: np.random.Generator):
+    def __init__(self, client, cfg: LoadConfig, rec: Record, k: int, deadline: float, rng: np.random.Generator,
+                 practice_towers: Sequence[list] = ()):
         self.client, self.cfg, self.rec, self.k = client, cfg, rec, k
         self.deadline, self.rng = deadline, rng
+        self.practice_towers = list(practice_towers)  # the towers the practice shows: played as shown
 
     def think_time(self, limit: Optional[float]) -> tuple[float, bool]:
         """(seconds, timed out)."""
@@ -459,15 +461,22 @@ class Participant:
         s = reply.json()
         token, pos = s["token"], s["position"]
         limit = s["time_limit"]
+        clock = None
         while pos["phase"] != "done":
+            step = {k: pos[k] for k in ("phase", "trial", "attempt", "step")}
+            if clock is None or {k: clock[k] for k in step} != step:  # a trial's first step: the page starts it
+                reply, lat = await self.post("/api/steps/start", step, token)
+                if reply.status_code != 200:
+                    rec.error(f"start {reply.status_code}", f"{pid}: {reply.text}")
+                    return "error"
+                rec.latency["start"].append(lat)
             think, timed_out = self.think_time(limit)
             if time.monotonic() + think >= self.deadline:
                 return "deadline"
             await asyncio.sleep(think)
             if pos["phase"] == "practice":
-                opt = s["practice"][pos["trial"] - 1]["optimal_tower"]
-                width, x, layer = opt[pos["step"]]
-                timed_out = False  # practice is played as the optimum shows
+                width, x, layer = self.practice_towers[pos["trial"] - 1][pos["step"]]
+                timed_out = False  # practice is played as the shown tower shows
             else:
                 width = s["trials"][pos["trial"] - 1]["sequence"][pos["step"]]
                 x, layer = choose_action(pos["tower"], width, self.rng, self.cfg.centre_bias)
@@ -501,7 +510,7 @@ class Participant:
                 if again.status_code != 200:
                     rec.error(f"session {again.status_code}", again.text)
                     return "error"
-                pos = again.json()["position"]
+                pos, clock = again.json()["position"], again.json()["clock"]
                 continue
             out = reply.json()
             rec.acked[key] = (body["x"], body["layer"], body["timed_out"])
@@ -514,12 +523,13 @@ class Participant:
                 again = await task if task is not None else await self._retry(body, token, 0.0, key,
                                                                               "retry after answer")
                 if again is not None:
-                    rec.retries["identical" if again == out else "different answer"] += 1
-                    if again != out:
+                    same = _without_clock(again) == _without_clock(out)  # a retry's clock is the step's as it is now
+                    rec.retries["identical" if same else "different answer"] += 1
+                    if not same:
                         rec.error("retry answer differs", str(key))
             if out["trial_over"]:
                 rec.trials[pos["phase"]] += 1
-            pos = out["position"]
+            pos, clock = out["position"], out.get("clock")
         reply, lat = await self.post("/api/finish", {}, token)
         if reply.status_code == 200:
             rec.finished += 1
@@ -547,7 +557,12 @@ class Participant:
         return reply.json()
 
 
-async def _drive(url: str, cfg: LoadConfig, rec: Record, progress=None, cpu: Optional[CpuMeter] = None) -> float:
+def _without_clock(reply: dict) -> dict:
+    return {k: v for k, v in reply.items() if k != "clock"}
+
+
+async def _drive(url: str, cfg: LoadConfig, rec: Record, progress=None, cpu: Optional[CpuMeter] = None,
+                 practice_towers: Sequence[list] = ()) -> float:
     import httpx
 
     limits = httpx.Limits(max_connections=2 * cfg.participants + 10, max_keepalive_connections=2 * cfg.participants)
@@ -555,7 +570,7 @@ async def _drive(url: str, cfg: LoadConfig, rec: Record, progress=None, cpu: Opt
         start = time.monotonic()
         deadline = start + cfg.duration
         seeds = np.random.SeedSequence(cfg.seed).spawn(cfg.participants)
-        people = [Participant(client, cfg, rec, k, deadline, np.random.default_rng(seeds[k - 1]))
+        people = [Participant(client, cfg, rec, k, deadline, np.random.default_rng(seeds[k - 1]), practice_towers)
                   for k in range(1, cfg.participants + 1)]
         tasks = [asyncio.create_task(p.run()) for p in people]
         ticker = asyncio.create_task(_tick(start, deadline, rec, progress, cpu)) if progress is not None else None
@@ -654,6 +669,9 @@ def run_load(cfg: LoadConfig, database: Optional[str] = None, overrides: Sequenc
         database = f"sqlite:///{Path(tmp.name) / 'experiment.sqlite'}"
     else:
         cfg.prefix = f"{cfg.prefix}{int(time.time())}"  # a database that may hold an earlier run's participants
+    from overhang_framework.experiment.settings import load_settings
+
+    practice_towers = [pt.shown_tower for pt in load_settings(list(overrides), need_admin_token=False).practice]
     before = _machine_snapshot()
     server = ServerProcess(database, overrides, workers=workers, threads=threads,
                            physics_processes=physics_processes, keep_alive=keep_alive,
@@ -664,7 +682,7 @@ def run_load(cfg: LoadConfig, database: Optional[str] = None, overrides: Sequenc
         cpu = CpuMeter(server)
         bar = progress_bar(total=int(cfg.duration), desc="load test", unit="s", disable=quiet, file=sys.stderr)
         try:
-            wall = asyncio.run(_drive(server.url, cfg, rec, bar, cpu))
+            wall = asyncio.run(_drive(server.url, cfg, rec, bar, cpu, practice_towers))
         finally:
             bar.close()
         usage = cpu.report()
