@@ -31,7 +31,6 @@ import argparse
 import hashlib
 import itertools
 import json
-import math
 import sys
 import time
 from dataclasses import dataclass
@@ -41,7 +40,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from overhang_framework.errors import ConfigError
-from overhang_framework.geometry import EPS, Action, Block, Geometry, overhang, overlap_length
+from overhang_framework.geometry import EPS, Action, Block, Geometry, overlap_length
 from overhang_framework.interfaces import State, Task, World
 from overhang_framework.optimum import OptimumSearch, physics_id
 from overhang_framework.search import TIE, lookahead_value

@@ -26,9 +26,12 @@ class PracticeTask:
     task: Task
     optimum: float
     optimal_tower: list  # [width, x, layer] per block, the ground block first
-    shown_tower: list  # the tower shown after an attempt, [width, x, layer] per block
+    # The tower shown after an attempt, [width, x, layer] per block: the best one that stays legal and stands
+    # with every placement off by up to ``tolerance`` (units), stored by ``experiment/practice.py``.
+    shown_tower: list
     shown_reward: float  # its overhang
-    pass_reward: float  # the reward that passes the trial
+    tolerance: float
+    pass_reward: float  # the reward that passes the trial: practice.threshold x shown_reward
 
 
 @dataclass
@@ -80,32 +83,53 @@ def _number(cfg: DictConfig, key: str, minimum: float = 0.0, strict: bool = True
 
 
 def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
-    """The practice tasks with their optima under ``world``'s physics, from the project's optima file.
+    """The practice tasks with their optima and shown towers under ``world``'s physics, from the project's files.
 
-    A practice task whose optimum is not stored stops the server with the command that computes it.
+    A practice task whose optimum, or whose buildable tower at ``practice.tolerance``, is not stored stops the
+    server with the command that computes it. A trial passes at ``practice.threshold`` x the shown tower's
+    reward: a tower a person can build, not the optimum, which may need exact placements.
     """
+    from omegaconf import OmegaConf
+
+    from overhang_framework.experiment.practice import COMMAND, check_tolerance, load_towers, tower_key
     from overhang_framework.geometry import Action
     from overhang_framework.optimum import load_optima, optimum_key, DATA_FILE
     from overhang_framework.tasks import parse_tasks
 
     tasks = parse_tasks(list(cfg.practice.sequences), list(cfg.practice.ids), prefix="practice")
-    optima = load_optima(DATA_FILE)
+    tolerance = check_tolerance(OmegaConf.select(cfg, "practice.tolerance"))
+    optima, towers = load_optima(DATA_FILE), load_towers()
+    seqs = ",".join("[" + ",".join(map(str, t.sequence)) + "]" for t in tasks)
+    ids = ",".join(t.id for t in tasks)
+
+    def replay(task, actions):
+        state = world.initial_state(task)
+        for x, layer in actions:
+            state = world.successor(state, Action(float(x), int(layer)))
+        return [[b.width, b.x, b.layer] for b in state.geometry.blocks], world.overhang(state.geometry)
+
     out = []
     for task in tasks:
         row = optima.get(optimum_key(task, world))
         if row is None:
-            seqs = ",".join("[" + ",".join(map(str, t.sequence)) + "]" for t in tasks)
-            ids = ",".join(t.id for t in tasks)
             raise ConfigError(
                 f"practice task {task.id} has no stored optimum under world.physics={world.physics_name}; compute them "
                 f"with: python -m overhang_framework.optimum tasks=custom 'tasks.sequences=[{seqs}]' "
                 f"'tasks.ids=[{ids}]' world.physics={world.physics_name}")
-        state = world.initial_state(task)
-        for x, layer in row["actions"]:
-            state = world.successor(state, Action(float(x), int(layer)))
-        tower = [[b.width, b.x, b.layer] for b in state.geometry.blocks]
-        optimum = float(row["optimum"])
-        out.append(PracticeTask(task, optimum, tower, tower, optimum, float(cfg.practice.threshold) * optimum))
+        shown = towers.get(tower_key(task, world, tolerance))
+        if shown is None:
+            raise ConfigError(
+                f"practice task {task.id} has no stored buildable tower under world.physics={world.physics_name} "
+                f"with practice.tolerance={tolerance:g}; compute them with: {COMMAND} "
+                f"world.physics={world.physics_name} practice.tolerance={tolerance:g} "
+                f"'practice.sequences=[{seqs}]' 'practice.ids=[{ids}]'")
+        if not shown["actions"]:
+            raise ConfigError(f"practice task {task.id} has no tower that stands with every placement off by "
+                              f"{tolerance:g}; choose a smaller practice.tolerance or another sequence")
+        tower, _ = replay(task, row["actions"])
+        shown_tower, shown_reward = replay(task, shown["actions"])
+        out.append(PracticeTask(task, float(row["optimum"]), tower, shown_tower, float(shown_reward), tolerance,
+                                float(cfg.practice.threshold) * float(shown_reward)))
     return out
 
 
