@@ -12,11 +12,12 @@ import argparse
 import sys
 from typing import Optional, Sequence
 
-from overhang_framework.behaviour.analysis import ANALYSES, Settings
+from overhang_framework.behaviour.analysis import ANALYSES, GAMMA_TOWERS, Settings
 
 EXAMPLES = """examples:
   python -m overhang_framework.analyze people.jsonl --out results/behaviour
   python -m overhang_framework.analyze people.jsonl models.jsonl --out results/all --world world.physics=static
+  python -m overhang_framework.analyze people.jsonl --out results/final --gamma-towers final
   python -m overhang_framework.analyze log.jsonl --out out --compare unconstrained veridical-myopic \\
       --predictors veridical,ipe --only table1,prediction --n-resamples 2000
 """
@@ -40,6 +41,9 @@ def parser() -> argparse.ArgumentParser:
                     help="registered predictor names for Fig. 4, comma-separated (default veridical,ipe,cnn)")
     ap.add_argument("--flow-task", metavar="ID", help="task of the flows (default: the paper's example "
                     "sequence if present, else the most-played task)")
+    ap.add_argument("--gamma-towers", default=GAMMA_TOWERS[0], metavar="|".join(GAMMA_TOWERS),
+                    help="which towers order dependency Γ counts: completed (every block placed, standing after each "
+                         "placement; the paper's reading, default) or final (every trial's last tower)")
     ap.add_argument("--world", action="append", default=[], metavar="OVERRIDE",
                     help="config override of the world (and predictors), e.g. world.physics=static; repeatable")
     ap.add_argument("--only", default=",".join(ANALYSES),
@@ -60,11 +64,15 @@ def settings_of(args) -> Settings:
         raise OverhangError("--predictors: give at least one predictor name")
     if args.n_resamples < 1 or args.bootstrap < 1:
         raise OverhangError("--n-resamples and --bootstrap must be >= 1")
+    if args.gamma_towers not in GAMMA_TOWERS:
+        raise OverhangError(f"--gamma-towers: unknown reading {args.gamma_towers!r}; "
+                            f"readings: {', '.join(GAMMA_TOWERS)}")
     if not 0 < args.epsilon < 0.5:
         raise OverhangError(f"--epsilon must be in (0, 0.5), got {args.epsilon}")
     return Settings(world_overrides=list(args.world), compare=tuple(args.compare) if args.compare else None,
                     n_resamples=args.n_resamples, bootstrap=args.bootstrap, seed=args.seed, epsilon=args.epsilon,
-                    predictors=predictors, flow_task=args.flow_task, only=only, progress=not args.quiet)
+                    predictors=predictors, flow_task=args.flow_task, only=only, progress=not args.quiet,
+                    gamma_towers=args.gamma_towers)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -16,6 +16,7 @@ from scipy.stats import permutation_test
 from overhang_framework.analyze import main
 from overhang_framework.behaviour import analysis, flows, gamma, prediction, table1
 from overhang_framework.behaviour.log import read_log, write_log
+from overhang_framework.errors import OverhangError
 from overhang_framework.geometry import Geometry, overhang
 
 STATIC = ["world.physics=static"]
@@ -79,7 +80,8 @@ def test_permutation_p_is_scipys_and_table1_reports_it():
                            alternative="two-sided", random_state=7).pvalue
     assert analysis.permutation_p(a, b, 999, 7) == pytest.approx(ref, abs=0)
     people = pd.DataFrame({"group": ["A"] * 5 + ["B"] * 4, "participant": list("abcdefghi"),
-                           "total_reward": a + b, "stable_pct": a + b, "avg_overhang": a + b, "decision_time": a + b})
+                           "total_reward": a + b, "reward_per_trial": a + b, "stable_pct": a + b, "avg_overhang": a + b,
+                           "decision_time": a + b})
     tab = table1.table(people, ["A", "B"], ("A", "B"), 999, 7)
     assert set(tab.loc[tab.group == "A", "p"]) == {ref}
     assert set(tab["n_resamples"]) == {999}
@@ -91,6 +93,10 @@ def test_table1_on_a_hand_built_log(tmp_path):
     bridge, stack = overhang(Geometry.from_tuples([[1.8, 0, 0], [0.6, -0.6, 1], [0.6, 0.6, 1], [1.8, 0, 2]])), 0.6
     assert people.loc["t1", "total_reward"] == pytest.approx(bridge + stack)
     assert people.loc["t2", "total_reward"] == 0
+    # per trial: the total over the trials each did (t1 2, u1 3: one collapsed, reward 0)
+    assert people.loc["t1", "reward_per_trial"] == pytest.approx((bridge + stack) / 2)
+    assert people.loc["u1", "reward_per_trial"] == pytest.approx((bridge + 1.2) / 3)
+    assert list(people["trials"]) == [2, 2, 3, 1]
     assert people.loc["t1", "stable_pct"] == 100 and people.loc["t2", "stable_pct"] == 0
     assert people.loc["u1", "avg_overhang"] == pytest.approx((bridge + 0.6 + 0.6) / 2)
     assert math.isnan(people.loc["t2", "avg_overhang"])
@@ -110,8 +116,9 @@ def test_gamma_per_participant_matches_order_counts(tmp_path):
     world = analysis.build_world(STATIC)
     df = analysis.with_groups(read_log(people_log(tmp_path)))
     towers = gamma.tower_gammas(df, world)
-    # t2 placed every block in one trial, toppling the tower with the last (Γ = 1); u2 one; t1 and u1 two each
-    assert sorted(towers["participant"]) == ["t1", "t1", "t2", "u1", "u1", "u2"]
+    # completed towers only: t2 toppled one tower with its last block and timed out in the other, so none
+    assert sorted(towers["participant"]) == ["t1", "t1", "u1", "u1", "u2"]
+    assert towers["completed"].all()
     bridge = order_counts(Geometry.from_tuples([[1.8, 0, 0], [0.6, -0.6, 1], [0.6, 0.6, 1], [1.8, 0, 2]]), world)
     stack = order_counts(Geometry.from_tuples([[1.2, 0, 0], [1.2, 0, 1], [1.2, 0, 2]]), world)
     offset = order_counts(Geometry.from_tuples([[1.2, 0, 0], [1.2, 0.3, 1], [1.2, 0.6, 2]]), world)
@@ -120,7 +127,56 @@ def test_gamma_per_participant_matches_order_counts(tmp_path):
     assert people["t1"] == pytest.approx((bridge.gamma + stack.gamma) / 2)
     assert people["u1"] == pytest.approx((bridge.gamma + offset.gamma) / 2)
     assert people["u2"] == pytest.approx(stack.gamma)
-    assert people["t2"] == 1.0
+    assert "t2" not in people
+
+
+def test_gamma_of_every_final_tower_counts_collapses_and_timeouts(tmp_path):
+    from overhang_framework.behaviour.order_dependency import order_counts
+
+    world = analysis.build_world(STATIC)
+    df = analysis.with_groups(read_log(people_log(tmp_path)))
+    towers = gamma.tower_gammas(df, world, towers="final")
+    assert len(towers) == 8 and sorted(towers["participant"]) == ["t1", "t1", "t2", "t2", "u1", "u1", "u1", "u2"]
+    ended = towers.set_index(["participant", "task_id"])["ended"]
+    assert ended["t2", "custom01"] == "timeout" and ended["t2", "custom00"] == "collapse"
+    assert ended["u1", "custom02"] == "collapse" and (ended.drop([("t2", "custom01"), ("t2", "custom00"),
+                                                                   ("u1", "custom02")]) == "completed").all()
+    # the timeout leaves the tower it had (ground block and one block); a tower that fell has no stable order
+    kept = order_counts(Geometry.from_tuples([[1.8, 0, 0], [0.6, 0.0, 1]]), world)
+    toppled = order_counts(Geometry.from_tuples([[1.2, 0, 0], [1.2, 0, 1], [1.2, 0.9, 2]]), world)
+    fell = order_counts(Geometry.from_tuples([[1.2, 0, 0], [0.6, 0.8, 1]]), world)
+    assert kept.gamma == 0 and toppled.gamma == 1 and fell.gamma == 1
+    people = gamma.per_participant(towers).set_index("participant")["gamma"]
+    assert people["t2"] == pytest.approx((kept.gamma + toppled.gamma) / 2)
+    completed = gamma.per_participant(gamma.tower_gammas(df, world)).set_index("participant")["gamma"]
+    assert people["u1"] == pytest.approx((2 * completed["u1"] + fell.gamma) / 3)
+    assert people["t1"] == completed["t1"] and people["u2"] == completed["u2"]
+    with pytest.raises(OverhangError, match=r"towers: unknown reading 'all'; readings: completed, final"):
+        gamma.final_towers(df, "all")
+
+
+def test_the_report_counts_the_chosen_towers_and_gives_the_other_reading(tmp_path, capsys):
+    log = people_log(tmp_path)
+    args = ["--world", "world.physics=static", "--only", "gamma", "--n-resamples", "100", "--quiet"]
+    assert main([str(log), "--out", str(tmp_path / "completed"), *args]) == 0
+    assert main([str(log), "--out", str(tmp_path / "final"), *args, "--gamma-towers", "final"]) == 0
+    done, final = (json.loads((tmp_path / d / "summary.json").read_text())["gamma"] for d in ("completed", "final"))
+    assert done["reading"] == "completed" and final["reading"] == "final"
+    assert done["time_limited"]["towers"] == 2 and final["time_limited"]["towers"] == 4
+    assert done["unconstrained"]["towers"] == 3 and final["unconstrained"]["towers"] == 4
+    # both runs compute both readings; each reports its own first
+    assert done["readings"] == final["readings"]
+    assert final["time_limited"] == final["readings"]["final"]["time_limited"]
+    people = pd.read_csv(tmp_path / "final" / "gamma_participants.csv")
+    assert set(people["participant"]) == {"t1", "t2", "u1", "u2"}
+    assert set(pd.read_csv(tmp_path / "completed" / "gamma_participants.csv")["participant"]) == {"t1", "u1", "u2"}
+    report = (tmp_path / "completed" / "report.md").read_text()
+    assert "Γ counts completed towers only" in report
+    assert "not a completed tower, so not in Γ (`--gamma-towers final` counts it)" in report
+    assert "| `final` | time_limited | 2 | 4 of 4 (1 with no stable order here) |" in report
+    assert main([str(log), "--out", str(tmp_path / "o"), "--gamma-towers", "all", "--quiet"]) == 2
+    assert capsys.readouterr().err.strip() == ("error: --gamma-towers: unknown reading 'all'; "
+                                               "readings: completed, final")
 
 
 def test_fig4_veridical_loglikelihood_is_log_eps_or_log_one_minus_eps(tmp_path):
@@ -262,3 +318,116 @@ def test_fig4_asks_each_distinct_state_once():
     p = prediction.probabilities(done, {"x": counting}, 0)["x"]
     assert len(p) == 4 and len(counting.requests) == 2            # the ground block alone, the block on it
     assert [len(actions) for _, actions in counting.requests] == [1, 2]
+
+
+def test_finding_states_direction_credibility_and_whether_it_matches_the_paper():
+    show = "{:.2f}".format
+    up = ("a", "b")
+    same = analysis.finding("x", up, (1.0, 2.0), 0.01, (1.0, 1.5, "<.001"), show)
+    assert same.text == ("x is higher for b than for a (2.00 vs 1.00; p = .010, credible): matches the paper "
+                         "(higher, 1.50 vs 1.00, p < .001)") and same.matches
+    opposite = analysis.finding("x", up, (2.0, 1.0), 0.01, (1.0, 1.5, ".022"), show)
+    assert "x is lower for b" in opposite.text and "opposite to the paper" in opposite.text
+    assert opposite.matches is False
+    lost = analysis.finding("x", up, (1.0, 1.1), 0.4, (1.0, 1.5, ".022"), show)
+    assert "p = .400, not credible): does not reproduce the paper's credible difference" in lost.text
+    assert lost.matches is False
+    extra = analysis.finding("x", up, (1.0, 1.1), 0.001, (1.0, 1.5, ".107"), show)
+    assert "differs from the paper, which found no credible difference" in extra.text and extra.matches is False
+    neither = analysis.finding("x", up, (1.1, 1.0), 0.5, (1.0, 1.5, ".482"), show)
+    assert "matches the paper, which found no credible difference either" in neither.text and neither.matches
+    untested = analysis.finding("x", up, (1.0, 2.0), float("nan"), (1.0, 1.5, ".022"), show)
+    assert "no test" in untested.text and "same direction to the paper's, untested here" in untested.text
+    assert untested.matches is None
+    assert analysis.finding("x", up, (1.0, 2.0), 0.2, None, show, no_paper="; none").text.endswith("; none")
+    assert analysis.paper_pair(("unconstrained", "time_limited"), 0.15, 0.24) == (0.24, 0.15)
+    assert analysis.paper_pair(("a", "unconstrained"), 0.15, 0.24) is None
+
+
+def test_table1_and_gamma_open_with_their_finding_and_table1_compares_per_trial(tmp_path):
+    out = tmp_path / "out"
+    assert main([str(people_log(tmp_path)), "--out", str(out), "--world", "world.physics=static", "--only",
+                 "table1,gamma", "--n-resamples", "200", "--quiet"]) == 0
+    report = (out / "report.md").read_text()
+    sections = {part.split("\n", 1)[0]: part.split("\n", 1)[1].strip() for part in report.split("\n## ")[1:]}
+    assert sections["Table 1: overall performance"].startswith(
+        "**Finding** (unconstrained against time_limited; credible: permutation p < .05; ")
+    assert sections["Order dependency Γ (Fig. 3b)"].startswith("**Finding** (`completed`, completed towers")
+    tab = pd.read_csv(out / "table1.csv").set_index(["metric", "group"])
+    t = tab.loc["decision_time"]
+    assert (f"decision time is higher for unconstrained than for time_limited ({t.loc['unconstrained', 'mean']:.2f} s "
+            f"vs {t.loc['time_limited', 'mean']:.2f} s; {analysis.p_is(t.loc['time_limited', 'p'])}, ") in report
+    assert "(higher, 7.27 s vs 2.47 s, p < .001)" in report
+    # 5-task (here 1 to 3) totals are said to be so; per trial, the paper's total / 20
+    assert "| Total reward (sum over 1–3 tasks; paper: 20) |" in report
+    assert "| Reward per trial (paper: total / 20) |" in report
+    assert "| 0.9125 ± 0.0285 | 0.9785 ± 0.0280 | .107 |" in report
+    per = pd.read_csv(out / "table1_participants.csv")
+    np.testing.assert_allclose(per["reward_per_trial"], per["total_reward"] / per["trials"])
+    g = json.loads((out / "summary.json").read_text())["gamma"]
+    u, t = g["unconstrained"]["participants_mean"], g["time_limited"]["participants_mean"]
+    assert u < t   # t1's two towers against u1's and u2's; the groups have 1 and 2 participants: no test
+    assert (f"Γ across participants is lower for unconstrained than for time_limited ({u:.3f} vs {t:.3f}; no test: "
+            "a group has fewer than two participants with a value): opposite direction to the paper's, untested here "
+            "(higher, 0.24 vs 0.15, p = .022).") in sections["Order dependency Γ (Fig. 3b)"]
+
+
+def _shuffled(path: Path, out: Path, how: str, seed: int = 0) -> Path:
+    """The log at ``path`` with its lines in another order: ``shuffle`` (seeded), ``steps`` (each trial's steps
+    reversed, trials in place) or ``reverse`` (the whole file backwards)."""
+    import random
+
+    lines = path.read_text().splitlines()
+    if how == "shuffle":
+        random.Random(seed).shuffle(lines)
+    elif how == "steps":
+        key = [json.loads(line) for line in lines]
+        lines = [line for _, line in sorted(zip(key, lines), key=lambda kl: (kl[0]["participant"], kl[0]["trial"],
+                                                                             -kl[0]["step"]))]
+    else:
+        lines.reverse()
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def _report_body(path: Path) -> list[str]:
+    """report.md without what depends on the run rather than the log: the log's path and the times."""
+    text = path.read_text()
+    return [line for line in text[:text.index("## Time")].splitlines() if not line.startswith("Logs: ")]
+
+
+def test_the_whole_report_is_the_same_for_any_order_of_the_logs_lines(tmp_path):
+    log = people_log(tmp_path)
+    args = ["--world", "world.physics=static", "--predictors", "veridical", "--n-resamples", "200",
+            "--bootstrap", "50", "--quiet"]
+    assert main([str(log), "--out", str(tmp_path / "base"), *args]) == 0
+    base = tmp_path / "base"
+    summary = json.loads((base / "summary.json").read_text())
+    assert summary["table1"]["total_reward"]["time_limited"]["mean"] > 0 and summary["gamma"]["time_limited"]["towers"]
+    csvs = sorted(p.name for p in base.glob("*.csv"))
+    assert {"table1.csv", "gamma.csv", "gamma_towers.csv", "fig3a_flows.csv", "fig4_placements.csv"} <= set(csvs)
+    for how in ("shuffle", "steps", "reverse"):
+        other = tmp_path / how
+        assert main([str(_shuffled(log, tmp_path / f"{how}.jsonl", how)), "--out", str(other), *args]) == 0
+        theirs = json.loads((other / "summary.json").read_text())
+        assert {k: v for k, v in theirs.items() if k != "seconds"} == \
+            {k: v for k, v in summary.items() if k != "seconds"}, how
+        for name in csvs:
+            assert (other / name).read_bytes() == (base / name).read_bytes(), (how, name)
+        assert _report_body(other / "report.md") == _report_body(base / "report.md"), how
+
+
+def test_each_analysis_takes_a_trials_last_step_from_a_dataframe_in_any_order(tmp_path):
+    """Without the reader's sort: a DataFrame whose rows are shuffled gives every analysis the same answer."""
+    df = analysis.with_groups(read_log(people_log(tmp_path)))
+    mixed = df.sample(frac=1.0, random_state=3)
+    steps = df.sort_values(["participant", "trial", "step"], ascending=[True, True, False])
+    assert not mixed.index.equals(df.index)
+    for other in (mixed, steps):
+        pd.testing.assert_frame_equal(table1.trial_outcomes(other), table1.trial_outcomes(df))
+        pd.testing.assert_frame_equal(table1.per_participant(other), table1.per_participant(df))
+        pd.testing.assert_frame_equal(gamma.trial_towers(other), gamma.trial_towers(df))
+        assert analysis.completeness(other) == analysis.completeness(df)
+        pd.testing.assert_frame_equal(flows.transitions(other, "custom00", 0.1), flows.transitions(df, "custom00", 0.1))
+    outcomes = table1.trial_outcomes(steps).set_index(["participant", "trial"])
+    assert outcomes.loc[("t1", 1), "reward"] > 0 and outcomes.loc[("t1", 1), "stood"]

@@ -18,7 +18,7 @@ import pytest
 from overhang_framework.behaviour import (COLUMNS, FIELDS, LogError, from_run, from_runs, read_log, to_csv, to_frame,
                                           write_log)
 from overhang_framework.behaviour.convert import ConvertError
-from overhang_framework.behaviour.log import DTYPES, REQUIRED, SOURCES
+from overhang_framework.behaviour.log import DTYPES, REQUIRED, SOURCES, in_step_order, last_records
 from overhang_framework.errors import OverhangError
 from overhang_framework.geometry import MAX_LAYER, WIDTHS, Geometry, overhang
 from overhang_framework.results import read_episodes
@@ -108,6 +108,35 @@ def test_unknown_fields_are_kept_as_columns_in_order_of_appearance(tmp_path):
     assert df["zeta"][4] == [1, {"deep": None}] and df["alpha"][0] == 7
     to_csv(df, tmp_path / "log.csv")
     pd.testing.assert_frame_equal(read_log(tmp_path / "log.csv"), df)
+
+
+def test_any_order_of_lines_and_files_reads_as_the_same_log_sorted_by_participant_trial_step(tmp_path):
+    import random
+
+    records = human_log()
+    records[4]["zeta"] = 1                    # an extra field: its column's place must not depend on the order
+    df = read_log(write_lines(tmp_path / "log.jsonl", records))
+    assert list(zip(df.participant, df.trial, df.step)) == sorted(zip(df.participant, df.trial, df.step))
+    shuffled = records[:]
+    random.Random(0).shuffle(shuffled)
+    backwards = sorted(records, key=lambda r: (r["participant"], r["trial"], -r["step"]))
+    assert shuffled != records and backwards != records
+    for i, other in enumerate([shuffled, backwards, records[::-1]]):
+        pd.testing.assert_frame_equal(read_log(write_lines(tmp_path / f"other{i}.jsonl", other)), df)
+        pd.testing.assert_frame_equal(to_frame(other), df)
+    write_lines(tmp_path / "a.jsonl", shuffled[:3])
+    write_lines(tmp_path / "b.jsonl", shuffled[3:])
+    pd.testing.assert_frame_equal(read_log([tmp_path / "b.jsonl", tmp_path / "a.jsonl"]), df)
+
+
+def test_last_records_are_each_trials_last_step_whatever_the_rows_order():
+    df = to_frame(human_log())
+    for other in (df.iloc[::-1], df.sample(frac=1.0, random_state=1)):
+        last = last_records(other)
+        assert list(zip(last.participant, last.trial, last.step)) == [("p01", 1, 2), ("p01", 2, 1), ("p02", 1, 1),
+                                                                      ("p02", 2, 2)]
+        assert last["reward"].tolist() == [1.5, 0.0, 0.0, 1.8]
+        pd.testing.assert_frame_equal(in_step_order(other), df)
 
 
 def test_write_log_refuses_a_malformed_record_and_writes_nothing(tmp_path):

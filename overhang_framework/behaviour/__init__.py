@@ -1,7 +1,8 @@
 """Behaviour: the log format that people, simulated participants and models all write, and its readers.
 
 * :mod:`overhang_framework.behaviour.log`: the record format (``schema.json``),
-  :func:`read_log`, :func:`write_log`, :func:`to_csv`, :class:`LogError`;
+  :func:`read_log` (records sorted by participant, trial and step), :func:`write_log`, :func:`to_csv`,
+  :class:`LogError`, and :func:`last_records` (each trial's last step, for rows in any order);
 * :mod:`overhang_framework.behaviour.convert`: model runs as logs (:func:`from_run`).
 
 The names below are imported from those modules when first used, so running
@@ -20,6 +21,8 @@ if TYPE_CHECKING:
         FIELDS,
         LOG_VERSION,
         LogError,
+        in_step_order,
+        last_records,
         read_log,
         records_of,
         to_csv,
@@ -29,6 +32,7 @@ if TYPE_CHECKING:
 
 _EXPORTS = {
     "COLUMNS": "log", "FIELDS": "log", "LOG_VERSION": "log", "LogError": "log", "read_log": "log",
+    "in_step_order": "log", "last_records": "log",
     "records_of": "log", "to_csv": "log", "to_frame": "log", "write_log": "log",
     "from_run": "convert", "from_runs": "convert",
 }

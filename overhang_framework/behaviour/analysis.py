@@ -9,6 +9,11 @@ every table and figure. Two groups are compared with permutation tests: ``time_l
 ``unconstrained`` when both are present (or the only two groups, whatever their names), or the pair
 given.
 
+The log is read in its canonical order (participant, trial, step: :func:`~overhang_framework.behaviour.log.read_log`)
+and every analysis takes a trial's last record as its last step, so the report is the same for any order
+of the log's lines. Table 1 and Γ open with their finding: the direction, whether it is credible
+(:data:`ALPHA`) and whether it matches the paper (:func:`finding`).
+
 The statistics every analysis shares are here: :func:`mean_sem`, :func:`permutation_p` (SciPy's
 ``permutation_test``, independent samples, difference of means, two-sided, seeded) and
 :func:`bootstrap_ci` (participants resampled with replacement, seeded).
@@ -30,6 +35,8 @@ import pandas as pd
 from overhang_framework.results import atomic_output, atomic_write_text
 
 ANALYSES = ("table1", "gamma", "flows", "prediction")
+#: Which towers Γ counts (:attr:`Settings.gamma_towers`), the default first.
+GAMMA_TOWERS = ("completed", "final")
 DEFAULT_COMPARE = ("time_limited", "unconstrained")
 GROUP_COLOURS = {"time_limited": "#d98c1f", "unconstrained": "#2f6db5"}
 OTHER_COLOURS = ("#3a9a5b", "#8e5bb5", "#6b6b6b", "#b5875b", "#2aa3a3", "#c2559a")
@@ -133,6 +140,82 @@ def p_is(p: float) -> str:
     return f"p {text[0]} {text[1:]}" if text.startswith("<") else f"p = {text}"
 
 
+#: p below this is called credible in the reports' findings.
+ALPHA = 0.05
+
+
+def paper_p_credible(text: str) -> bool:
+    """Whether a p as the paper prints it (``.022``, ``<.001``) is below :data:`ALPHA`."""
+    return text.startswith("<") or float(text) < ALPHA
+
+
+def is_paper_comparison(compare: Optional[Sequence[str]]) -> bool:
+    """Whether the compared groups are the paper's two conditions, ``time_limited`` and ``unconstrained``."""
+    return bool(compare) and set(compare) == set(DEFAULT_COMPARE)
+
+
+def paper_pair(compare: Optional[Sequence[str]], time_limited: float, unconstrained: float
+               ) -> Optional[tuple[float, float]]:
+    """The paper's values of a metric in the order of ``compare``, or None when the compared groups are not
+    the paper's two conditions."""
+    if not is_paper_comparison(compare):
+        return None
+    return (time_limited, unconstrained) if compare[0] == "time_limited" else (unconstrained, time_limited)
+
+
+def _direction(a: float, b: float) -> str:
+    return "higher" if b > a else "lower" if b < a else "the same"
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A comparison in a sentence, and whether it matches the paper (None: no paper value or no test)."""
+
+    text: str
+    matches: Optional[bool]
+
+
+def finding(what: str, compare: Sequence[str], ours: tuple[float, float], p: float,
+            paper: Optional[tuple[float, float, str]], show: Callable[[float], str],
+            no_paper: str = "; the paper reports no such comparison",
+            show_paper: Optional[Callable[[float], str]] = None) -> Finding:
+    """A sentence on a comparison: ``what`` is higher or lower for ``compare[1]`` than for ``compare[0]``
+    (``ours`` = their values, in that order), whether ``p`` is credible (below :data:`ALPHA`), and whether
+    that matches ``paper`` (its values in the same order and its p as printed; None: no paper value, and
+    ``no_paper`` ends the sentence). ``show`` writes a value, ``show_paper`` (default ``show``) the paper's.
+
+    Matching means the same verdict: both credible in the same direction, or neither credible.
+    """
+    a, b = compare
+    if not (np.isfinite(ours[0]) and np.isfinite(ours[1])):
+        return Finding(f"{what}: no value for {a if not np.isfinite(ours[0]) else b}, so no comparison", None)
+    tested = p is not None and np.isfinite(p)
+    credible = tested and p < ALPHA
+    text = (f"{what} is {_direction(*ours)} for {b} than for {a} ({show(ours[1])} vs {show(ours[0])}; "
+            + (f"{p_is(p)}, {'credible' if credible else 'not credible'})" if tested else
+               "no test: a group has fewer than two participants with a value)"))
+    if paper is None:
+        return Finding(text + no_paper, None)
+    pa, pb, ptext = paper
+    shown = show_paper or show
+    theirs = (f"{_direction(pa, pb)}, {shown(pb)} vs {shown(pa)}, "
+              f"p {'< ' + ptext[1:] if ptext.startswith('<') else '= ' + ptext}")
+    paper_credible = paper_p_credible(ptext)
+    same = np.sign(ours[1] - ours[0]) == np.sign(pb - pa)
+    if not tested:
+        return Finding(f"{text}: {'same' if same else 'opposite'} direction to the paper's, untested here ({theirs})",
+                       None)
+    if credible and paper_credible:
+        verdict, matches = ("matches the paper" if same else "opposite to the paper"), bool(same)
+    elif credible:
+        verdict, matches = "differs from the paper, which found no credible difference", False
+    elif paper_credible:
+        verdict, matches = "does not reproduce the paper's credible difference", False
+    else:
+        verdict, matches = "matches the paper, which found no credible difference either", True
+    return Finding(f"{text}: {verdict} ({theirs})", matches)
+
+
 def fmt_ms(mean: float, sem: float, digits: int) -> str:
     if not np.isfinite(mean):
         return "–"
@@ -171,6 +254,9 @@ class Settings:
     flow_task: Optional[str] = None
     only: Sequence[str] = ANALYSES
     progress: bool = False
+    #: Which towers Γ counts: ``completed`` (every block placed, the tower standing after each placement) or
+    #: ``final`` (every trial's last tower, however the trial ended); see :mod:`overhang_framework.behaviour.gamma`.
+    gamma_towers: str = "completed"
 
 
 @dataclass
@@ -190,27 +276,33 @@ def build_world(overrides: Sequence[str]):
     return build(list(overrides))
 
 
-def completeness(df: pd.DataFrame) -> list[str]:
-    """What the log lacks, one line each: missing trials, trials that ended early, timeouts, trajectories."""
+def completeness(df: pd.DataFrame, gamma_towers: str = "completed") -> list[str]:
+    """What the log lacks, one line each: missing trials, trials that ended early, timeouts, trajectories.
+    ``gamma_towers`` (:attr:`Settings.gamma_towers`) says whether Γ counts the towers that fell."""
+    from overhang_framework.behaviour.log import last_records
+
     notes = []
     tasks = df["task_id"].nunique()
     trials = df.groupby("participant")["trial"].nunique()
     short = trials[trials < tasks]
     if len(short):
         notes.append(f"{len(short)} of {len(trials)} participants did fewer trials than the {tasks} tasks in the log "
-                     f"(fewest: {int(short.min())}); per-participant sums (total reward) cover the trials they did.")
-    last = df.groupby(["participant", "trial"]).tail(1)
-    placed = last["step"] == last["sequence"].map(len) - 1
+                     f"(fewest: {int(short.min())}); per-participant sums (total reward) cover the trials they did, "
+                     "reward per trial compares them fairly.")
+    last = last_records(df)
+    placed = (last["step"] == last["sequence"].map(len) - 1) & ~last["timed_out"]
     fell = (last["stable"] == False).fillna(False).astype(bool) & placed  # noqa: E712
-    early = (~placed).sum()
+    early = int((~placed).sum())
+    counted = "Γ counts every trial's final tower" if gamma_towers == "final" else "Γ counts completed towers only"
     if early:
         timeouts = int(last["timed_out"].sum())
-        notes.append(f"{int(early)} of {len(last)} trials ended before their last block "
-                     f"({timeouts} on a timeout, {int(early) - timeouts} on a collapse).")
+        notes.append(f"{early} of {len(last)} trials ended before their last block "
+                     f"({timeouts} on a timeout, {early - timeouts} on a collapse); {counted}.")
     if fell.sum():
         n = int(fell.sum())
-        notes.append(f"{n} trial{'s' if n != 1 else ''} placed every block but the last placement toppled the tower "
-                     "(they count in Γ, with Γ = 1).")
+        notes.append(f"{n} trial{'s' if n != 1 else ''} placed every block but the last placement toppled the tower: "
+                     + ("Γ counts the fallen tower (`--gamma-towers final`)." if gamma_towers == "final" else
+                        "not a completed tower, so not in Γ (`--gamma-towers final` counts it)."))
     timeouts = int(df["timed_out"].sum())
     if timeouts:
         notes.append(f"{timeouts} record{' is a timeout' if timeouts == 1 else 's are timeouts'} (no placement): "
@@ -228,16 +320,20 @@ def _number(value):
     return None if pd.isna(value) else float(value)
 
 
-def summary(out: Path, sections: dict[str, Section], seconds: float) -> dict:
+def summary(out: Path, sections: dict[str, Section], seconds: float, settings: Settings,
+            tasks: int) -> dict:
     """The report's headline figures as one JSON object (``summary.json``), for scripts and the docs' checks.
 
     ``table1[metric][group]`` holds ``mean``, ``sem`` and ``n``, ``table1[metric]["p"]`` the test's p;
-    ``gamma[group]`` the mean and SEM across participants and tasks, ``gamma["p"]``;
+    ``gamma[group]`` the mean and SEM across participants and tasks and ``gamma["p"]``, for the towers Γ
+    counts (``gamma["reading"]``: ``completed`` or ``final``), and ``gamma["readings"][reading]`` the same
+    for each reading; ``tasks`` the number of tasks in the log;
     ``fig4[group][predictor]`` the mean log-likelihood of the executed placements; ``seconds`` each
     analysis's time and ``total``.
     """
     data: dict[str, Any] = {"seconds": {n: round(s.seconds, 3) for n, s in sections.items()}}
     data["seconds"]["total"] = round(seconds, 3)
+    data["tasks"] = tasks
     if (out / "table1.csv").exists() and "table1" in sections:
         table: dict[str, dict] = {}
         for row in pd.read_csv(out / "table1.csv").itertuples():
@@ -245,14 +341,15 @@ def summary(out: Path, sections: dict[str, Section], seconds: float) -> dict:
             entry[row.group] = {"mean": _number(row.mean), "sem": _number(row.sem), "n": int(row.n)}
         data["table1"] = table
     if (out / "gamma.csv").exists() and "gamma" in sections:
-        gamma: dict[str, Any] = {}
+        readings: dict[str, dict[str, Any]] = {}
         for row in pd.read_csv(out / "gamma.csv").itertuples():
+            gamma = readings.setdefault(row.reading, {})
             gamma["p"] = _number(row.p)
             gamma[row.group] = {"participants_mean": _number(row.gamma_participants_mean),
                                 "participants_sem": _number(row.gamma_participants_sem),
                                 "tasks_mean": _number(row.gamma_tasks_mean), "tasks_sem": _number(row.gamma_tasks_sem),
                                 "towers": int(row.towers)}
-        data["gamma"] = gamma
+        data["gamma"] = {**readings[settings.gamma_towers], "reading": settings.gamma_towers, "readings": readings}
     if (out / "fig4_placements.csv").exists() and "prediction" in sections:
         per = pd.read_csv(out / "fig4_placements.csv")
         cols = [c for c in per.columns if c.startswith("ll_")]
@@ -267,10 +364,15 @@ def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
 
     Returns the sections by analysis name; ``report.md`` holds them all.
     """
-    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.behaviour.log import in_step_order, read_log
 
     started = time.perf_counter()
-    df = with_groups(read_log(list(paths)))
+    if settings.gamma_towers not in GAMMA_TOWERS:
+        from overhang_framework.errors import OverhangError
+
+        raise OverhangError(f"--gamma-towers: unknown reading {settings.gamma_towers!r}; "
+                            f"readings: {', '.join(GAMMA_TOWERS)}")
+    df = with_groups(in_step_order(read_log(list(paths))))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     groups = list(df["group"].unique())
@@ -287,7 +389,9 @@ def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
     world = None
     if any(a in settings.only for a in ("gamma", "flows", "prediction")):
         try:
-            world = build_world(settings.world_overrides)
+            from overhang_framework.behaviour.prediction import targets_predictor
+
+            world = build_world([o for o in settings.world_overrides if not targets_predictor(o)])
         except Exception as exc:  # a bad override or parameter: one line, as the main job reports it
             from overhang_framework.errors import OverhangError
 
@@ -342,7 +446,7 @@ def write_report(df, out: Path, order, compare, settings: Settings, sections: di
                  "No two groups to compare (give `--compare A B`): no p-values.")
     world = " ".join(settings.world_overrides) or "the default world (tiered physics)"
     lines += ["", f"World: {world}. Seed {settings.seed}.", "", "## What the log lacks", ""]
-    notes = completeness(df)
+    notes = completeness(df, settings.gamma_towers)
     lines += [f"- {n}" for n in notes] if notes else ["Nothing: every participant did every task to its end."]
     skipped = [a for a in ANALYSES if a not in sections]
     if skipped:
@@ -356,4 +460,5 @@ def write_report(df, out: Path, order, compare, settings: Settings, sections: di
               markdown_table(["analysis", "seconds"], [[n, f"{s.seconds:.1f}"] for n, s in sections.items()]
                              + [["total (reading and writing included)", f"{seconds:.1f}"]]), ""]
     atomic_write_text(out / "report.md", "\n".join(lines))
-    atomic_write_text(out / "summary.json", json.dumps(summary(out, sections, seconds), indent=1, sort_keys=True) + "\n")
+    data = summary(out, sections, seconds, settings, int(df["task_id"].nunique()))
+    atomic_write_text(out / "summary.json", json.dumps(data, indent=1, sort_keys=True) + "\n")

@@ -10,7 +10,7 @@ crimson when it fell. The optimal path of the task under the world's physics is 
 ``overhang_framework/data/optima.json`` holds it.
 
 Task: ``--flow-task`` or, by default, the paper's example sequence (0.6, 1.8, 1.2, 1.8, 0.6, 1.8) when
-the log holds it, else the task played in the most trials.
+the log holds it (the first such task id in sorted order), else the task played in the most trials.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from overhang_framework.behaviour.analysis import Section, colour, markdown_table, save_figure, write_csv
+from overhang_framework.behaviour.log import in_step_order, last_records
 
 EXAMPLE_SEQUENCE = (0.6, 1.8, 1.2, 1.8, 0.6, 1.8)
 CRIMSON = "#dc143c"
@@ -39,7 +40,7 @@ def choose_task(df: pd.DataFrame, wanted: Optional[str] = None) -> str:
         return wanted
     example = df[df["sequence"].map(lambda s: tuple(round(w, 6) for w in s) == EXAMPLE_SEQUENCE)]
     if len(example):
-        return str(example["task_id"].iloc[0])
+        return str(sorted(set(example["task_id"]))[0])
     trials = df.drop_duplicates(["participant", "trial"])["task_id"].value_counts()
     return str(sorted(trials.index, key=lambda t: (-trials[t], t))[0])
 
@@ -74,9 +75,10 @@ def _mirror(xs: list[float], widths: list[float]) -> float:
 
 def transitions(df: pd.DataFrame, task: str, resolution: float) -> pd.DataFrame:
     """One row per (group, step, from node, to node): ``count``, ``from_count``, ``probability``,
-    ``fell`` (towers that fell after the placement), ``trials`` (of the group on the task)."""
+    ``fell`` (towers that fell after the placement), ``trials`` (of the group on the task); the same rows in
+    the same order for any order of ``df``'s rows."""
     rows = []
-    sub = df[(df["task_id"] == task)]
+    sub = in_step_order(df[df["task_id"] == task])
     for g, gd in sub.groupby("group", sort=False):
         trials = gd.groupby(["participant", "trial"], sort=False)
         n_trials = trials.ngroups
@@ -176,7 +178,7 @@ def section(df: pd.DataFrame, out: Path, order, settings, world) -> Section:
     write_csv(edges, out / "fig3a_flows.csv")
     files = ["fig3a_flows.csv"]
     optimum = optimal_path(sequence, task, world)
-    last = df[df["task_id"] == task].groupby(["participant", "trial"]).tail(1)
+    last = last_records(df[df["task_id"] == task])
     best = last.groupby("group")["reward"].max().to_dict()
     rows = []
     for g in order:

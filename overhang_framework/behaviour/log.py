@@ -7,8 +7,12 @@ record: ``schema.json`` beside this module). This module reads and writes
 logs and checks them:
 
 * :func:`read_log` reads JSON Lines (``.jsonl``) or CSV (``.csv``) files into
-  a DataFrame, one row per record, columns :data:`COLUMNS` then any extra
-  fields in the order they first appear;
+  a DataFrame, one row per record sorted by :data:`ORDER` (participant, trial,
+  step) whatever the order of the lines, columns :data:`COLUMNS` then any extra
+  fields in the order they first appear in those sorted records;
+* :func:`in_step_order` and :func:`last_records` give any log DataFrame in that
+  order and each trial's last step: what an analysis relies on never depends
+  on the order in which records were merged;
 * :func:`write_log` and :func:`to_csv` write them atomically, after checking;
 * a malformed log raises :class:`LogError`, one line naming the file, the line
   and the field: ``log.jsonl line 3: field 'x': expected a number, got "abc"``.
@@ -96,6 +100,9 @@ DTYPES: dict[str, Any] = {
     "decision_time": "float64", "timed_out": "bool", "trajectory": object, "dwell": object, "source": object,
 }
 TEXT_COLUMNS = ("participant", "condition", "task_id", "source")
+#: The order of a log's records as :func:`read_log` and :func:`to_frame` give them: by participant, then
+#: trial, then step. Records merged from several sources come in any order; this one is canonical.
+ORDER = ("participant", "trial", "step")
 _WORDS = {"integer": "a whole number", "number": "a number", "string": "a string", "boolean": "true or false",
           "array": "a list"}
 _ALLOWED_WIDTHS = ", ".join(map(str, WIDTHS))
@@ -350,7 +357,24 @@ def check_log(entries: Sequence[tuple[str, dict]]) -> list[dict]:
 def to_frame(records: Iterable[Mapping[str, Any]]) -> pd.DataFrame:
     """The DataFrame of ``records`` (dicts as in a log, checked first): what :func:`read_log` gives for
     a file holding them. Raises :class:`LogError` (``record N: ...``) when one is malformed."""
-    return _frame(_checked_entries(records, "record"))
+    return _frame(_in_order(_checked_entries(records, "record")))
+
+
+def _in_order(records: list[dict]) -> list[dict]:
+    """``records`` sorted by :data:`ORDER` (stable)."""
+    return sorted(records, key=lambda r: tuple(r[name] for name in ORDER))
+
+
+def in_step_order(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` (a log DataFrame) with its rows sorted by :data:`ORDER` and numbered from 0: the order of
+    :func:`read_log`, whatever order the rows came in."""
+    return df.sort_values(list(ORDER), kind="mergesort").reset_index(drop=True)
+
+
+def last_records(df: pd.DataFrame) -> pd.DataFrame:
+    """The last record of each trial of ``df`` (the one with the highest step, not the last row), one row
+    per (participant, trial), in :data:`ORDER`."""
+    return in_step_order(df).groupby(["participant", "trial"], sort=False).tail(1).reset_index(drop=True)
 
 
 def _frame(records: list[dict]) -> pd.DataFrame:
@@ -501,9 +525,10 @@ def _read_csv(path: Path) -> list[tuple[str, dict]]:
 
 def read_log(paths: Union[PathLike, Sequence[PathLike]]) -> pd.DataFrame:
     """The behaviour log in ``paths`` (one file or several; ``.csv`` files as CSV, others as JSON Lines)
-    as a DataFrame: one row per record in file order, columns :data:`COLUMNS` (dtypes :data:`DTYPES`)
-    then extra fields. Blank lines are skipped; anything else that is not a valid record raises
-    :class:`LogError` naming the file, the line and the field."""
+    as a DataFrame: one row per record, sorted by participant, trial and step (:data:`ORDER`) whatever
+    the order of the lines and files, columns :data:`COLUMNS` (dtypes :data:`DTYPES`) then extra fields.
+    Blank lines are skipped; anything else that is not a valid record raises :class:`LogError` naming
+    the file, the line and the field."""
     files = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     entries: list[tuple[str, dict]] = []
     for name in files:
@@ -512,7 +537,7 @@ def read_log(paths: Union[PathLike, Sequence[PathLike]]) -> pd.DataFrame:
             entries.extend(_read_csv(path) if path.suffix.lower() == ".csv" else _read_jsonl(path))
         except (OSError, UnicodeDecodeError) as exc:
             raise LogError(str(path), None, f"cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
-    return _frame(check_log(entries))
+    return _frame(_in_order(check_log(entries)))
 
 
 def _count(n: int, noun: str) -> str:
