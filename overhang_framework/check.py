@@ -74,10 +74,10 @@ def build_world(overrides: Sequence[str]):
     """The world of the run config composed with ``overrides``, built through the plugin registry."""
     from omegaconf import OmegaConf
 
-    from overhang_framework.config import compose_config
     from overhang_framework.plugins import Registry
+    from overhang_framework.preflight import compose_checked
 
-    cfg = compose_config(list(overrides))
+    cfg = compose_checked(list(overrides))
     return Registry().create("world", OmegaConf.to_container(cfg.world, resolve=True))
 
 

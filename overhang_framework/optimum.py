@@ -154,30 +154,36 @@ def _ident(physics: str, params: dict, resolution) -> dict:
 
 def optimum_key(task: Task, world: World) -> str:
     """The disk-cache key of a task's optimum under a world's physics and resolution."""
-    return _key(task.sequence, physics_id(world))
+    return sequence_key(task.sequence, physics_id(world))
 
 
 def optimum_key_for(sequence: Sequence[float], world_config: dict) -> str:
     """:func:`optimum_key` from a run's resolved ``world`` config (as ``run.json`` holds it)."""
     physics = world_config.get("physics", "tiered")
-    return _key(sequence, _ident(physics, dict(world_config.get(physics) or {}), world_config.get("resolution")))
+    return sequence_key(sequence, _ident(physics, dict(world_config.get(physics) or {}), world_config.get("resolution")))
 
 
-def _key(sequence: Sequence[float], ident: dict) -> str:
+def sequence_key(sequence: Sequence[float], ident: dict) -> str:
+    """A short, stable key of a block sequence with what else identifies a stored result (``ident``)."""
     ident = {"sequence": [round(w, 6) for w in sequence], **ident}
     return hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def load_optima(path: Path | str | None = None) -> dict:
     """The optima kept in ``path`` (default: the project's optima file), by key."""
-    path = Path(DATA_FILE if path is None else path)
+    return load_keyed(DATA_FILE if path is None else path, "optima")
+
+
+def load_keyed(path: Path | str, section: str) -> dict:
+    """The results kept under ``section`` in the JSON file ``path``, by key (empty when there is no file)."""
+    path = Path(path)
     if not path.exists():
         return {}
     try:
         data = json.loads(path.read_text())
     except ValueError as err:
-        raise ValueError(f"{path} is not a JSON file of optima: {err}") from None
-    return data.get("optima", {})
+        raise ValueError(f"{path} is not a JSON file of {section}: {err}") from None
+    return data.get(section, {})
 
 
 def task_optimum(task: Task, world: World, predictor: Optional[Predictor] = None,

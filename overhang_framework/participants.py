@@ -212,50 +212,16 @@ def app(cfg: DictConfig) -> Optional[dict]:
     return summary
 
 
-def compose_problem(err: BaseException) -> str:
-    """A failed compose's message on one line, without Hydra's search path and option listing."""
-    from overhang_framework.preflight import one_line
-
-    return one_line(err, drop=("Config search path", "Available options")) or type(err).__name__
-
-
-def _compose_error(err: BaseException) -> str:
-    """One line for a failed compose: an unknown key with the closest existing one, else Hydra's words."""
-    from omegaconf.errors import ConfigAttributeError, ConfigKeyError
-
-    from overhang_framework.config import compose_config
-    from overhang_framework.errors import closest
-
-    cause = err.__cause__
-    full_key = getattr(cause, "full_key", None)
-    if not (isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and full_key):
-        return compose_problem(err)
-    parent, _, leaf = str(full_key).rpartition(".")
-    base = compose_config(config_name=CONFIG_NAME)
-    node = OmegaConf.select(base, parent) if parent else base
-    keys = sorted(str(k) for k in node.keys()) if hasattr(node, "keys") else []
-    close = closest(leaf, keys)
-    hint = f" (did you mean '{(parent + '.') if parent else ''}{close[0]}'?)" if close else ""
-    return f"unknown config key '{full_key}'{hint}; {f'keys of {parent}' if parent else 'top-level keys'}: " \
-           f"{', '.join(keys) or '(none)'}"
-
-
 def preflight(args: Sequence[str]) -> None:
     """Compose every job's config and check its values before Hydra runs (one :class:`OverhangError` otherwise)."""
-    from overhang_framework.config import compose_config
-    from overhang_framework.preflight import (check_flags, check_group_choices, check_writable, is_multirun,
-                                              override_words, runs_job, sweep_variants)
+    from overhang_framework.preflight import (check_flags, check_group_choices, check_writable, compose_checked,
+                                              is_multirun, override_words, runs_job, sweep_variants)
 
     check_flags(args)
     words = override_words(args)
     check_group_choices(args)
     variants = sweep_variants(words, is_multirun(args))
-    configs = []
-    for variant in variants:
-        try:
-            configs.append(compose_config(variant, config_name=CONFIG_NAME, return_hydra_config=True))
-        except Exception as err:  # Hydra raises several kinds
-            raise OverhangError(_compose_error(err)) from None
+    configs = [compose_checked(variant, config_name=CONFIG_NAME, return_hydra_config=True) for variant in variants]
     if not runs_job(args):
         return
     for cfg in configs:

@@ -15,6 +15,10 @@ one :class:`~overhang_framework.errors.OverhangError` before anything is written
 * values a model refuses (every job of a sweep is built once, not run);
 * an output directory that is empty, cannot be written, holds another
   config's results or is being written by another run.
+
+The other commands that take overrides (``participants``, ``fit``,
+``fit.recovery``, ``experiment``, ``check``, ...) compose their own configs
+through :func:`compose_checked`, which gives the same one line.
 """
 
 from __future__ import annotations
@@ -121,11 +125,12 @@ def _parses(word: str) -> bool:
         return False
 
 
-def check_words(words: Sequence[str]) -> None:
-    """Raise for a word that is not an override at all (``plugin``, ``=3``)."""
+def check_words(words: Sequence[str], commands: Sequence[str] = COMMANDS) -> None:
+    """Raise for a word that is not an override at all (``plugin``, ``=3``); ``commands`` are the words
+    the command also takes, offered when one is close."""
     for word in words:
         if "=" not in word and not word.startswith("~"):
-            close = difflib.get_close_matches(word, COMMANDS, n=1)
+            close = difflib.get_close_matches(word, list(commands), n=1)
             hint = f"; did you mean the command '{close[0]}'?" if close else ""
             raise OverhangError(f"cannot read {word!r}: overrides are key=value, +key=value (add) or ~key "
                                 f"(remove){hint} (see --help)")
@@ -203,7 +208,49 @@ def sweep_variants(words: Sequence[str], multirun: bool) -> list[list[str]]:
     return variants
 
 
-def _choices(words: Sequence[str]) -> list[str]:
+class Source:
+    """Where a command's config comes from: the config ``name`` of the config directory ``directory``
+    (None: the project's ``conf``, with the installed plugins' configs)."""
+
+    def __init__(self, name: str = "config", directory: Optional[str] = None):
+        self.name, self.directory = name, directory
+
+    def _initialize(self):
+        from hydra import initialize_config_dir
+        from hydra.core.global_hydra import GlobalHydra
+
+        GlobalHydra.instance().clear()
+        return initialize_config_dir(str(Path(self.directory).absolute()), version_base="1.3")
+
+    def compose(self, words: Sequence[str] = (), hydra: bool = True):
+        """The config composed with ``words`` (with Hydra's own node when ``hydra``); Hydra's exceptions as
+        they come."""
+        if self.directory is None:
+            from overhang_framework.config import compose_config
+
+            return compose_config(list(words), config_name=self.name, return_hydra_config=hydra)
+        from hydra import compose
+
+        with self._initialize():
+            return compose(self.name, overrides=list(words), return_hydra_config=hydra)
+
+    def is_group(self, key: str) -> bool:
+        if self.directory is None:
+            if key in GROUPS + PRESET_GROUPS:
+                return True
+            from overhang_framework.config import group_options
+
+            return bool(group_options(key))
+        from hydra.core.global_hydra import GlobalHydra
+
+        with self._initialize():
+            return bool(GlobalHydra.instance().config_loader().get_group_options(key))
+
+
+MAIN = Source()
+
+
+def _choices(words: Sequence[str], source: Source = MAIN) -> list[str]:
     """The plain config-group choices among ``words``, Hydra's own included (they decide which keys exist)."""
     out = []
     for word in words:
@@ -211,19 +258,19 @@ def _choices(words: Sequence[str]) -> list[str]:
             ov = _parse(word)
         except Exception:
             continue
-        if (ov.key_or_group in GROUPS + PRESET_GROUPS or "/" in ov.key_or_group) and not ov.is_sweep_override() \
-                and not ov.is_delete() and not ov.is_add() and not ov.package:
+        key = ov.key_or_group
+        if ov.is_sweep_override() or ov.is_delete() or ov.is_add() or ov.package or "." in key:
+            continue
+        if "/" in key or source.is_group(key):
             out.append(word)
     return out
 
 
-def _base(words: Sequence[str]):
-    from overhang_framework.config import compose_config
-
+def _base(words: Sequence[str], source: Source = MAIN):
     try:
-        return compose_config(_choices(words), return_hydra_config=True)
+        return source.compose(_choices(words, source))
     except Exception:
-        return compose_config(return_hydra_config=True)
+        return source.compose()
 
 
 def _key_error(full_key: str, cfg, problem: str = "unknown config key") -> str:
@@ -250,7 +297,7 @@ def one_line(text, drop: tuple[str, ...] = ()) -> str:
     return "; ".join(line for line in lines if not line.startswith(skip))
 
 
-def _compose_error(words: Sequence[str], err: Exception) -> str:
+def _compose_error(words: Sequence[str], err: Exception, source: Source = MAIN) -> str:
     """The one line for a failed compose of ``words``."""
     from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
     from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
@@ -274,11 +321,14 @@ def _compose_error(words: Sequence[str], err: Exception) -> str:
         cause = err.__cause__
         full_key = getattr(cause, "full_key", None)
         if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and full_key:
-            return _key_error(full_key, _base(words))
+            return _key_error(full_key, _base(words, source))
         if isinstance(cause, OmegaConfBaseException) and full_key:
             message = str(cause).splitlines()[0]
             return f"bad value for '{full_key}': {message}"
         message = one_line(err)
+        if message.startswith("Could not override '") and "No match in the defaults list" in message:
+            # a config group that this config does not use (Hydra advises appending it with +)
+            return _key_error(message.split("'")[1], _base(words, source))
         if message.startswith("Ambiguous value for argument"):
             word = message.split("'")[1] if "'" in message else "?"
             key = word.split("=", 1)[0]
@@ -288,27 +338,46 @@ def _compose_error(words: Sequence[str], err: Exception) -> str:
     return one_line(err) or type(err).__name__
 
 
-def _compose(words: Sequence[str]):
+def _compose(words: Sequence[str], source: Source = MAIN):
     """Compose ``words``; on failure raise one :class:`OverhangError` naming every bad override."""
-    from overhang_framework.config import compose_config
-
     try:
-        return compose_config(words, return_hydra_config=True)
+        return source.compose(words)
     except Exception as err:  # Hydra raises several kinds, some of them plain ValueErrors
-        first = _compose_error(words, err)
+        first = _compose_error(words, err, source)
     # report every bad override, not only the first Hydra stopped at
-    choices = _choices(words)
+    choices = _choices(words, source)
     messages = [first]
     for word in words:
         if word in choices:
             continue
         try:
-            compose_config([*choices, word], return_hydra_config=True)
+            source.compose([*choices, word])
         except Exception as err:
-            message = _compose_error([*choices, word], err)
+            message = _compose_error([*choices, word], err, source)
             if message not in messages:
                 messages.append(message)
     raise OverhangError(" | ".join(messages))
+
+
+def compose_checked(words: Sequence[str], config_name: str = "config", config_dir: Optional[str] = None,
+                    return_hydra_config: bool = False, commands: Sequence[str] = ()):
+    """The config ``config_name`` (of the directory ``config_dir``; None: the project's) composed with the override
+    ``words`` as a command's Hydra app will compose it; otherwise one :class:`OverhangError` naming every bad
+    override as the main command does: an unknown key with the closest existing one and the keys there, a
+    word that does not parse, a group option that does not exist. ``commands``: the bare words the command
+    also takes (offered when a word that is not an override is close to one). The error is a
+    :class:`~overhang_framework.errors.ConfigError`."""
+    from overhang_framework.errors import ConfigError
+
+    source = Source(config_name, config_dir)
+    try:
+        check_words(words, commands)
+        cfg = _compose(words, source)
+    except ConfigError:
+        raise
+    except OverhangError as err:
+        raise ConfigError(str(err)) from None
+    return cfg if return_hydra_config else source.compose(words, hydra=False)
 
 
 def _check_appended(words: Sequence[str]) -> None:

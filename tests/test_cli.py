@@ -1,6 +1,7 @@
 """The main job end to end: output files, summary, reproducibility, one-line errors."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -229,6 +230,48 @@ def test_a_typo_is_one_line_as_typed_from_the_repository_root():
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.startswith("error: unknown config key 'planer' (did you mean 'planner'?)")
     assert proc.stderr.count("\n") == 1
+
+
+TOP_FIT = "cache, depths, jobs, logs, models, out, pooled, progress, shard, shards, states, truth, value, world"
+
+
+@pytest.mark.parametrize("command, args, expected", [
+    ("fit", ["LOG", "--out", "OUT", "modles.ipe.K=10"],
+     f"error: unknown config key 'modles' (did you mean 'models'?); top-level keys: {TOP_FIT}"),
+    ("fit", ["LOG", "--out", "OUT", "+modles.ipe.K=10"],
+     f"error: unknown config key 'modles' (did you mean 'models'?); top-level keys: {TOP_FIT}"),
+    ("fit", ["LOG", "--out", "OUT", "models.ipe.KK=10"],
+     "error: unknown config key 'models.ipe.KK' (did you mean 'models.ipe.K'?); keys of models.ipe: K, predictor, "
+     "sigma"),
+    ("experiment", ["prot=8001"], "error: unknown config key 'prot' (did you mean 'port'?); top-level keys: "),
+    ("experiment", ["export", "--out", "OUT", "databse=sqlite:///x.sqlite"],
+     "error: unknown config key 'databse' (did you mean 'database'?); top-level keys: "),
+    ("experiment", ["expot", "--out", "OUT"], "error: cannot read 'expot': overrides are key=value, +key=value (add) "
+                                              "or ~key (remove); did you mean the command 'export'?"),
+    ("participants", ["cohort.parameters.bta=1"], "error: unknown config key 'cohort.parameters.bta' (did you mean "
+                                                  "'cohort.parameters.beta'?); keys of cohort.parameters: "),
+    ("fit.recovery", ["--out", "OUT", "participnts=2"],
+     "error: unknown config key 'participnts' (did you mean 'participants'?); top-level keys: "),
+    ("check", ["TOWERS", "world.physcs=static"],
+     "error: unknown config key 'world.physcs' (did you mean 'world.physics'?); keys of world 'overhang': "),
+    ("order_dependency", ["TOWERS", "wrld.physics=static"],
+     "error: unknown config key 'wrld' (did you mean 'world'?); top-level keys: "),
+    ("bench.fit", ["--world", "wrld.physics=static"],
+     "error: --world: unknown config key 'wrld' (did you mean 'world'?); top-level keys: "),
+])
+def test_every_command_names_a_misspelt_key_in_one_line_with_the_closest_one(tmp_path, command, args, expected):
+    """The commands that take overrides answer a misspelt key as the main command does: one line, with
+    "did you mean", never Hydra's own message (which advises appending the misspelt key with +)."""
+    towers = tmp_path / "towers.jsonl"
+    towers.write_text('{"blocks": [[1.2, 0.0, 0]]}\n')
+    paths = {"LOG": str(tmp_path / "log.jsonl"), "OUT": str(tmp_path / "out"), "TOWERS": str(towers)}
+    argv = [paths.get(a, a) for a in args]
+    proc = subprocess.run([sys.executable, "-m", f"overhang_framework.{command}", *argv], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "OVERHANG_ADMIN_TOKEN": "a-long-admin-token"})
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.startswith(expected) and proc.stderr.count("\n") == 1, proc.stderr
+    assert "To append" not in proc.stderr and "Could not override" not in proc.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_help_is_the_projects_own_page(capsys):

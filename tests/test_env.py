@@ -274,3 +274,25 @@ def test_the_speed_benchmark_prints_both_physics_in_one_json_line():
     legal = [r for r in rows if r["agent"] == "legal"]
     assert all(r["illegal"] == 0 and r["steps_per_second"] > 0 for r in legal)
     assert all(r["illegal"] > 0 for r in rows if r["agent"] == "sample")
+
+
+def test_ppo_training_progress_off_a_terminal_is_whole_lines_not_carriage_returns(tmp_path, capsys):
+    """In a log file or a pipe the training's progress is the project's line now and then, never a bar's
+    carriage-return redraws; a bad setting stops the command in one line before any training."""
+    pytest.importorskip("stable_baselines3")
+    from overhang_framework.envs import ppo
+
+    args = ppo.parse(["--steps", "256", "--envs", "4", "--n-steps", "64", "--out", str(tmp_path)])
+    path, figures = ppo.train(args)
+    err = capsys.readouterr().err
+    assert path.exists() and figures["steps"] >= 256
+    assert "\r" not in err
+    lines = [line for line in err.splitlines() if line.startswith("training:")]
+    assert lines and lines[-1].startswith("training: 100%") and "256/256" in lines[-1], err
+    for argv, said in ((["--physics", "statc"], "unknown physics 'statc'"),
+                       (["--test", "papr20"], "unknown tasks 'papr20'"),
+                       (["--tasks", "papr20"], "the training environment: unknown task set 'papr20'")):
+        assert ppo.main([*argv, "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1 and said in err, err
+    assert not (tmp_path / "bad").exists()

@@ -36,11 +36,15 @@ TASKS = ["paper03", "paper08"]  # two main trials per participant
 ROBUST = 0.04  # a scripted placement must stand with the block this far to either side (mouse pixels)
 
 
+#: How to get what the browser tests need, on Debian.
+INSTALL = {"chromium": "apt-get install chromium", "npm": "apt-get install npm"}
+
+
 def _needs(what: str, ok: bool) -> None:
     if not ok:
         if os.environ.get("CI"):
-            pytest.fail(f"{what} is missing; .ci/run installs it")
-        pytest.skip(f"{what} is missing")
+            pytest.fail(f"{what} is missing ({INSTALL[what]}); under CI the browser tests run, never skip")
+        pytest.skip(f"{what} is missing: the browser tests need it ({INSTALL[what]})")
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ reference physics confirms, and the export command."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -66,32 +67,67 @@ def test_the_command_refuses_bad_settings_in_one_line(tmp_path):
                                                 f"variable {ADMIN_ENV}"]
 
 
-def test_export_command_writes_a_log_the_toolkit_reads(tmp_path):
+def _played(tmp_path):
+    """A study in ``tmp_path`` where P9 passed the practice and finished one main trial; (overrides, client, session)."""
     from fastapi.testclient import TestClient
 
-    from overhang_framework.behaviour.log import read_log
     from overhang_framework.experiment.api import create_app
 
-    overrides = [f"run_dir={tmp_path}", "admin_token=long-enough", "tasks.only=[paper03]"]
-    settings = load_settings(overrides)
+    overrides = [f"run_dir={tmp_path}", "tasks.only=[paper03]"]
+    settings = load_settings([*overrides, "admin_token=long-enough"])
     client = TestClient(create_app(settings))
     s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
     h = {"Authorization": f"Bearer {s['token']}"}
-    for pt in s["practice"]:
-        for step, (_, x, layer) in enumerate(pt["optimal_tower"][1:], 1):
-            client.post("/api/placements", json={"phase": "practice", "trial": pt["trial"], "step": step, "x": x,
-                                                 "layer": layer, "decision_time": 1.0}, headers=h)
+
+    def place(phase, trial, step, x, layer):
+        body = {"phase": phase, "trial": trial, "step": step}
+        client.post("/api/steps/start", json=body, headers=h)
+        reply = client.post("/api/placements", json={**body, "x": x, "layer": layer, "decision_time": 1.5}, headers=h)
+        assert reply.status_code == 200, reply.text
+
+    for k, pt in enumerate(settings.practice, 1):
+        for step, (_, x, layer) in enumerate(pt.shown_tower[1:], 1):
+            place("practice", k, step, x, layer)
     seq = s["trials"][0]["sequence"]
     for step in range(1, len(seq)):
-        client.post("/api/placements", json={"phase": "main", "trial": 1, "step": step, "x": 0.0, "layer": step,
-                                             "decision_time": 1.5}, headers=h)
+        place("main", 1, step, 0.0, step)
+    return overrides, client, s
+
+
+def _without_admin_token() -> dict:
+    return {k: v for k, v in os.environ.items() if k != ADMIN_ENV}
+
+
+def test_export_command_writes_a_log_the_toolkit_reads_without_the_admin_token(tmp_path):
+    from overhang_framework.behaviour.log import read_log
+
+    overrides, _, s = _played(tmp_path)
+    seq = s["trials"][0]["sequence"]
     out = tmp_path / "log.jsonl"
     done = subprocess.run([sys.executable, "-m", "overhang_framework.experiment", "export", "--out", str(out),
-                           *overrides], capture_output=True, text=True, timeout=120)
+                           *overrides], capture_output=True, text=True, timeout=120, env=_without_admin_token())
     assert done.returncode == 0, done.stderr
     log = read_log(out)
-    assert len(log) == len(seq) - 1 and list(log.decision_time) == [1.5] * (len(seq) - 1)
+    assert len(log) == len(seq) - 1 and list(log.page_decision_time) == [1.5] * (len(seq) - 1)
+    assert (log.decision_time == log.server_time).all() and (log.decision_time < 1.5).all()  # the server's time
     assert json.loads(out.read_text().splitlines()[0])["task_id"] == "paper03"
+
+
+def test_reissue_command_prints_a_link_that_replaces_the_old_token(tmp_path):
+    overrides, client, s = _played(tmp_path)
+    done = subprocess.run([sys.executable, "-m", "overhang_framework.experiment", "reissue", "P9", *overrides,
+                           "public_url=https://study.example.org/tower"],
+                          capture_output=True, text=True, timeout=120, env=_without_admin_token())
+    assert done.returncode == 0, done.stderr
+    link = done.stdout.strip()
+    assert link.startswith("https://study.example.org/tower/?participant=P9&token=")
+    token = link.split("token=")[1]
+    assert client.get("/api/session", headers={"Authorization": f"Bearer {s['token']}"}).status_code == 403
+    assert client.get("/api/session", headers={"Authorization": f"Bearer {token}"}).json()["position"]["phase"] == "done"
+    missing = subprocess.run([sys.executable, "-m", "overhang_framework.experiment", "reissue", "P0", *overrides],
+                             capture_output=True, text=True, timeout=120, env=_without_admin_token())
+    assert missing.returncode == 2 and missing.stderr.strip().splitlines() == [
+        "error: no participant 'P0'; the study has 1: P9"]
 
 
 def test_the_command_serves_the_page_and_the_api_with_its_default_processes(tmp_path):

@@ -174,23 +174,120 @@ def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tm
     assert row["aic"] == pytest.approx(2 * row["k"] - 2 * row["loglik"])
     text = (one / "comparison.md").read_text()
     assert "PXP" in text and "Bayesian omnibus risk" in text and (one / "comparison.png").stat().st_size > 5000
-    # the same fit as a two-job multirun, warm cache: the same fits.csv
+    # the simulated participants' truth, from the participants.csv next to the log, beside the fitted values
+    truth = pd.read_csv(tiny_log.parent / "participants.csv")
+    assert _truth_rows(text) == _expected_truth_rows(truth, fits, tiny_log)
+    assert "- **Simulated participants** (participants.csv): the generating model is" in text
+    # the same fit as a two-job multirun, warm cache: the same fits.csv; the log elsewhere, its truth by --truth
+    elsewhere = tmp_path / "elsewhere" / "log.jsonl"
+    elsewhere.parent.mkdir()
+    elsewhere.write_text(tiny_log.read_text())
     two = tmp_path / "two"
-    proc = _cli(str(tiny_log), "--out", str(two), *FIT, f"cache={tmp_path / 'scores.sqlite'}", "-m", "shard=0,1",
-                "shards=2")
+    proc = _cli(str(elsewhere), "--out", str(two), *FIT, f"cache={tmp_path / 'scores.sqlite'}", "-m", "shard=0,1",
+                "shards=2", "--truth", str(tiny_log.parent / "participants.csv"))
     assert proc.returncode == 0, proc.stderr
     assert "0 score tables computed" in proc.stdout
     a, b = pd.read_csv(one / "fits.csv"), pd.read_csv(two / "fits.csv")
     pd.testing.assert_frame_equal(a, b)
-    # the same fit with its tables computed on two worker processes, cold cache: the same fits.csv
+    assert _truth_rows((two / "comparison.md").read_text()) == _truth_rows(text)
+    # the same fit with its tables computed on two worker processes, cold cache: the same fits.csv; no truth
+    # next to that log, so no truth in the comparison
     three = tmp_path / "three"
-    proc = _cli(str(tiny_log), "--out", str(three), *FIT, f"cache={tmp_path / 'other.sqlite'}", "jobs=2")
+    proc = _cli(str(elsewhere), "--out", str(three), *FIT, f"cache={tmp_path / 'other.sqlite'}", "jobs=2")
     assert proc.returncode == 0, proc.stderr
     assert "0 from the cache" in proc.stdout and " 0 score tables computed" not in proc.stdout
     pd.testing.assert_frame_equal(a, pd.read_csv(three / "fits.csv"))
+    assert "Simulated participants" not in (three / "comparison.md").read_text()
     # another model space into the same directory is refused
     proc = _cli(str(tiny_log), "--out", str(one), *FIT, "depths=[1]", f"cache={tmp_path / 'scores.sqlite'}")
     assert proc.returncode == 2 and "holds fits of another" in proc.stderr, proc.stderr
+
+
+def _section(text: str, title: str) -> list[str]:
+    """The lines of the section ``## title`` of a markdown text."""
+    lines = text.splitlines()
+    start = lines.index(f"## {title}") + 1
+    end = next((k for k in range(start, len(lines)) if lines[k].startswith("## ")), len(lines))
+    return lines[start:end]
+
+
+def _table(lines: list[str]) -> list[list[str]]:
+    """The cells of the first markdown table among ``lines``, the header row first (the rule row left out)."""
+    rows = [line for line in lines if line.startswith("|")]
+    return [[c.strip() for c in row.strip().strip("|").split("|")] for k, row in enumerate(rows) if k != 1]
+
+
+def _truth_rows(text: str) -> dict:
+    rows = _table(_section(text, "Simulated participants: true and fitted"))
+    header = rows[0]
+    return {r[0]: dict(zip(header, r)) for r in rows[1:]}
+
+
+def _expected_truth_rows(truth: pd.DataFrame, fits: pd.DataFrame, log: Path) -> dict:
+    """What the truth table should hold: participants.csv's values and the depth the log's searches reached
+    (the median of depth_completed), beside the best fit's model and parameters."""
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.fit.compare import winners
+
+    best = winners(fits).set_index("participant")
+    reached = read_log([str(log)]).groupby("participant")["depth_completed"].median()
+    out = {}
+    for t in truth.itertuples():
+        fit = best.loc[t.id]
+        out[t.id] = {"participant": t.id, "condition": t.condition,
+                     "true model": f"ipe/{'myopic' if t.depth == 1 else f'D{t.depth}'}",
+                     "true depth (reached)": f"{t.depth:g} ({reached[t.id]:g})",
+                     "true sigma": f"{t.sigma:.3g}", "true beta": f"{t.beta:.3g}", "true lapse": f"{t.lapse:.3g}",
+                     "best model": fit["model"],
+                     "fitted sigma": "–" if pd.isna(fit["sigma"]) else f"{fit['sigma']:.3g}",
+                     "fitted beta": f"{fit['beta']:.3g}", "fitted lapse": f"{fit['lapse']:.3g}"}
+    return out
+
+
+def test_comparison_opens_with_what_was_found_on_fits_whose_answer_is_known(tmp_path):
+    """Fits built by hand so that the answer is known: x/myopic is best for every participant of condition
+    a and x/D2 for every one of b; y/myopic and y/D2 never are. The summed BIC favours x/myopic by
+    6 x 5 = 30; the BMS sees that the models are not equally frequent (y is never best) but cannot single
+    one out; the depth differs between the conditions at the smallest p that 6 + 6 participants allow
+    (2 / 924), the other parameters are the same in both. With one model far ahead for everyone, the BMS
+    separates them."""
+    from overhang_framework.fit.compare import comparison
+
+    def rows(bics):
+        out = []
+        for k in range(12):
+            condition = "a" if k < 6 else "b"
+            for model, (family, depth) in {"x/myopic": ("x", 1), "x/D2": ("x", 2), "y/myopic": ("y", 1),
+                                           "y/D2": ("y", 2)}.items():
+                bic = bics[condition][model] + 0.1 * k
+                out.append({"participant": f"p{k:02d}", "condition": condition, "model": model, "family": family,
+                            "depth": depth, "sigma": np.nan, "beta": 5.0, "lapse": 0.02, "loglik": -bic / 2, "k": 2,
+                            "n": 30, "bic": bic, "aic": bic, "unmapped": 0})
+        return pd.DataFrame(out)
+
+    split = rows({"a": {"x/myopic": 100.0, "x/D2": 130.0, "y/myopic": 140.0, "y/D2": 150.0},
+                  "b": {"x/myopic": 125.0, "x/D2": 100.0, "y/myopic": 140.0, "y/D2": 150.0}})
+    text = comparison(split, tmp_path)
+    found = [line for line in text.split("\n## ")[0].splitlines() if line.startswith("- ")]
+    assert found[0] == ("- **Summed BIC:** x/myopic fits best over the 12 participants (Σ BIC 1356.6; the next, "
+                        "x/D2, is 30.0 higher). Each participant's best model: x/D2 for 6, x/myopic for 6.")
+    assert found[1].startswith("- **Random-effects BMS** finds that the models are not equally frequent (Bayesian "
+                               "omnibus risk 0.0") and "but none stands out" in found[1]
+    assert found[2] == ("- **Conditions** (a against b, each participant's best model): Depth is higher under b than "
+                        "under a (2 against 1, p = .002). Beta (p = 1.000) and lapse (p = 1.000) do not differ at "
+                        "p < .05. Too few participants to compare sigma (n = 0 and 0).")
+    assert len(found) == 3                              # no truth given: nothing about simulated participants
+    # the Conditions table: one cell per header cell, none of them empty
+    table = _table(_section(text, "Conditions"))
+    assert table[0] == ["parameter", "a", "b", "p"]
+    assert all(len(r) == 4 and all(r) for r in table), table
+    assert table[1] == ["depth of the best model", "1.000 (n = 6)", "2.000 (n = 6)", ".002"]
+    assert table[3][3] == "too few"
+    # one model far ahead for everyone: the BMS separates the models
+    ahead = rows({c: {"x/myopic": 100.0, "x/D2": 160.0, "y/myopic": 170.0, "y/D2": 180.0} for c in "ab"})
+    text = comparison(ahead, tmp_path)
+    assert "- **Random-effects BMS** separates the models: the most frequent is x/myopic (estimated frequency" in text
+    assert "protected exceedance probability 1.00); the Bayesian omnibus risk is < 0.001." in text
 
 
 def test_grid_states_replay_each_trial_so_that_the_same_grid_choices_share_states(world):

@@ -114,6 +114,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--keep", metavar="DIR", help="write the log and the analysis into DIR (default: a temporary one)")
     args = ap.parse_args(argv)
+    from overhang_framework.preflight import overrides_problem
+
+    problem = overrides_problem(args.world)
+    if problem is not None:
+        print(f"error: --world: {problem}", file=sys.stderr)
+        return 2
 
     from overhang_framework.behaviour.analysis import Settings, build_world, run
     from overhang_framework.behaviour.log import write_log

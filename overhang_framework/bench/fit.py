@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -70,6 +71,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = ap.parse_args(argv)
+    from overhang_framework.preflight import overrides_problem
+
+    problem = overrides_problem(args.world)
+    if problem is not None:
+        print(f"error: --world: {problem}", file=sys.stderr)
+        return 2
 
     from overhang_framework.behaviour.analysis import build_world
     from overhang_framework.behaviour.log import read_log

@@ -432,6 +432,18 @@ def _check_in_step(net) -> None:
 def main() -> None:
     import hydra
 
+    from overhang_framework.errors import OverhangError
+    from overhang_framework.preflight import check_flags, compose_checked, is_multirun, split_flags, sweep_variants
+
+    args = sys.argv[1:]
+    try:  # a misspelt key is one line with the closest existing one, as for the other commands
+        check_flags(args)
+        for variant in sweep_variants(split_flags(args)[1], is_multirun(args)):
+            compose_checked(variant, config_name="train", config_dir=str(Path(__file__).parent / CONFIG_PATH))
+    except OverhangError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+
     @hydra.main(version_base=None, config_path=CONFIG_PATH, config_name="train")
     def _main(cfg) -> None:
         try:

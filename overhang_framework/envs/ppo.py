@@ -49,9 +49,9 @@ def train(args) -> tuple[Path, dict]:
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
-    from tqdm import tqdm
 
     from overhang_framework.envs.policies import save_policy
+    from overhang_framework.progress import progress_bar
 
     torch.set_num_threads(args.threads)
     env = make_env(args.tasks, args.physics, args.reward, args.resolution, args.seed, args.envs)
@@ -59,7 +59,8 @@ def train(args) -> tuple[Path, dict]:
     class Progress(BaseCallback):
         def _on_training_start(self):
             self.curve = []
-            self.bar = tqdm(total=args.steps, unit="step", desc="training", file=sys.stderr)
+            # a bar on a terminal, a line now and then in a log file or a pipe
+            self.bar = progress_bar(total=args.steps, unit="step", desc="training", file=sys.stderr)
 
         def _on_step(self):
             self.bar.update(min(self.training_env.num_envs, args.steps - self.bar.n))
@@ -119,10 +120,30 @@ def env_reward(policy: Path, tasks: str, physics: str) -> tuple[float, int]:
 def main_job(overrides: list[str], out_dir: Path) -> dict:
     """Run the main job for ``overrides`` into ``out_dir``; its summary."""
     from overhang_framework.app import run
-    from overhang_framework.config import compose_config
+    from overhang_framework.preflight import compose_checked
 
-    cfg = compose_config(overrides + ["progress=false", "overwrite=true"])
+    cfg = compose_checked(overrides + ["progress=false", "overwrite=true"])
     return run(cfg, out_dir)
+
+
+def check_settings(args) -> None:
+    """The training environment, the physics and the test task set, checked before the training starts
+    (:class:`~overhang_framework.errors.OverhangError`, one line, otherwise)."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.envs.wrappers import flat_env
+    from overhang_framework.errors import ConfigError
+    from overhang_framework.plugins import Registry
+    from overhang_framework.preflight import compose_checked
+    from overhang_framework.tasks import tasks_from_config
+
+    cfg = compose_checked([f"world.physics={args.physics}", f"tasks={args.test}"])
+    Registry().create("world", OmegaConf.to_container(cfg.world, resolve=True))
+    tasks_from_config(cfg.tasks)
+    try:
+        flat_env(tasks=args.tasks, physics=args.physics, reward=args.reward, resolution=args.resolution).close()
+    except ValueError as err:  # the environment's own refusal of --tasks or --resolution
+        raise ConfigError(f"the training environment: {err}") from None
 
 
 def parse(argv=None):
@@ -157,10 +178,12 @@ def parse(argv=None):
 
 def main(argv=None) -> int:
     from overhang_framework.envs.policies import PolicyFileError, policy_info, stable_baselines3
+    from overhang_framework.errors import OverhangError
 
     args = parse(argv)
     try:
         stable_baselines3()
+        check_settings(args)
         args.out.mkdir(parents=True, exist_ok=True)
         if args.skip_training:
             path = args.out / "policy.zip"
@@ -169,7 +192,7 @@ def main(argv=None) -> int:
             path, figures = train(args)
             print(f"trained {figures['steps']} steps in {figures['seconds']} s "
                   f"({figures['steps_per_second']} steps/s); policy: {path}")
-    except PolicyFileError as err:
+    except (PolicyFileError, OverhangError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     _write(args.out / "training.json", json.dumps(figures, indent=2) + "\n")

@@ -65,6 +65,33 @@ def app_factory():
     return create_app(load_settings(json.loads(os.environ[SETTINGS_ENV])))
 
 
+def _ask_server(args, method: str, path: str, timeout: float):
+    """A running server's reply to an admin request (``args.url``), or None with the reason printed."""
+    import os
+
+    import httpx
+
+    from overhang_framework.experiment.settings import ADMIN_ENV, compose
+
+    cfg = compose(args.overrides)
+    token = cfg.admin_token or os.environ.get(ADMIN_ENV)
+    if not token:
+        print(f"error: no admin token: set admin_token=... or {ADMIN_ENV}", file=sys.stderr)
+        return None
+    try:
+        reply = httpx.request(method, args.url.rstrip("/") + path, headers={"X-Admin-Token": str(token)},
+                              timeout=timeout)
+    except httpx.HTTPError as err:
+        print(f"error: cannot reach {args.url}: {err}", file=sys.stderr)
+        return None
+    if reply.status_code != 200:
+        is_json = reply.headers.get("content-type", "").startswith("application/json")
+        print(f"error: {args.url} refused {path} ({reply.status_code}): "
+              f"{reply.json().get('error', reply.text) if is_json else reply.text}", file=sys.stderr)
+        return None
+    return reply
+
+
 def _export(args) -> int:
     from overhang_framework.results import atomic_write_text
 
@@ -72,26 +99,8 @@ def _export(args) -> int:
         print("error: --include-screened-out reads the database; leave out --url", file=sys.stderr)
         return 2
     if args.url:
-        import httpx
-
-        from overhang_framework.experiment.settings import ADMIN_ENV, compose
-        import os
-
-        cfg = compose(args.overrides)
-        token = cfg.admin_token or os.environ.get(ADMIN_ENV)
-        if not token:
-            print(f"error: no admin token: set admin_token=... or {ADMIN_ENV}", file=sys.stderr)
-            return 2
-        try:
-            reply = httpx.get(args.url.rstrip("/") + "/api/admin/export", headers={"X-Admin-Token": str(token)},
-                              timeout=120)
-        except httpx.HTTPError as err:
-            print(f"error: cannot reach {args.url}: {err}", file=sys.stderr)
-            return 2
-        if reply.status_code != 200:
-            print(f"error: {args.url} refused the export ({reply.status_code}): "
-                  f"{reply.json().get('error', reply.text) if reply.headers.get('content-type', '').startswith('application/json') else reply.text}",
-                  file=sys.stderr)
+        reply = _ask_server(args, "GET", "/api/admin/export", timeout=120)
+        if reply is None:
             return 2
         text, unfinished = reply.text, None
     else:
@@ -126,25 +135,8 @@ def _open_store(settings):
 
 def _reissue(args) -> int:
     if args.url:
-        import httpx
-
-        from overhang_framework.experiment.settings import ADMIN_ENV, compose
-        import os
-
-        cfg = compose(args.overrides)
-        token = cfg.admin_token or os.environ.get(ADMIN_ENV)
-        if not token:
-            print(f"error: no admin token: set admin_token=... or {ADMIN_ENV}", file=sys.stderr)
-            return 2
-        try:
-            reply = httpx.post(f"{args.url.rstrip('/')}/api/admin/participants/{args.participant}/reissue",
-                               headers={"X-Admin-Token": str(token)}, timeout=60)
-        except httpx.HTTPError as err:
-            print(f"error: cannot reach {args.url}: {err}", file=sys.stderr)
-            return 2
-        if reply.status_code != 200:
-            print(f"error: {args.url} refused ({reply.status_code}): {reply.json().get('error', reply.text)}",
-                  file=sys.stderr)
+        reply = _ask_server(args, "POST", f"/api/admin/participants/{args.participant}/reissue", timeout=60)
+        if reply is None:
             return 2
         link = reply.json()["resume_url"]
     else:

@@ -28,9 +28,7 @@ practice tasks.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import itertools
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -42,7 +40,7 @@ import numpy as np
 from overhang_framework.errors import ConfigError
 from overhang_framework.geometry import EPS, Action, Block, Geometry, overlap_length
 from overhang_framework.interfaces import State, Task, World
-from overhang_framework.optimum import OptimumSearch, physics_id
+from overhang_framework.optimum import OptimumSearch, load_keyed, physics_id, sequence_key
 from overhang_framework.search import TIE, lookahead_value
 
 DATA_FILE = Path(__file__).resolve().parents[1] / "data" / "practice_towers.json"
@@ -63,21 +61,12 @@ def check_tolerance(value, key: str = "practice.tolerance") -> float:
 
 def tower_key(task: Task, world: World, tolerance: float) -> str:
     """The key of a task's buildable tower under a world's physics and resolution, for ``tolerance``."""
-    ident = {"sequence": [round(w, 6) for w in task.sequence], **physics_id(world),
-             "tolerance": round(float(tolerance), 9)}
-    return hashlib.sha256(json.dumps(ident, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return sequence_key(task.sequence, {**physics_id(world), "tolerance": round(float(tolerance), 9)})
 
 
 def load_towers(path: Path | str | None = None) -> dict:
     """The buildable towers kept in ``path`` (default: the project's file), by :func:`tower_key`."""
-    path = Path(DATA_FILE if path is None else path)
-    if not path.exists():
-        return {}
-    try:
-        data = json.loads(path.read_text())
-    except ValueError as err:
-        raise ValueError(f"{path} is not a JSON file of practice towers: {err}") from None
-    return data.get("towers", {})
+    return load_keyed(DATA_FILE if path is None else path, "towers")
 
 
 def corner_offsets(placements: int, tolerance: float) -> list[tuple[float, ...]]:

@@ -54,9 +54,8 @@ class Participant(Base):
     bonus: Mapped[Optional[float]] = mapped_column(Float)
 
 
-class Placement(Base):
-    __tablename__ = "placements"
-    __table_args__ = (UniqueConstraint("participant_id", "phase", "trial", "attempt", "step", name="one_per_step"),)
+class StepKey:
+    """The columns that name one step of one participant: participant, phase, trial, attempt, step."""
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     participant_id: Mapped[str] = mapped_column(ForeignKey("participants.id"), index=True)
@@ -64,6 +63,12 @@ class Placement(Base):
     trial: Mapped[int] = mapped_column(Integer)
     attempt: Mapped[int] = mapped_column(Integer)
     step: Mapped[int] = mapped_column(Integer)
+
+
+class Placement(StepKey, Base):
+    __tablename__ = "placements"
+    __table_args__ = (UniqueConstraint("participant_id", "phase", "trial", "attempt", "step", name="one_per_step"),)
+
     task_id: Mapped[str] = mapped_column(String(100))
     sequence: Mapped[list] = mapped_column(JSON)
     width: Mapped[float] = mapped_column(Float)
@@ -86,18 +91,12 @@ class Placement(Base):
     received_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
 
 
-class Clock(Base):
+class Clock(StepKey, Base):
     """When the server first handed a step out (seconds since the epoch, the server's clock)."""
 
     __tablename__ = "clocks"
     __table_args__ = (UniqueConstraint("participant_id", "phase", "trial", "attempt", "step", name="one_clock_per_step"),)
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
-    participant_id: Mapped[str] = mapped_column(ForeignKey("participants.id"), index=True)
-    phase: Mapped[str] = mapped_column(String(20))
-    trial: Mapped[int] = mapped_column(Integer)
-    attempt: Mapped[int] = mapped_column(Integer)
-    step: Mapped[int] = mapped_column(Integer)
     issued_at: Mapped[float] = mapped_column(Float)
 
 

@@ -4,9 +4,11 @@ Fits every model of the model space (config ``conf/fit.yaml``: predictor
 families x depths) to every participant of the behaviour logs, and to each
 condition pooled, and writes into ``DIR``: ``fits.csv`` (one row per
 participant x model: parameters, log-likelihood, k, n, BIC, AIC),
-``comparison.md`` / ``comparison.csv`` / ``comparison.png`` (winners, summed BIC,
-random-effects BMS, parameters between conditions) and ``fit.json`` (what was
-fitted). Hydra overrides choose the model space (``depths=[1,2,3]``,
+``comparison.md`` / ``comparison.csv`` / ``comparison.png`` (what was found, in
+sentences; winners, summed BIC, random-effects BMS, parameters between conditions;
+for simulated participants their true models and parameters beside the fitted ones,
+from the ``participants.csv`` next to the log or ``--truth CSV``) and ``fit.json``
+(what was fitted). Hydra overrides choose the model space (``depths=[1,2,3]``,
 ``models.ipe.sigma=[0.02,0.04]``, ``~models.cnn``); ``-m shard=0,1,2,3 shards=4``
 spreads the participants over the jobs of a multirun (any launcher), which share
 the score cache and leave one ``fits.csv``. docs/fitting.md describes it all.
@@ -31,13 +33,13 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
-from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.errors import ConfigError, OverhangError, closest
 
 enable_plugin_configs()
 log = logging.getLogger("overhang_framework.fit")
 CONFIG_NAME = "fit"
 TOP = ("world", "value", "logs", "out", "models", "depths", "cache", "shard", "shards", "pooled", "progress",
-       "states", "jobs")
+       "states", "jobs", "truth")
 
 
 def _plain(node) -> Any:
@@ -54,12 +56,15 @@ def _whole(cfg, key: str, minimum: int) -> int:
 def check_config(cfg: DictConfig) -> dict:
     """Every value of ``cfg`` checked, the logs read and the models built (nothing fitted)."""
     from overhang_framework.behaviour.log import read_log
+    from overhang_framework.fit.compare import read_truth
     from overhang_framework.fit.space import model_space
     from overhang_framework.plugins import Registry
 
     extra = [k for k in cfg if k not in TOP and k != "hydra"]
     if extra:
-        raise ConfigError(f"unknown config key '{extra[0]}'; top-level keys: {', '.join(sorted(TOP))}")
+        close = closest(str(extra[0]), TOP)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise ConfigError(f"unknown config key '{extra[0]}'{hint}; top-level keys: {', '.join(sorted(TOP))}")
     logs = _plain(cfg.logs) or []
     if not logs:
         raise ConfigError("no behaviour log given: python -m overhang_framework.fit LOG [LOG ...] --out DIR")
@@ -80,6 +85,8 @@ def check_config(cfg: DictConfig) -> dict:
     if not isinstance(depths, list):
         depths = [depths]
     space = model_space(_plain(cfg.models) or {}, depths)
+    truth = truth_files(_plain(cfg.get("truth")), logs)
+    read_truth(truth, {})  # a file that is not a participants.csv stops the command here
     df = read_log([str(p) for p in logs])
     registry = Registry()
     world = registry.create("world", _plain(cfg.world))
@@ -88,12 +95,30 @@ def check_config(cfg: DictConfig) -> dict:
         for model in index.variants:
             registry.create("predictor", dict(model.predictor), world=world)
     return {"df": df, "space": space, "world": world, "value": value, "registry": registry, "shard": shard,
-            "shards": shards, "logs": [str(Path(p).resolve()) for p in logs]}
+            "shards": shards, "logs": [str(Path(p).resolve()) for p in logs], "truth": truth}
+
+
+def truth_files(truth: Any, logs: Sequence[str]) -> list[Path]:
+    """The ``participants.csv`` files that hold the simulated participants' true parameters: ``truth``
+    (a path or a list of them), or when it is null the one next to each log that has one."""
+    from overhang_framework.fit.compare import TRUTH
+
+    if truth is None:
+        return [Path(p).parent / TRUTH for p in logs if (Path(p).parent / TRUTH).is_file()]
+    paths = truth if isinstance(truth, list) else [truth]
+    if not paths or not all(isinstance(p, str) and p for p in paths):
+        raise ConfigError(f"truth must be a participants.csv file, a list of them, or null (the one next to each "
+                          f"log), got {truth!r}")
+    for p in paths:
+        if not Path(p).is_file():
+            raise ConfigError(f"truth: no file {p} (the participants.csv the participants command writes next "
+                              "to its log.jsonl)")
+    return [Path(p) for p in paths]
 
 
 def run(cfg: DictConfig) -> dict:
     """Fit this job's share of the units; write its part, and the aggregate when every part is there."""
-    from overhang_framework.fit.compare import comparison
+    from overhang_framework.fit.compare import comparison, read_truth
     from overhang_framework.fit.fitting import log_placements
     from overhang_framework.fit.run import (aggregate, check_directory, fit_units, units_of, write_part)
     from overhang_framework.fit.scores import ScoreCache
@@ -141,7 +166,9 @@ def run(cfg: DictConfig) -> dict:
     part = write_part(out, checked["shard"], checked["shards"], result.fits)
     fits = aggregate(out, checked["shards"])
     if fits is not None:
-        comparison(fits, out)
+        families = {i.family: str(i.variants[0].predictor.get("name")) for i in space}
+        truth = read_truth(checked["truth"], families, checked["df"]) if checked["truth"] else None
+        comparison(fits, out, truth=truth)
     stats = {label: vars(s) for label, s in result.stats.items()}
     log.info("fitted %d units x %d models in %.1f s: %s", len(mine), len(space), result.seconds, stats)
     return {"part": str(part), "complete": fits is not None, "seconds": result.seconds, "tables": stats,
@@ -175,8 +202,9 @@ def app(cfg: DictConfig) -> Optional[dict]:
 
 
 def command_words(args: Sequence[str]) -> list[str]:
-    """``LOG ... --out DIR OVERRIDES`` as Hydra words: ``logs=[...]``, ``out=DIR``, then the rest."""
-    logs, rest, out = [], [], None
+    """``LOG ... --out DIR [--truth CSV] OVERRIDES`` as Hydra words: the rest, then ``logs=[...]``,
+    ``out=DIR`` and ``truth=[...]``."""
+    logs, rest, out, truth = [], [], None, []
     it = iter(args)
     for word in it:
         if word == "--out":
@@ -185,6 +213,11 @@ def command_words(args: Sequence[str]) -> list[str]:
                 raise ConfigError("--out needs a directory")
         elif word.startswith("--out="):
             out = word.split("=", 1)[1]
+        elif word == "--truth" or word.startswith("--truth="):
+            path = next(it, None) if word == "--truth" else word.split("=", 1)[1]
+            if not path:
+                raise ConfigError("--truth needs a participants.csv file")
+            truth.append(str(Path(path).resolve()))
         elif word.startswith("-") or "=" in word or word.startswith("~") or word.startswith("+"):
             rest.append(word)
         else:
@@ -195,22 +228,19 @@ def command_words(args: Sequence[str]) -> list[str]:
         words.append(f"logs=[{quoted}]")
     if out is not None:
         words.append(f"out='{Path(out).resolve()}'")
+    if truth:
+        quoted = ",".join("'" + p.replace("'", "\\'") + "'" for p in truth)
+        words.append(f"truth=[{quoted}]")
     return words
 
 
 def preflight(words: Sequence[str]) -> None:
-    from overhang_framework.config import compose_config
-    from overhang_framework.participants import compose_problem
-    from overhang_framework.preflight import check_flags, split_flags, sweep_variants
+    from overhang_framework.preflight import check_flags, compose_checked, split_flags, sweep_variants
 
     check_flags(words)
     flags, overrides = split_flags(words)
     for variant in sweep_variants(overrides, "-m" in flags or "--multirun" in flags):
-        try:
-            cfg = compose_config(variant, config_name=CONFIG_NAME)
-        except Exception as err:  # Hydra raises several kinds
-            raise OverhangError(compose_problem(err)) from None
-        check_config(cfg)
+        check_config(compose_checked(variant, config_name=CONFIG_NAME))
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:

@@ -1,20 +1,35 @@
-"""Model comparison of a fit: winners, summed BIC, random-effects BMS, and parameters between conditions."""
+"""Model comparison of a fit: what was found in sentences, then winners, summed BIC, random-effects BMS,
+parameters between conditions, and for simulated participants their true models beside the fitted ones."""
 
 from __future__ import annotations
 
+import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 import pandas as pd
 
-from overhang_framework.behaviour.analysis import fmt_p, markdown_table, permutation_p, save_figure
-from overhang_framework.fit.bms import bms
+from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is, permutation_p, save_figure
+from overhang_framework.errors import ConfigError
+from overhang_framework.fit.bms import BMSResult, bms
 from overhang_framework.fit.run import POOLED
+from overhang_framework.fit.scores import Model
 from overhang_framework.results import atomic_write_text
 
 #: Resamples of the permutation tests between conditions.
 N_RESAMPLES = 10_000
+#: The BMS separates the models when the omnibus risk is below this and one PXP above :data:`SEPARATED_PXP`.
+SEPARATED_BOR = 0.05
+SEPARATED_PXP = 0.95
+#: A difference between conditions is reported as one below this p.
+ALPHA = 0.05
+#: The simulated participants' file the participants command writes next to its log.
+TRUTH = "participants.csv"
+#: The columns of a truth table (:func:`read_truth`).
+TRUTH_COLUMNS = ["participant", "true_predictor", "true_family", "true_model", "true_depth", "depth_reached",
+                 "true_sigma", "true_beta", "true_lapse"]
 
 
 def per_participant(fits: pd.DataFrame) -> pd.DataFrame:
@@ -27,8 +42,93 @@ def winners(fits: pd.DataFrame) -> pd.DataFrame:
     return df.loc[df.groupby("participant")["bic"].idxmin()].reset_index(drop=True)
 
 
-def comparison(fits: pd.DataFrame, out: Path, seed: int = 0) -> str:
-    """Write ``comparison.md``, ``comparison.csv`` and ``comparison.png`` from ``fits``; return the markdown."""
+@dataclass
+class Difference:
+    """One parameter of the best models compared between two conditions."""
+
+    name: str
+    label: str
+    a: np.ndarray
+    b: np.ndarray
+    p: float
+
+    @property
+    def compared(self) -> bool:
+        return len(self.a) >= 2 and len(self.b) >= 2
+
+
+def read_truth(paths: Sequence[Path], families: Mapping[str, str],
+               records: Optional[pd.DataFrame] = None) -> Optional[pd.DataFrame]:
+    """The true models and parameters of simulated participants, one row per participant (:data:`TRUTH_COLUMNS`).
+
+    ``paths`` are ``participants.csv`` files of :mod:`overhang_framework.participants`; the ``run.json``
+    beside each gives the generating predictor and planner (a parameter the cohort did not draw is the
+    model's own setting). ``families`` maps each fitted family to its predictor's name: the true family is
+    the fitted family of the generating predictor. ``records`` (the behaviour log) give ``depth_reached``,
+    the median depth the participant's searches completed (a condition's budget may cut a search short).
+    None when no path holds a participant.
+    """
+    rows = []
+    for path in paths:
+        path = Path(path)
+        try:
+            table = pd.read_csv(path)
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"truth: cannot read {path}: {getattr(err, 'strerror', None) or err}") from None
+        missing = [c for c in ("id", "sigma", "depth", "beta", "lapse") if c not in table.columns]
+        if missing:
+            raise ConfigError(f"truth: {path} is not a participants.csv of the participants command "
+                              f"(no column {missing[0]!r})")
+        config = _run_config(path.parent / "run.json")
+        predictor = dict(config.get("predictor") or {})
+        planner = dict(config.get("planner") or {})
+        name = predictor.get("name")
+        by_name = [f for f, n in families.items() if n == name]
+        family = name if name in by_name else (by_name[0] if by_name else None)
+        for r in table.itertuples(index=False):
+            depth = _number(r.depth)
+            if depth is None:
+                depth = 1 if planner.get("name") == "myopic" else _number(planner.get("depth"))
+            beta = _number(r.beta)
+            if beta is None and planner.get("choice") == "softmax":
+                beta = _number(planner.get("beta"))
+            sigma = _number(r.sigma)
+            if sigma is None:
+                sigma = _number(predictor.get("sigma"))
+            label = Model({"name": name}, int(depth), family).label if family and depth else None
+            rows.append({"participant": str(r.id), "true_predictor": name, "true_family": family, "true_model": label,
+                         "true_depth": depth, "depth_reached": None, "true_sigma": sigma, "true_beta": beta,
+                         "true_lapse": _number(r.lapse)})
+    if not rows:
+        return None
+    truth = pd.DataFrame(rows, columns=TRUTH_COLUMNS).drop_duplicates("participant", keep="first")
+    if records is not None and "depth_completed" in records.columns:
+        reached = records.groupby(records["participant"].astype(str))["depth_completed"].median()
+        truth["depth_reached"] = [_number(reached.get(p)) for p in truth["participant"]]
+    return truth
+
+
+def _run_config(path: Path) -> dict:
+    try:
+        return dict(json.loads(path.read_text()).get("config") or {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+def _number(value) -> Optional[float]:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return None
+    return x if np.isfinite(x) else None
+
+
+def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.DataFrame] = None) -> str:
+    """Write ``comparison.md``, ``comparison.csv`` and ``comparison.png`` from ``fits``; return the markdown.
+
+    The markdown opens with what was found, in sentences; ``truth`` (:func:`read_truth`) adds the simulated
+    participants' true models and parameters beside the fitted ones.
+    """
     df = per_participant(fits)
     models = sorted(df["model"].unique())
     pids = sorted(df["participant"].unique())
@@ -52,7 +152,12 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0) -> str:
         rows.append(row)
     table = pd.DataFrame(rows)
     atomic_write_text(out / "comparison.csv", table.to_csv(index=False))
-    lines += [f"{len(pids)} participants, {len(models)} models; each participant's best model by BIC, the BIC "
+    conditions = sorted(c for c in win["condition"].unique() if c != "mixed")
+    differences = _differences(win, conditions, seed) if len(conditions) == 2 else None
+    truth = _matched(truth, win)
+    lines += findings(table, result, len(pids), win, conditions, differences, truth)
+    lines += ["", "## Models", "",
+              f"{len(pids)} participants, {len(models)} models; each participant's best model by BIC, the BIC "
               "summed over participants, and random-effects Bayesian model selection on log evidence -BIC/2 "
               "(Stephan et al. 2009; protected exceedance probabilities, Rigoux et al. 2014).", ""]
     header = ["model", "Σ BIC", "Δ Σ BIC", "best for"] + (["frequency", "EP", "PXP"] if result is not None else [])
@@ -64,8 +169,12 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0) -> str:
         body.append(cells)
     lines.append(markdown_table(header, body))
     if result is not None:
-        lines += ["", f"Bayesian omnibus risk (the probability that all models are equally frequent): {result.bor:.3f}."]
-    lines += ["", "## Conditions", ""] + _conditions(win, seed)
+        lines += ["", "Bayesian omnibus risk (the probability that all models are equally frequent): "
+                      f"{result.bor:.3f}. The BMS is said to separate the models when it is below {SEPARATED_BOR:g} and one protected "
+                      f"exceedance probability is above {SEPARATED_PXP:g}."]
+    lines += ["", "## Conditions", ""] + _conditions_table(conditions, differences)
+    if truth is not None:
+        lines += ["", "## Simulated participants: true and fitted", ""] + _truth_table(truth, win)
     pooled = fits[fits["participant"].astype(str).str.startswith(POOLED)]
     if len(pooled):
         best = pooled.loc[pooled.groupby("participant")["bic"].idxmin()]
@@ -81,24 +190,163 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0) -> str:
     return text
 
 
-def _conditions(win: pd.DataFrame, seed: int) -> list[str]:
-    conditions = sorted(c for c in win["condition"].unique() if c != "mixed")
-    if len(conditions) != 2:
-        return [f"Parameters are compared between two conditions; this fit has {len(conditions)}."]
+def findings(table: pd.DataFrame, result: Optional[BMSResult], n: int, win: pd.DataFrame, conditions: list[str],
+             differences: Optional[list[Difference]], truth: Optional[pd.DataFrame]) -> list[str]:
+    """What the comparison found, one bullet per finding: the winners, the BMS, the conditions, the truth."""
+    out = []
+    if len(table) == 1:
+        out.append(f"- One model was fitted ({table['model'].iloc[0]}), so there is no comparison between models.")
+    else:
+        ordered = table.sort_values(["summed_bic", "model"]).reset_index(drop=True)
+        best, second = ordered.iloc[0], ordered.iloc[1]
+        counts = ", ".join(f"{m} for {c}" for m, c in _count_order(table))
+        out.append(f"- **Summed BIC:** {best['model']} fits best over the {n} participants (Σ BIC "
+                   f"{best['summed_bic']:.1f}; the next, {second['model']}, is {second['delta_summed_bic']:.1f} "
+                   f"higher). Each participant's best model: {counts}.")
+    if result is not None:
+        top = table.loc[table["pxp"].idxmax()]
+        pick = (f"{top['model']} (estimated frequency {top['frequency']:.2f}, protected exceedance probability "
+                f"{top['pxp']:.2f})")
+        bor = "< 0.001" if result.bor < 0.001 else f"{result.bor:.3f}"
+        if result.bor < SEPARATED_BOR and top["pxp"] > SEPARATED_PXP:
+            text = f"separates the models: the most frequent is {pick}; the Bayesian omnibus risk is {bor}."
+            best_bic = table.loc[table["summed_bic"].idxmin(), "model"]
+            if best_bic != top["model"]:
+                text += f" The summed BIC and the BMS favour different models ({best_bic} and {top['model']})."
+        elif result.bor < SEPARATED_BOR:
+            text = (f"finds that the models are not equally frequent (Bayesian omnibus risk {bor}), "
+                    f"but none stands out: the likeliest to be the most frequent is {pick}.")
+        else:
+            text = (f"does not separate the models: the Bayesian omnibus risk (the probability that all are "
+                    f"equally frequent) is {result.bor:.2f}; the highest protected exceedance probability is "
+                    f"{top['pxp']:.2f}, of {top['model']}.")
+        out.append(f"- **Random-effects BMS** {text}")
+    if differences is None:
+        out.append(f"- **Conditions:** parameters are compared between two conditions; this fit has "
+                   f"{len(conditions)}.")
+    else:
+        out.append(f"- **Conditions** ({conditions[0]} against {conditions[1]}, each participant's best model): "
+                   f"{_difference_sentence(differences, conditions)}")
+    if truth is not None:
+        out.append(f"- **Simulated participants** ({TRUTH}): {_truth_sentence(truth, win)}")
+    return out
+
+
+def _count_order(table: pd.DataFrame) -> list[tuple[str, int]]:
+    ordered = table.sort_values(["participants_best", "model"], ascending=[False, True])
+    return [(r.model, int(r.participants_best)) for r in ordered.itertuples() if r.participants_best > 0]
+
+
+def _difference_sentence(differences: list[Difference], conditions: list[str]) -> str:
     a, b = conditions
-    rows = []
+    parts, same, few = [], [], []
+    for d in differences:
+        if not d.compared:
+            few.append(f"{d.name} (n = {len(d.a)} and {len(d.b)})")
+        elif d.p < ALPHA:
+            ma, mb = float(np.mean(d.a)), float(np.mean(d.b))
+            where, other = (b, a) if mb > ma else (a, b)
+            hi, lo = max(ma, mb), min(ma, mb)
+            parts.append(f"{d.name} is higher under {where} than under {other} ({hi:.3g} against {lo:.3g}, "
+                         f"{p_is(d.p)})")
+        else:
+            same.append(f"{d.name} ({p_is(d.p)})")
+    sentences = []
+    if parts:
+        sentences.append("; ".join(parts) + ".")
+    if same:
+        sentences.append(f"{_join(same)} {'does' if len(same) == 1 else 'do'} not differ at "
+                         f"p < {str(ALPHA).lstrip('0')}.")
+    if few:
+        sentences.append(f"too few participants to compare {_join(few)}.")
+    return " ".join(s[0].upper() + s[1:] for s in sentences)
+
+
+def _join(items: Sequence[str]) -> str:
+    items = list(items)
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def _differences(win: pd.DataFrame, conditions: list[str], seed: int) -> list[Difference]:
+    a, b = conditions
+    out = []
     for name, label in (("depth", "depth of the best model"), ("beta", "beta of the best model"),
                         ("sigma", "sigma of the best model (IPE winners)"), ("lapse", "lapse of the best model")):
         xa = win[win["condition"] == a][name].dropna().to_numpy(dtype=float)
         xb = win[win["condition"] == b][name].dropna().to_numpy(dtype=float)
-        if len(xa) < 2 or len(xb) < 2:
-            rows.append([label, f"{xa.mean():.3f}" if len(xa) else "", f"{xb.mean():.3f}" if len(xb) else "", "",
-                         "too few"])
-            continue
-        p = permutation_p(xa, xb, N_RESAMPLES, seed)
-        rows.append([label, f"{xa.mean():.3f} (n = {len(xa)})", f"{xb.mean():.3f} (n = {len(xb)})", fmt_p(p), ""])
-    return [markdown_table(["parameter", a, b, "p", ""], rows), "",
+        p = permutation_p(xa, xb, N_RESAMPLES, seed) if len(xa) >= 2 and len(xb) >= 2 else float("nan")
+        out.append(Difference(name, label, xa, xb, p))
+    return out
+
+
+def _conditions_table(conditions: list[str], differences: Optional[list[Difference]]) -> list[str]:
+    if differences is None:
+        return [f"Parameters are compared between two conditions; this fit has {len(conditions)}."]
+    a, b = conditions
+    rows = []
+    for d in differences:
+        cells = [f"{x.mean():.3f} (n = {len(x)})" if len(x) else "–" for x in (d.a, d.b)]
+        rows.append([d.label, *cells, fmt_p(d.p) if d.compared else "too few"])
+    return [markdown_table(["parameter", a, b, "p"], rows), "",
             f"p: permutation test of the difference of means (participants as units, {N_RESAMPLES} resamples)."]
+
+
+def _matched(truth: Optional[pd.DataFrame], win: pd.DataFrame) -> Optional[pd.DataFrame]:
+    """The rows of ``truth`` of fitted participants, in the fit's order; None when there are none."""
+    if truth is None or not len(truth):
+        return None
+    fitted = list(win["participant"].astype(str))
+    truth = truth[truth["participant"].astype(str).isin(fitted)]
+    if not len(truth):
+        return None
+    order = {p: k for k, p in enumerate(fitted)}
+    return truth.sort_values("participant", key=lambda s: s.map(order)).reset_index(drop=True)
+
+
+def _truth_sentence(truth: pd.DataFrame, win: pd.DataFrame) -> str:
+    best = win.set_index(win["participant"].astype(str))
+    n = len(truth)
+    generating = truth["true_model"].fillna(truth["true_predictor"].fillna("unknown").astype(str) + " (not fitted)")
+    kinds = generating.value_counts()
+    models = _join([f"{m} for {c}" if len(kinds) > 1 else m for m, c in kinds.items()])
+    text = f"the generating model is {models}" + (f" (all {n} participants)." if len(kinds) == 1 else ".")
+    known = truth[truth["true_family"].notna()]
+    if len(known):
+        hits = sum(best.loc[r.participant, "family"] == r.true_family for r in known.itertuples())
+        text += f" The generating family is the best model's for {hits} of {len(known)}."
+    fitted_depth = [float(best.loc[p, "depth"]) for p in truth["participant"]]
+    planned = truth["true_depth"].to_numpy(dtype=float)
+    if truth["depth_reached"].notna().any():
+        reached = truth["depth_reached"].to_numpy(dtype=float)
+        ok = int(np.sum(np.isclose(fitted_depth, reached)))
+        text += (f" The best model's depth equals the depth the participant's searches reached (the median of "
+                 f"the log's depth_completed) for {ok} of {n}, and the planned depth for "
+                 f"{int(np.sum(np.isclose(fitted_depth, planned)))} of {n}.")
+    elif np.isfinite(planned).any():
+        same = int(np.sum(np.isclose(fitted_depth, planned)))
+        text += f" The best model's depth equals the planned depth for {same} of {n}."
+    return text + " The table below sets the true parameters beside the fitted ones."
+
+
+def _truth_table(truth: pd.DataFrame, win: pd.DataFrame) -> list[str]:
+    best = win.set_index(win["participant"].astype(str))
+
+    def num(x, digits=3) -> str:
+        return "–" if x is None or (isinstance(x, float) and not np.isfinite(x)) or pd.isna(x) else f"{x:.{digits}g}"
+
+    rows = []
+    for r in truth.itertuples(index=False):
+        fit = best.loc[r.participant]
+        depth = num(r.true_depth) + ("" if pd.isna(r.depth_reached) else f" ({num(r.depth_reached)})")
+        rows.append([r.participant, fit["condition"], r.true_model or f"{r.true_predictor} (not fitted)", depth,
+                     num(r.true_sigma), num(r.true_beta), num(r.true_lapse), fit["model"], num(fit["sigma"]),
+                     num(fit["beta"]), num(fit["lapse"])])
+    return [markdown_table(["participant", "condition", "true model", "true depth (reached)", "true sigma",
+                            "true beta", "true lapse", "best model", "fitted sigma", "fitted beta", "fitted lapse"],
+                           rows), "",
+            "True: the participants command's draws (participants.csv) and the generating model (run.json beside "
+            "it); reached: the median depth the participant's searches completed in the log. Fitted: the best "
+            "model's parameters (sigma on the fitted grid)."]
 
 
 def _figure(table: pd.DataFrame, win: pd.DataFrame, has_bms: bool, out: Path) -> None:

@@ -378,8 +378,7 @@ def run(cfg: DictConfig) -> dict:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:
-    from overhang_framework.config import compose_config
-    from overhang_framework.preflight import check_flags, one_line, split_flags
+    from overhang_framework.preflight import check_flags, compose_checked, split_flags
 
     args = list(sys.argv[1:] if argv is None else argv)
     if "--help" in args or "-h" in args:
@@ -401,10 +400,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             raise ConfigError(f"recovery takes overrides only, not {' '.join(flags)}")
         if out is not None:
             overrides.append(f"out='{Path(out).resolve()}'")
-        try:
-            cfg = compose_config(overrides, config_name=CONFIG_NAME)
-        except Exception as err:  # Hydra raises several kinds
-            raise ConfigError(one_line(err)) from None
+        cfg = compose_checked(overrides, config_name=CONFIG_NAME)
         check_config(cfg)
         Path(cfg.out).mkdir(parents=True, exist_ok=True)
         logging.basicConfig(filename=str(Path(cfg.out) / "recovery.log"), level=logging.INFO,
