@@ -93,6 +93,15 @@ def place(client, session, phase, trial, step, x, layer, attempt=1, start=True, 
     return client.post("/api/placements", json=body, headers=auth(session))
 
 
+def trials_of(client, session, pid=None):
+    """The participant's main trials as the server holds them (the session sends a trial's blocks only when
+    it starts): ``[{"trial", "task_id", "sequence"}, ...]``."""
+    settings = client.app.state.settings
+    by_id = {t.id: t for t in settings.tasks}
+    order = client.store.participant(pid or session["participant"]).order
+    return [{"trial": k, "task_id": i, "sequence": list(by_id[i].sequence)} for k, i in enumerate(order, 1)]
+
+
 def practice_tower(client, k):
     """Practice trial ``k``'s shown tower: a tower that passes."""
     return client.app.state.settings.practice[k - 1].shown_tower
@@ -137,7 +146,8 @@ def test_session_is_issued_then_resumed_only_with_its_token(client):
     s = first.json()
     assert s["position"] == {"phase": "practice", "trial": 1, "attempt": 1, "step": 1,
                              "tower": [[s["practice"][0]["sequence"][0], 0.0, 0]], "total_reward": 0}
-    assert sorted(t["task_id"] for t in s["trials"]) == ["paper00", "paper03"]
+    assert sorted(t["task_id"] for t in trials_of(client, s)) == ["paper00", "paper03"]
+    assert s["trials"] == [{"trial": 1}, {"trial": 2}]  # the blocks come when a trial starts
     assert s["time_limit"] == (5.0 if s["condition"] == "time_limited" else None)
     again = start(client, token=s["token"])
     assert again.status_code == 200
@@ -174,7 +184,7 @@ def test_malformed_json_is_refused_in_one_line(client):
 def test_conditions_are_balanced(client):
     conditions = [start(client, f"P{i}").json()["condition"] for i in range(10)]
     assert conditions.count("time_limited") == conditions.count("unconstrained") == 5
-    orders = {tuple(t["task_id"] for t in start(client, f"Q{i}").json()["trials"]) for i in range(8)}
+    orders = {tuple(t["task_id"] for t in trials_of(client, start(client, f"Q{i}").json())) for i in range(8)}
     assert len(orders) == 2  # both orders of the two tasks occur
 
 
@@ -337,10 +347,13 @@ def test_practice_is_retried_until_passed_then_the_main_trials_follow(client):
 
 
 def test_a_timeout_ends_the_trial_with_reward_zero(make_client):
-    client = make_client(conditions=["time_limited"])
+    clock = FakeClock()
+    client = make_client(clock=clock, conditions=["time_limited"])
     s = start(client).json()
     assert s["time_limit"] == 5.0
     pass_practice(client, s)
+    begin(client, s, "main", 1, 1)
+    clock.now += 5.0
     assert "x and layer null" in error(place(client, s, "main", 1, 1, 0.0, 1, timed_out=True, decision_time=5.0), 422)
     out = place(client, s, "main", 1, 1, None, None, timed_out=True, decision_time=5.0).json()
     assert out["trial_over"] is True and out["reward"] == 0 and out["stable"] is None
@@ -363,7 +376,7 @@ def test_finish_only_after_the_last_trial_and_then_export(client):
     pass_practice(client, s)
     assert "not finished" in error(client.post("/api/finish", headers=auth(s)), 409)
     total = 0.0
-    for t in s["trials"]:
+    for t in trials_of(client, s):
         total += stack(client, s, t["trial"], t["sequence"])["reward"]
     assert "every trial is over" in error(place(client, s, "main", 3, 1, 0.0, 1), 409)
     done = client.post("/api/finish", headers=auth(s)).json()
@@ -377,7 +390,7 @@ def test_finish_only_after_the_last_trial_and_then_export(client):
     assert reply.status_code == 200
     path = client.store.url  # the log goes beside the database
     log = read_log_text(reply.text, tmp=os.path.dirname(path.split(":///")[-1]) if "sqlite" in path else None)
-    assert len(log) == sum(len(t["sequence"]) - 1 for t in s["trials"])
+    assert len(log) == sum(len(t["sequence"]) - 1 for t in trials_of(client, s))
     assert set(log.participant) == {"P1"} and set(log.source) == {"human"}
     assert log.groupby("trial").reward.last().sum() == pytest.approx(total)
 
@@ -398,10 +411,10 @@ def test_an_unfinished_trial_is_left_out_of_the_export(client):
 
     s = start(client).json()
     pass_practice(client, s)
-    stack(client, s, 1, s["trials"][0]["sequence"])
+    stack(client, s, 1, trials_of(client, s)[0]["sequence"])
     place(client, s, "main", 2, 1, 0.0, 1)
     text, unfinished = export_jsonl(client.store)
-    assert unfinished == 1 and text.count("\n") == len(s["trials"][0]["sequence"]) - 1
+    assert unfinished == 1 and text.count("\n") == len(trials_of(client, s)[0]["sequence"]) - 1
 
 
 # the server's clock ------------------------------------------------------------------------------------------
@@ -428,7 +441,9 @@ def test_a_reload_continues_the_servers_clock_and_a_late_placement_is_a_timeout(
     # the trial-ending reply does not start the next trial: its first step starts when the page starts it
     assert client.get("/api/session", headers=auth(s)).json()["clock"] is None
     clock.now += 30  # the participant reads the main part's instructions
-    started = begin(client, s, "main", 1, 1).json()["clock"]
+    reply = begin(client, s, "main", 1, 1).json()
+    assert reply["task"]["sequence"] == trials_of(client, s)[0]["sequence"]  # the trial's blocks, with its clock
+    started = reply["clock"]
     assert started["elapsed"] == 0 and started["time_left"] == 5.0
     clock.now += 1.0
     out = place(client, s, "main", 1, 1, 0.0, 1, start=False).json()
@@ -475,7 +490,7 @@ def test_the_export_gives_the_servers_decision_time_beside_the_pages(make_client
     client = make_client(clock=clock, conditions=[condition])
     s = start(client).json()
     pass_practice(client, s)
-    for t in s["trials"]:
+    for t in trials_of(client, s):
         for step in range(1, len(t["sequence"])):
             if step == 1:
                 begin(client, s, "main", t["trial"], 1)
@@ -485,7 +500,7 @@ def test_the_export_gives_the_servers_decision_time_beside_the_pages(make_client
                 place(client, s, "main", t["trial"], step, None, None, start=False, timed_out=True, decision_time=5.0)
                 break
             place(client, s, "main", t["trial"], step, 0.0, step, start=False, decision_time=0.7)
-    text, _ = export_jsonl(client.store, time_limit=5.0)
+    text, _ = export_jsonl(client.store)
     log = read_log_text(text)
     placed = log[~log.timed_out]
     assert set(placed.decision_time) == {2.5} and set(placed.page_decision_time) == {0.7}
@@ -508,14 +523,14 @@ def test_practice_attempts_used_up_screen_the_participant_out(make_client):
     again = start(client, token=s["token"]).json()
     assert again["position"]["phase"] == "screened_out" and again["screen_out_url"] == "/screened-out"
     assert "used up" in error(place(client, s, "practice", 1, 1, 0.0, 1, attempt=3), 409)
-    assert "not finished" in error(client.post("/api/finish", headers=auth(s)), 409)
+    assert "screened out" in error(client.post("/api/finish", headers=auth(s)), 409)
     summary = client.get("/api/admin/participants", headers={"X-Admin-Token": ADMIN}).json()
     assert summary[0]["phase"] == "screened_out" and summary[0]["screened_out"] is True
     assert client.store.participant("P1").screened_out_at is not None
     # another participant who passes is exported; the screened-out one only when asked
     other = start(client, "P2").json()
     pass_practice(client, other)
-    stack(client, other, 1, other["trials"][0]["sequence"])
+    stack(client, other, 1, trials_of(client, other)[0]["sequence"])
     text, _ = export_jsonl(client.store)
     assert set(read_log_text(text).participant) == {"P2"}
     text, _ = export_jsonl(client.store, include_screened_out=True)
@@ -574,3 +589,81 @@ def test_the_pages_outside_the_task_have_the_experiments_look(client):
     for path in ("/complete", "/screened-out"):
         page = client.get(path)
         assert page.status_code == 200 and "<style>" in page.text and "<h1>" in page.text
+
+
+def test_a_placement_is_timed_as_it_arrives_not_after_it_waited_for_the_database(make_client):
+    clock = FakeClock()
+    client = make_client(clock=clock, conditions=["time_limited"])
+    s = start(client).json()
+    begin(client, s, "practice", 1, 1)
+    clock.now += 4.0
+    slow = client.store.steps
+
+    def waiting_for_the_database(pid):
+        clock.now += 10.0  # the request waits for a lock
+        return slow(pid)
+
+    client.store.steps = waiting_for_the_database
+    out = place(client, s, "practice", 1, 1, 0.0, 1, start=False).json()
+    assert out["timed_out"] is False and out["server_time"] == 4.0
+
+
+def test_a_timeout_claimed_before_the_limit_is_refused(make_client):
+    clock = FakeClock()
+    client = make_client(clock=clock, conditions=["time_limited"])
+    s = start(client).json()
+    begin(client, s, "practice", 1, 1)
+    clock.now += 1.0
+    assert "too early" in error(place(client, s, "practice", 1, 1, None, None, start=False, timed_out=True), 422)
+    clock.now += 3.9  # 4.9 s: the page's countdown ends with the reply's latency taken off
+    out = place(client, s, "practice", 1, 1, None, None, start=False, timed_out=True).json()
+    assert out["timed_out"] is True and out["trial_over"] is True
+
+
+def test_a_participant_keeps_the_time_limit_they_started_with(make_client):
+    from overhang_framework.experiment.export import export_jsonl
+
+    clock = FakeClock()
+    first = make_client(clock=clock, conditions=["time_limited"])
+    s = start(first).json()
+    pass_practice(first, s)
+    restarted = make_client(clock=clock, conditions=["time_limited"], time_limit=3.0)  # same database
+    assert restarted.get("/api/session", headers=auth(s)).json()["time_limit"] == 5.0
+    assert begin(restarted, s, "main", 1, 1).json()["clock"]["time_left"] == 5.0
+    clock.now += 5.3  # within the grace of 5 s, over 3 s
+    out = place(restarted, s, "main", 1, 1, 0.0, 1, start=False).json()
+    assert out["timed_out"] is False
+    rows_ = [r for r in restarted.store.placements("P1") if r.phase == "main"]
+    assert rows_[0].server_time == pytest.approx(5.3)
+    stack_rest = [place(restarted, s, "main", 1, step, 0.0, step) for step in range(2, len(trials_of(restarted, s)[0]["sequence"]))]
+    assert all(r.status_code == 200 for r in stack_rest)
+    text, _ = export_jsonl(restarted.store)
+    log = read_log_text(text)
+    assert log.decision_time.max() <= 5.0  # the grace is the network's, not the participant's
+    assert log.server_time.max() == pytest.approx(5.3)
+
+
+def test_screening_out_is_recorded_once_and_a_later_setting_moves_nobody(make_client):
+    client = make_client(practice_max_attempts=1)
+    s = start(client).json()
+    out = place(client, s, "practice", 1, 1, fall_x(client), 1).json()
+    assert out["position"]["phase"] == "screened_out"
+    other = start(client, "P2").json()
+    pass_practice(client, other)
+    relaxed = make_client(practice_max_attempts=5)  # the same database, a laxer setting
+    assert relaxed.get("/api/session", headers=auth(s)).json()["position"]["phase"] == "screened_out"
+    strict = make_client(practice_max_attempts=1)
+    assert strict.get("/api/session", headers=auth(other)).json()["position"]["phase"] == "main"
+    assert "screened out" in error(client.post("/api/finish", headers=auth(s)), 409)
+
+
+def test_api_paths_are_refused_in_one_line_behind_the_front_end(make_client, tmp_path):
+    web = tmp_path / "web"
+    web.mkdir()
+    (web / "index.html").write_text("<!doctype html><title>page</title>")
+    client = make_client(web_dir=web)
+    assert client.get("/").status_code == 200
+    assert "no such path: /api/nothing" in error(client.get("/api/nothing"), 404)
+    assert "no such path" in error(client.post("/api/nothing"), 404)
+    assert "use POST" in error(client.get("/api/placements"), 405)
+    assert "no such path" in error(client.get("/api/admin/nothing"), 404)

@@ -88,10 +88,10 @@ def _played(tmp_path):
     for k, pt in enumerate(settings.practice, 1):
         for step, (_, x, layer) in enumerate(pt.shown_tower[1:], 1):
             place("practice", k, step, x, layer)
-    seq = s["trials"][0]["sequence"]
+    seq = [t for t in settings.tasks if t.id == "paper03"][0].sequence
     for step in range(1, len(seq)):
         place("main", 1, step, 0.0, step)
-    return overrides, client, s
+    return overrides, client, {**s, "sequence": seq}
 
 
 def _without_admin_token() -> dict:
@@ -102,7 +102,7 @@ def test_export_command_writes_a_log_the_toolkit_reads_without_the_admin_token(t
     from overhang_framework.behaviour.log import read_log
 
     overrides, _, s = _played(tmp_path)
-    seq = s["trials"][0]["sequence"]
+    seq = s["sequence"]
     out = tmp_path / "log.jsonl"
     done = subprocess.run([sys.executable, "-m", "overhang_framework.experiment", "export", "--out", str(out),
                            *overrides], capture_output=True, text=True, timeout=120, env=_without_admin_token())

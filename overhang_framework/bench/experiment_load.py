@@ -461,7 +461,7 @@ class Participant:
         s = reply.json()
         token, pos = s["token"], s["position"]
         limit = s["time_limit"]
-        clock = None
+        clock, sequence = None, None
         while pos["phase"] != "done":
             step = {k: pos[k] for k in ("phase", "trial", "attempt", "step")}
             if clock is None or {k: clock[k] for k in step} != step:  # a trial's first step: the page starts it
@@ -470,6 +470,7 @@ class Participant:
                     rec.error(f"start {reply.status_code}", f"{pid}: {reply.text}")
                     return "error"
                 rec.latency["start"].append(lat)
+                sequence = reply.json()["task"]["sequence"]  # a trial's blocks come with its first step
             think, timed_out = self.think_time(limit)
             if time.monotonic() + think >= self.deadline:
                 return "deadline"
@@ -478,7 +479,7 @@ class Participant:
                 width, x, layer = self.practice_towers[pos["trial"] - 1][pos["step"]]
                 timed_out = False  # practice is played as the shown tower shows
             else:
-                width = s["trials"][pos["trial"] - 1]["sequence"][pos["step"]]
+                width = sequence[pos["step"]]
                 x, layer = choose_action(pos["tower"], width, self.rng, self.cfg.centre_bias)
             traj, dwell = trajectory(think, s["mouse_hz"], x, layer, self.rng)
             body = {"phase": pos["phase"], "trial": pos["trial"], "attempt": pos["attempt"], "step": pos["step"],
@@ -510,7 +511,7 @@ class Participant:
                 if again.status_code != 200:
                     rec.error(f"session {again.status_code}", again.text)
                     return "error"
-                pos, clock = again.json()["position"], again.json()["clock"]
+                pos, clock = again.json()["position"], None
                 continue
             out = reply.json()
             rec.acked[key] = (body["x"], body["layer"], body["timed_out"])

@@ -111,8 +111,7 @@ def _export(args) -> int:
         store = _open_store(settings)
         if store is None:
             return 2
-        text, unfinished = export_jsonl(store, time_limit=settings.time_limit,
-                                        include_screened_out=args.include_screened_out)
+        text, unfinished = export_jsonl(store, include_screened_out=args.include_screened_out)
         store.close()
     atomic_write_text(args.out, text)
     lines = text.count("\n")
@@ -154,6 +153,9 @@ def _reissue(args) -> int:
             return 2
         finally:
             store.close()
+        if settings.public_url is None:
+            print(f"note: the link starts with http://{settings.host}:{settings.port}, from host and port; give "
+                  "public_url=https://... (the address participants open) when that is not it", file=sys.stderr)
     print(f"participant {args.participant}: a new session token; the old one no longer works. Resume link "
           "(send it to the participant; it resumes where they stopped, in any browser):", file=sys.stderr)
     print(link)

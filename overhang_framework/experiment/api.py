@@ -42,6 +42,9 @@ from overhang_framework.geometry import MAX_LAYER, Action, Geometry, overhang
 PARTICIPANT_ID = re.compile(r"^[A-Za-z0-9_.@:-]{1,200}$")
 #: The most mouse samples or dwell entries one placement may carry (10 minutes at 60 Hz).
 MAX_SAMPLES = 36_000
+#: A page's timeout may reach the server this much before the step's time limit (seconds): the page counts
+#: down from the time left the server sent, so its timeout arrives after the limit, less clock jitter.
+EARLY_TIMEOUT = 0.25
 
 
 class Refused(Exception):
@@ -115,14 +118,17 @@ def _tower_after(sequence, rows) -> list:
 def position(settings: Settings, participant: Participant, rows: list[Placement]) -> Position:
     """The position after ``rows`` (the participant's placements).
 
-    ``phase`` is ``practice``, ``main``, ``done``, or ``screened_out`` once a practice trial has failed
-    ``practice_max_attempts`` times (``trial`` and ``attempt`` then name the last attempt).
+    ``phase`` is ``practice``, ``main``, ``done``, or ``screened_out`` once the participant was screened
+    out (recorded when a practice attempt used up ``practice_max_attempts``: a later change of that setting
+    moves nobody in or out; ``trial`` and ``attempt`` then name the last attempt).
     """
     groups: dict[tuple, list[Placement]] = {}
     for r in sorted(rows, key=lambda r: (r.phase, r.trial, r.attempt, r.step)):
         groups.setdefault((r.phase, r.trial, r.attempt), []).append(r)
     total = sum(g[-1].reward or 0.0 for (phase, _, _), g in groups.items() if phase == "main" and g[-1].trial_over)
-    limit = settings.practice_max_attempts
+    if participant.screened_out_at is not None:
+        last = max((key for key in groups if key[0] == "practice"), default=("practice", 1, 1))
+        return Position("screened_out", last[1], last[2], 0, [], total)
     for k, practice in enumerate(settings.practice, 1):
         attempt = 1
         while True:
@@ -130,8 +136,6 @@ def position(settings: Settings, participant: Participant, rows: list[Placement]
             if done and done[-1].trial_over:
                 if done[-1].passed:
                     break
-                if limit is not None and attempt >= limit:
-                    return Position("screened_out", k, attempt, 0, [], total)
                 attempt += 1
                 continue
             return Position("practice", k, attempt, len(done) + 1, _tower_after(practice.task.sequence, done), total)
@@ -195,24 +199,33 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     app = FastAPI(title="Overhang Tower experiment", version="1", lifespan=lifespan)
     app.state.store, app.state.settings, app.state.outcomes = store, settings, outcomes
 
+    @app.middleware("http")
+    async def _arrival(request: Request, call_next):
+        # a placement's time is taken as it arrives, not after it waited for a thread or the database
+        request.state.arrived = clock()
+        return await call_next(request)
+
     @app.exception_handler(Refused)
     async def _refused(_request: Request, err: Refused):
         return JSONResponse({"error": err.message, **err.extra}, status_code=err.status)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, err: StarletteHTTPException):
-        path = request.url.path
-        if err.status_code == 404:
-            message = f"no such path: {path}" + ("; the API's routes are in docs/experiment.md"
-                                                 if path.startswith("/api") else "")
-        elif err.status_code == 405:
-            message = f"{request.method} is not allowed on {path}"
-        else:
-            message = str(err.detail)
-        if path.startswith("/api") or "text/html" not in request.headers.get("accept", ""):
-            return JSONResponse({"error": message}, status_code=err.status_code, headers=getattr(err, "headers", None))
-        return HTMLResponse(info_page("Page not found", "<p>There is no page at this address. Please use the link "
-                                      "you were given to take part.</p>"), status_code=err.status_code)
+        path, status = request.url.path, err.status_code
+        if path.startswith("/api") and status in (404, 405):
+            # behind the front end's mount at /, an API path may reach the static files: decide by the routes
+            allowed = sorted({m for route in app.routes if getattr(route, "path_regex", None) is not None
+                              and getattr(route, "methods", None) and route.path_regex.match(path)
+                              for m in route.methods} - {"HEAD"})
+            status = 405 if allowed and request.method not in allowed else 404
+            message = (f"{request.method} is not allowed on {path}; use {' or '.join(allowed)}" if status == 405
+                       else f"no such path: {path}; the API's routes are in docs/experiment.md")
+            return JSONResponse({"error": message}, status_code=status)
+        if "text/html" in request.headers.get("accept", "") and status == 404:
+            return HTMLResponse(info_page("Page not found", "<p>There is no page at this address. Please use the "
+                                          "link you were given to take part.</p>"), status_code=404)
+        message = f"no such path: {path}" if status == 404 else str(err.detail)
+        return JSONResponse({"error": message}, status_code=status, headers=getattr(err, "headers", None))
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_request: Request, err: RequestValidationError):
@@ -234,7 +247,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             raise Refused(403, "wrong admin token")
 
     def time_limit_of(p: Participant) -> Optional[float]:
-        return settings.time_limit if p.condition == "time_limited" else None
+        """The participant's time limit, as stored when they started (a restart with other settings keeps it)."""
+        return p.time_limit
 
     def clock_state(p: Participant, pos: Position, issued: Optional[float], now: float) -> Optional[dict]:
         """The clock of the step at ``pos``: null when the step has not been handed out yet."""
@@ -262,8 +276,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             "practice_max_attempts": settings.practice_max_attempts,
             "practice": [{"trial": k, "task_id": pt.task.id, "sequence": list(pt.task.sequence)}
                          for k, pt in enumerate(settings.practice, 1)],
-            "trials": [{"trial": t, "task_id": task.id, "sequence": list(task.sequence)}
-                       for t, task in enumerate(main_tasks(settings, p), 1)],
+            "trials": [{"trial": t} for t in range(1, len(p.order) + 1)],
             "position": asdict(pos), "clock": current_clock(p, pos), "completed": p.completed_at is not None,
             "contact": settings.contact,
         }
@@ -300,7 +313,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         condition = tied[int(rng.integers(len(tied)))]
         order = [settings.tasks[i].id for i in rng.permutation(len(settings.tasks))]
         p = Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
-                        token_hash=token_hash(token), condition=condition, order=order)
+                        token_hash=token_hash(token), condition=condition, order=order,
+                        time_limit=settings.time_limit if condition == "time_limited" else None)
         if not store.add_participant(p):
             raise Refused(409, f"participant {pid} was started by another request at the same moment")
         return JSONResponse(session_payload(p, token), status_code=201)
@@ -320,10 +334,12 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                                f"step {body.step}")
         now = clock()
         issued = store.start_clock(p.id, pos.phase, pos.trial, pos.attempt, pos.step, now)
-        return {"position": asdict(pos), "clock": clock_state(p, pos, issued, now)}
+        task = settings.practice[pos.trial - 1].task if pos.phase == "practice" else main_tasks(settings, p)[pos.trial - 1]
+        return {"position": asdict(pos), "clock": clock_state(p, pos, issued, now),
+                "task": {"task_id": task.id, "sequence": list(task.sequence)}}
 
     @app.post("/api/placements")
-    def place(body: PlacementIn, p: Participant = Depends(participant_of)):
+    def place(body: PlacementIn, request: Request, p: Participant = Depends(participant_of)):
         digest = request_hash(body.model_dump(mode="json"))
         rows = store.steps(p.id)
         key = (body.phase, body.trial, body.attempt, body.step)
@@ -350,7 +366,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         else:
             practice, task = None, main_tasks(settings, p)[pos.trial - 1]
         width = task.sequence[pos.step]
-        limited = p.condition == "time_limited"
+        limit = time_limit_of(p)
+        limited = limit is not None
         if body.timed_out:
             if not limited:
                 raise Refused(422, f"condition {p.condition} has no time limit, so no placement can time out")
@@ -362,9 +379,11 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         if issued is None:
             raise Refused(409, f"{pos.phase} trial {pos.trial} step {pos.step} has not been started: "
                                "POST /api/steps/start first")
-        now = clock()
-        server_time = round(max(0.0, now - issued), 3)
-        late = bool(limited and not body.timed_out and server_time > settings.time_limit + settings.time_grace)
+        server_time = round(max(0.0, request.state.arrived - issued), 3)
+        late = bool(limited and not body.timed_out and server_time > limit + settings.time_grace)
+        if body.timed_out and server_time < limit - EARLY_TIMEOUT:
+            raise Refused(422, f"timed_out too early: the step has run {server_time:.2f} s of its "
+                               f"{limit:g} s on the server's clock")
         timed_out = bool(body.timed_out or late)
         geometry = Geometry.from_tuples(pos.tower)
         if timed_out:
@@ -397,7 +416,11 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             trajectory=[list(s) for s in body.trajectory], dwell=[list(d) for d in body.dwell],
             tower_before=pos.tower, stable=stable, overhang=level, reward=reward, trial_over=trial_over,
             passed=passed, request_hash=digest, response={})
-        after = position(settings, p, [*rows, record])
+        attempts = settings.practice_max_attempts
+        if passed is False and attempts is not None and pos.attempt >= attempts:
+            after = Position("screened_out", pos.trial, pos.attempt, 0, [], pos.total_reward)
+        else:
+            after = position(settings, p, [*rows, record])
         response.update(total_reward=after.total_reward, position=asdict(after), clock=None)
         if after.phase == "screened_out":
             response["screen_out_url"] = settings.screen_out_url
@@ -406,15 +429,15 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             stored = store.add_placement(record)
         except Conflict as err:
             raise Refused(409, str(err)) from None
-        if after.phase == "screened_out":
-            store.screen_out(p.id)
         return fresh_clock(p, stored.response)
 
     def fresh_clock(p: Participant, response: dict) -> dict:
         """A placement's reply with the clock of the step it hands out: a step within the same trial starts
         when its reply is first sent (a retry gets the clock as it is now); a trial's first step is started by
-        the page."""
+        the page. A reply that screens the participant out records that (once; a retry finds it recorded)."""
         nxt = Position(**response["position"])
+        if nxt.phase == "screened_out":
+            store.screen_out(p.id)
         if response["trial_over"] or nxt.phase not in ("practice", "main"):
             return response
         now = clock()
@@ -424,6 +447,9 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     @app.post("/api/finish")
     def finish(p: Participant = Depends(participant_of)):
         pos = position(settings, p, store.steps(p.id))
+        if pos.phase == "screened_out":
+            raise Refused(409, "the participant was screened out in the practice; there is nothing to finish",
+                          screen_out_url=settings.screen_out_url)
         if pos.phase != "done":
             raise Refused(409, f"not finished: the next placement is {pos.phase} trial {pos.trial} step {pos.step}")
         bonus = round(pos.total_reward * settings.bonus_per_unit, 2)
@@ -435,7 +461,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     def export():
         from overhang_framework.experiment.export import export_jsonl
 
-        text, _ = export_jsonl(store, time_limit=settings.time_limit)
+        text, _ = export_jsonl(store)
         return PlainTextResponse(text, media_type="application/x-ndjson")
 
     @app.post("/api/admin/participants/{pid}/reissue", dependencies=[Depends(admin)])

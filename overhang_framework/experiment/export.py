@@ -9,10 +9,11 @@ and participants screened out in the practice are left out unless asked for
 each attempt a task of its own: ``practice1-attempt2``).
 
 ``decision_time`` is the server's: from when the server handed the step out to
-when the placement arrived, which a reload of the page cannot restart (a
-timeout's is the time limit, the window it used up). The page's own
-measurement is kept beside it as ``page_decision_time``, and the server's
-unrounded elapsed time as ``server_time``.
+when the placement arrived, which a reload of the page cannot restart. In
+``time_limited`` it is at most the participant's time limit: a timeout used the
+whole window, and a placement that arrived within the grace after it took its
+extra time on the network. The page's own measurement is kept beside it as
+``page_decision_time``, and the server's elapsed time as ``server_time``.
 """
 
 from __future__ import annotations
@@ -24,19 +25,15 @@ from overhang_framework.experiment.store import Store
 
 
 def decision_time(row, time_limit: Optional[float]) -> float:
-    """The server's decision time of a stored placement (a timeout's capped at ``time_limit``)."""
-    seconds = row.server_time if row.server_time is not None else row.decision_time
-    if row.timed_out and time_limit is not None:
-        seconds = min(seconds, time_limit)
-    return float(seconds)
+    """The server's decision time of a stored placement, at most ``time_limit`` (when there is one)."""
+    seconds = float(row.server_time)
+    return min(seconds, time_limit) if time_limit is not None else seconds
 
 
-def log_records(store: Store, time_limit: Optional[float] = None,
-                include_screened_out: bool = False) -> tuple[list[dict], int]:
+def log_records(store: Store, include_screened_out: bool = False) -> tuple[list[dict], int]:
     """The behaviour-log records of every whole main trial, and the number of unfinished trials left out.
 
-    ``time_limit`` is the study's (timeouts' decision times are capped at it); ``include_screened_out``
-    adds the practice attempts of the participants screened out in the practice.
+    ``include_screened_out`` adds the practice attempts of the participants screened out in the practice.
     """
     people = {p.id: p for p in store.participants()}
     screened = {pid for pid, p in people.items() if p.screened_out_at is not None}
@@ -63,7 +60,7 @@ def log_records(store: Store, time_limit: Optional[float] = None,
             task_id = f"{rows[0].task_id}-attempt{attempt}"  # each attempt a trial of its own in the log
         else:
             number, extra, task_id = trial, {}, rows[0].task_id
-        limit = time_limit if p.condition == "time_limited" else None
+        limit = p.time_limit
         for r in rows:
             records.append({
                 "log_version": LOG_VERSION, "participant": pid, "condition": p.condition, "task_id": task_id,
@@ -78,8 +75,7 @@ def log_records(store: Store, time_limit: Optional[float] = None,
     return records, unfinished
 
 
-def export_jsonl(store: Store, time_limit: Optional[float] = None,
-                 include_screened_out: bool = False) -> tuple[str, int]:
+def export_jsonl(store: Store, include_screened_out: bool = False) -> tuple[str, int]:
     """:func:`log_records` as checked JSON Lines text, and the number of unfinished trials left out."""
-    records, unfinished = log_records(store, time_limit, include_screened_out)
+    records, unfinished = log_records(store, include_screened_out)
     return log_text(records), unfinished

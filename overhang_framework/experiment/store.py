@@ -45,6 +45,7 @@ class Participant(Base):
     session_id: Mapped[Optional[str]] = mapped_column(String(200))
     token_hash: Mapped[str] = mapped_column(String(64), unique=True, index=True)
     condition: Mapped[str] = mapped_column(String(100))
+    time_limit: Mapped[Optional[float]] = mapped_column(Float)  # seconds per placement in the condition, or null
     order: Mapped[list] = mapped_column(JSON)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
     completed_at: Mapped[Optional[dt.datetime]] = mapped_column(DateTime(timezone=True))

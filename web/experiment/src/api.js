@@ -57,27 +57,34 @@ export async function post(path, body, token = null) {
 }
 
 /**
- * The page's URL parameters, without `token`: a token in the URL (a resume link the researcher
- * reissued) is stored for the participant and removed from the address bar, so it is neither
- * bookmarked nor shared with the screen.
+ * The page's URL parameters and, apart, a `token` from the URL (a resume link the researcher
+ * reissued), which is removed from the address bar so that it is neither bookmarked nor shown.
  */
 export function takeTokenFromUrl() {
   const url = new URL(window.location.href);
-  const params = Object.fromEntries(url.searchParams);
-  const { token, ...rest } = params;
+  const { token = null, ...params } = Object.fromEntries(url.searchParams);
   if (token) {
-    const participant = participantOf(rest);
-    if (participant) storeToken(participant, token);
     url.searchParams.delete("token");
     window.history.replaceState(window.history.state, "", url.pathname + url.search + url.hash);
   }
-  return rest;
+  return { params, token };
 }
 
-/** Starts or resumes the session of the participant named in the URL parameters. */
-export async function openSession(params) {
+/**
+ * Starts or resumes the session of the participant named in the URL parameters, with the link's
+ * token when there is one (else the one this browser keeps). A link's token replaces the kept one
+ * only once the server accepted it: an old, revoked link does not undo a newer one.
+ */
+export async function openSession(params, linkToken = null) {
   const participant = participantOf(params);
-  const session = await post("api/sessions", { params }, storedToken(participant));
+  const kept = storedToken(participant);
+  let session;
+  try {
+    session = await post("api/sessions", { params }, linkToken ?? kept);
+  } catch (error) {
+    if (!(linkToken && kept && kept !== linkToken && error.status === 403)) throw error;
+    session = await post("api/sessions", { params }, kept);
+  }
   storeToken(participant, session.token);
   return session;
 }

@@ -5,8 +5,10 @@
  * The server's `position` drives the practice and main phases: every placement's response carries
  * the next position, and each trial starts from it. A reopened tab therefore continues where the
  * participant stopped. The server also keeps each step's clock: a trial's first step is started
- * with `POST /api/steps/start`, later steps by the previous placement's reply, and the time left
- * shown is the server's, so a reload does not give more time.
+ * with `POST /api/steps/start` (whose reply brings the trial's blocks), later steps by the previous
+ * placement's reply, and the time left shown is the server's, so a reload does not give more time.
+ * A refusal that means the page is out of step with the server (409: another tab went on; 403: a
+ * new link was issued) reloads the page or says whom to contact, rather than retrying for ever.
  */
 
 import { initJsPsych } from "jspsych";
@@ -14,7 +16,7 @@ import HtmlButtonResponsePlugin from "@jspsych/plugin-html-button-response";
 import InstructionsPlugin from "@jspsych/plugin-instructions";
 import OverhangTowerPlugin, { renderTower } from "@overhang-framework/jspsych-plugin-overhang-tower";
 
-import { openSession, post, takeTokenFromUrl } from "./api.js";
+import { ApiError, openSession, post, takeTokenFromUrl } from "./api.js";
 import { CONSENT_HTML, instructionPages } from "./text.js";
 import { tutorialTimeline } from "./tutorial.js";
 
@@ -75,6 +77,23 @@ function showError(message, retry = null) {
   target.append(box);
 }
 
+/** A request whose refusal means the page is out of step with the server: reload, or say whom to contact. */
+async function synced(request, session) {
+  try {
+    return await request();
+  } catch (error) {
+    if (error instanceof ApiError && error.status === 409) {
+      window.location.reload();
+      return new Promise(() => {});
+    }
+    if (error instanceof ApiError && error.status === 403) {
+      showElsewhere(session.contact);
+      return new Promise(() => {});
+    }
+    throw error;
+  }
+}
+
 const button = (testid) => (choice) => `<button class="jspsych-btn" data-testid="${testid}">${choice}</button>`;
 
 const isAtStart = (session) => {
@@ -92,12 +111,9 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
   let lastOutcomeAt = 0;
   let context = null;
 
-  const taskAt = ({ phase, trial }) =>
-    (phase === "practice" ? session.practice : session.trials).find((task) => task.trial === trial);
-
   const place = async (payload) => {
     const body = { phase: position.phase, trial: position.trial, attempt: position.attempt, ...payload };
-    const outcome = await post("api/placements", body, token);
+    const outcome = await synced(() => post("api/placements", body, token), session);
     if (outcome.position) position = state.position = outcome.position;
     if (typeof outcome.total_reward === "number") totalReward = outcome.total_reward;
     if (outcome.screen_out_url) state.screenOutUrl = outcome.screen_out_url;
@@ -115,8 +131,9 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
       lastOutcome.clock = null; // once: a retried decision asks the server again
       if (since < 2) return { ...clock, time_left: clock.time_left == null ? null : Math.max(0, clock.time_left - since) };
     }
-    const reply = await post("api/steps/start", { phase, trial, attempt, step }, token);
-    return reply.clock;
+    const reply = await synced(() => post("api/steps/start", { phase, trial, attempt, step }, token), session);
+    if (context && reply.task) context.task_id = reply.task.task_id;
+    return { ...reply.clock, sequence: reply.task?.sequence };
   };
 
   const prompt = () => {
@@ -132,7 +149,8 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
 
   const towerTrial = {
     type: OverhangTowerPlugin,
-    sequence: () => taskAt(position).sequence,
+    sequence: [], // the server sends a trial's blocks when the trial starts
+
     tower: () => position.tower,
     step: () => position.step,
     place,
@@ -144,7 +162,7 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
     prompt,
     on_start: () => {
       const { phase, trial, attempt } = position;
-      context = { phase, trial, attempt, task_id: taskAt(position).task_id };
+      context = { phase, trial, attempt, task_id: null };
     },
     on_finish: (data) => Object.assign(data, context),
   };
@@ -229,11 +247,14 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
       main,
     ];
   }
-  const startedInPractice = position.phase === "practice";
+  // the main part's instructions (where the time limit is stated) come before its first trial
+  const { phase, trial, step } = position;
+  const beforeMain = phase === "practice" || (phase === "main" && trial === 1 && step === 1 && !session.clock);
   return [
-    resumeScreen(session),
+    // a step whose clock runs goes on at once; otherwise the participant says when to go on
+    ...(session.clock ? [] : [resumeScreen(session)]),
     practice,
-    { timeline: [mainIntro], conditional_function: () => startedInPractice && position.phase === "main" },
+    { timeline: [mainIntro], conditional_function: () => beforeMain && position.phase === "main" },
     main,
   ];
 }
@@ -297,11 +318,11 @@ async function debrief(session) {
 }
 
 async function start() {
-  const params = takeTokenFromUrl();
+  const { params, token } = takeTokenFromUrl();
   target.innerHTML = `<p class="loading">Loading…</p>`;
   let session;
   try {
-    session = await openSession(params);
+    session = await openSession(params, token);
   } catch (error) {
     if (error.reason === "session_elsewhere") showElsewhere(error.data?.contact);
     else showError(error.message, () => start());

@@ -10,8 +10,11 @@ const info = {
   name: "overhang-tower",
   version: "0.1.0",
   parameters: {
-    /** Block widths in placement order; `sequence[0]` is the ground block. */
-    sequence: { type: ParameterType.FLOAT, array: true, default: undefined },
+    /**
+     * Block widths in placement order; `sequence[0]` is the ground block. Empty when `begin_step` gives
+     * them (a server that shows a trial's blocks only once its clock runs).
+     */
+    sequence: { type: ParameterType.FLOAT, array: true, default: [] },
     /**
      * `place(payload)` sends one placement and returns a Promise of its outcome.
      * payload: {step, x, layer, timed_out, decision_time, trajectory, dwell};
@@ -27,8 +30,9 @@ const info = {
     time_limit: { type: ParameterType.FLOAT, default: null },
     /**
      * `begin_step({step})`, called as each decision begins, returns a Promise of the step's clock
-     * `{time_left}`: the seconds really left when a server keeps the time (after a reload, say). Null:
-     * every decision gets the whole `time_limit`, timed by the page.
+     * `{time_left, sequence}`: the seconds really left when a server keeps the time (after a reload,
+     * say), and optionally the trial's blocks. Null: every decision gets the whole `time_limit`, timed
+     * by the page.
      */
     begin_step: { type: ParameterType.FUNCTION, default: null },
     /** {half_width, height, block_height, max_layer}, in task units. */
@@ -97,8 +101,10 @@ class TowerTrial {
     this.root = root;
     this.params = params;
     this.grid = { ...DEFAULT_GRID, ...params.grid };
-    this.sequence = params.sequence;
-    this.tower = (params.tower?.length ? params.tower : groundTower(this.sequence)).map((block) => [...block]);
+    this.sequence = params.sequence?.length ? params.sequence : null;
+    this.tower = (params.tower?.length ? params.tower : this.sequence ? groundTower(this.sequence) : []).map(
+      (block) => [...block],
+    );
     this.step = params.step;
     this.startStep = params.step;
     this.startTower = this.tower.map((block) => [...block]);
@@ -122,11 +128,18 @@ class TowerTrial {
     this.beginDecision();
   }
 
-  /** The seconds this decision has: the server's clock when `begin_step` gives one, else `time_limit`. */
+  /**
+   * The seconds this decision has: the server's clock when `begin_step` gives one, else `time_limit`.
+   * Takes the trial's blocks from `begin_step` when it gives them.
+   */
   async timeAllowed() {
     const limit = this.params.time_limit;
     if (!this.params.begin_step) return limit;
     const clock = await this.params.begin_step({ step: this.step });
+    if (Array.isArray(clock?.sequence)) {
+      this.sequence = clock.sequence;
+      if (!this.tower.length) this.tower = groundTower(this.sequence);
+    }
     if (limit == null) return null;
     return typeof clock?.time_left === "number" ? clock.time_left : limit;
   }
@@ -222,9 +235,6 @@ class TowerTrial {
   // ---- one decision --------------------------------------------------------------------------
 
   async beginDecision() {
-    this.stepText.textContent = `Block ${this.step + 1} of ${this.sequence.length}`;
-    this.container.dataset.step = String(this.step);
-    this.container.dataset.tower = JSON.stringify(this.tower);
     this.message.textContent = "";
     this.actions.replaceChildren();
     let allowed;
@@ -236,6 +246,9 @@ class TowerTrial {
       this.showError(error, () => this.beginDecision());
       return;
     }
+    this.stepText.textContent = `Block ${this.step + 1} of ${this.sequence.length}`;
+    this.container.dataset.step = String(this.step);
+    this.container.dataset.tower = JSON.stringify(this.tower);
     const start = performance.now();
     this.decision = { start, allowed, trajectory: [], dwell: new Map(), dwellKey: null, dwellSince: start };
     this.setState("deciding");
