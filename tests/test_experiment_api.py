@@ -41,9 +41,11 @@ def database(request, tmp_path):
         if os.environ.get("CI"):
             pytest.fail(f"{PG_ENV} is not set: .ci/run starts a PostgreSQL server and sets it")
         pytest.skip(f"no PostgreSQL server ({PG_ENV} not set)")
-    store = Store(url)
-    Base.metadata.drop_all(store.engine)
-    store.close()
+    from sqlalchemy import create_engine
+
+    engine = create_engine(url)  # not a Store: tables of an earlier schema are dropped, not refused
+    Base.metadata.drop_all(engine)
+    engine.dispose()
     yield url
 
 
@@ -667,3 +669,15 @@ def test_api_paths_are_refused_in_one_line_behind_the_front_end(make_client, tmp
     assert "no such path" in error(client.post("/api/nothing"), 404)
     assert "use POST" in error(client.get("/api/placements"), 405)
     assert "no such path" in error(client.get("/api/admin/nothing"), 404)
+
+
+def test_a_database_of_an_earlier_schema_is_refused_in_one_line(tmp_path):
+    import sqlite3
+
+    from overhang_framework.errors import ConfigError
+
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE participants (id VARCHAR(200) PRIMARY KEY, condition VARCHAR(100))")
+    with pytest.raises(ConfigError, match="table participants lacks the column"):
+        Store(f"sqlite:///{path}")
