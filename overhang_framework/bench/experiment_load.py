@@ -699,6 +699,7 @@ def run_load(cfg: LoadConfig, database: Optional[str] = None, overrides: Sequenc
     lat = {"placement": _pct(physics), "stood": _pct(rec.latency["stood"]), "fell": _pct(rec.latency["fell"]),
            "timeout": _pct(rec.latency["timeout"]), "practice": _pct(rec.latency["practice"]),
            "retry": _pct(rec.latency["retry"]), "session": _pct(rec.latency["session"]),
+           "start": _pct(rec.latency["start"]),
            "finish": _pct(rec.latency["finish"])}
     p95 = lat["placement"].get("p95")
     retries = dict(rec.retries)
@@ -729,7 +730,7 @@ def table(f: dict) -> str:
              "", f"{'latency (ms)':<28}{'n':>7}{'p50':>9}{'p95':>9}{'p99':>9}{'max':>9}"]
     names = {"placement": "placement (physics incl.)", "stood": "  tower stood", "fell": "  tower fell",
              "timeout": "timeout (no physics)", "practice": "practice placements", "retry": "retries",
-             "session": "session start", "finish": "finish"}
+             "session": "session start", "start": "trial start (clock)", "finish": "finish"}
     for key, label in names.items():
         s = f["latency_ms"][key]
         if s["n"]:
