@@ -219,6 +219,26 @@ class RasterRenderer(Renderer):
     def render_batch(self, geometries: Sequence[Geometry], out: Optional[np.ndarray] = None) -> np.ndarray:
         return self.render_arrays(*block_arrays(geometries), out=out)
 
+    def mirror_images(self, images: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
+        """The images of the mirrored towers (x -> -x) from the towers' own images, without drawing them:
+        ``fill``, ``bevel`` and ``top`` are mirror-symmetric, so they are the images flipped left to
+        right; ``x`` is the flipped coverage times the coordinate ramp. Equal to
+        :meth:`render_arrays` of the mirrored blocks up to float rounding (the CNN's mirror averaging
+        draws each tower once)."""
+        out = self._out(images.shape[0], out)
+        coverage = None
+        for c, name in enumerate(self.channel_names):
+            if name != "x":
+                out[:, c] = images[:, c, :, ::-1]
+                continue
+            if coverage is None:
+                if "fill" in self.channel_names:
+                    coverage = images[:, self.channel_names.index("fill"), :, ::-1]
+                else:  # the coverage from the x channel itself (the ramp is > 0 at every pixel centre)
+                    coverage = images[:, c, :, ::-1] / self._x_ramp[::-1]
+            np.multiply(coverage, self._x_ramp, out=out[:, c])
+        return out  # in [0, 1] as the images are
+
 
 class PyBulletRenderer(Renderer):
     """PyBullet's ``ER_TINY_RENDERER``: the blocks as lit 3D boxes seen from the front, slightly above.

@@ -425,6 +425,161 @@ def test_mirror_averaging_is_the_mean_logit_of_a_tower_and_its_mirror_image():
     assert predictor.stats()["images"] == 7
 
 
+# ------------------------------------------------------------------ inference: folded, batched, ONNX Runtime
+
+
+@pytest.fixture(scope="module")
+def unfused_and_fused():
+    """The shipped network as trained, folded and run by torch, and folded and run by ONNX Runtime."""
+    return (StabilityModel("default", device="cpu", fused=False),
+            StabilityModel("default", device="cpu", runtime="torch"),
+            StabilityModel("default", device="cpu"))
+
+
+def test_the_fused_network_gives_the_trained_networks_probabilities(unfused_and_fused):
+    import torch
+
+    from overhang_framework.bench.towers import random_towers
+
+    unfused, folded, onnx = unfused_and_fused
+    assert unfused.runtime == folded.runtime == "torch" and onnx.runtime == "onnxruntime"
+    n_bn = sum(isinstance(m, torch.nn.BatchNorm2d) for m in unfused.net.modules())
+    assert unfused.folded == 0 and folded.folded == n_bn > 0
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.net.modules())
+    # 3,000 towers of 2-7 blocks and 600 near-critical ones (the last block at its static flip +- 5 cm)
+    data = cnn_data.generate_shard(cnn_data.DataSpec(seed=31, shards=1, shard_size=600, near_critical=1.0,
+                                                             physics="static"), 0)
+    towers = random_towers(3000, seed=5) + cnn_data.from_arrays(data)
+    reference = unfused.probabilities(towers)
+    for model in (folded, onnx):
+        p = model.probabilities(towers)
+        # measured: at most 1.5e-5 (float32 rounding of the folded weights and of other kernels)
+        assert np.abs(p - reference).max() < 1e-4
+        assert ((p >= 0.5) == (reference >= 0.5)).mean() >= 0.999
+
+
+def test_folding_keeps_any_timm_networks_output_and_needs_eval_mode():
+    import timm
+    import torch
+
+    from overhang_framework.cnn.model import fold_batch_norm
+
+    torch.manual_seed(0)
+    for backbone in ("resnet10t", "regnetx_002"):
+        net = timm.create_model(backbone, pretrained=False, num_classes=2).eval()
+        for m in net.modules():  # batch norms that are far from the identity
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-1, 1), m.running_var.uniform_(0.5, 2), m.weight.data.uniform_(0.5, 1.5)
+        x = torch.rand(3, 3, 48, 48)
+        with torch.inference_mode():
+            before = net(x)
+        assert fold_batch_norm(net) > 0
+        with torch.inference_mode():
+            torch.testing.assert_close(net(x), before, rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="needs a network in eval mode"):
+        fold_batch_norm(timm.create_model("resnet10t", pretrained=False).train())
+
+
+def test_mirrored_images_equal_the_images_of_mirrored_towers():
+    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.render import RasterRenderer, block_arrays
+
+    widths, xs, layers, mask = block_arrays(random_towers(200, seed=2))
+    for channels in (("fill", "bevel", "x"), ("x", "top"), ("fill", "bevel", "top")):
+        renderer = RasterRenderer(channels=channels)
+        images = renderer.render_arrays(widths, xs, layers, mask)
+        drawn = renderer.render_arrays(widths, -xs, layers, mask)
+        assert not np.allclose(images, drawn)
+        np.testing.assert_allclose(renderer.mirror_images(images), drawn, atol=1e-5)
+
+
+def test_score_tables_with_the_fused_batched_cnn_are_the_tables_of_the_trained_network():
+    """Choices and likelihoods of a score table do not change beyond float rounding, in fewer, larger calls."""
+    from overhang_framework.fit.scores import Model, ScoreTables
+    from overhang_framework.search import ChoiceRule
+
+    world = static_world()
+    registry = Registry()
+    value = registry.create("value", {"name": "overhang"}, world=world)
+    new = registry.create("predictor", {"name": "cnn", "device": "cpu"}, world=world)
+    old = registry.create("predictor", {"name": "cnn", "device": "cpu", "fused": False}, world=world)
+    assert new.batched and not old.batched
+    passes = {}
+    for label, predictor in (("new", new), ("old", old)):
+        original = predictor.model.probabilities
+        predictor.model.probabilities = lambda gs, f=original, k=label: passes.setdefault(k, []).append(len(gs)) or f(gs)
+    states = [State(Geometry((Block(1.8, 0.0, 0),)), (1.2, 0.6, 1.2)),
+              State(Geometry((Block(1.8, 0.0, 0), Block(1.2, 0.5, 1))), (0.6, 1.8))]
+    rule = ChoiceRule("softmax", beta=10.0)
+    for depth in (1, 2):
+        for state in states:
+            passes.clear()
+            model = Model({"name": "cnn"}, depth)
+            tables = {}
+            for label, predictor in (("new", new), ("old", old)):
+                predictor.clear_cache()
+                tables[label] = ScoreTables(world, value, predictor, model, {"test": 1}).table(state)
+            assert len(tables["new"]) == len(world.legal_actions(state)) > 10
+            assert np.abs(tables["new"] - tables["old"]).max() < 1e-4
+            assert np.argmax(tables["new"]) == np.argmax(tables["old"])
+            np.testing.assert_allclose(rule.probabilities(tables["new"]), rule.probabilities(tables["old"]),
+                                       atol=1e-4)
+            assert sum(passes["new"]) == sum(passes["old"])  # the same towers
+            if depth == 2:  # the root's children in one call, not one call each
+                assert len(passes["new"]) == 2 < len(passes["old"])
+
+
+def test_a_hybrid_is_batched_when_its_cnn_is_and_empties_its_cnns_cache():
+    world = static_world()
+    hybrid = Registry().create("predictor", {"name": "hybrid"}, world=world)
+    reference = Registry().create("predictor", {"name": "hybrid", "late_params": {"fused": False}}, world=world)
+    assert hybrid.batched and not reference.batched
+    state = State(Geometry((Block(1.8, 0.0, 0), Block(1.2, 0.3, 1), Block(0.6, 0.1, 2))), (1.2,))
+    hybrid.predict(state, world.legal_actions(state)[:4], np.random.default_rng(0))  # 4 blocks: the CNN
+    assert len(hybrid.late._cache) == 4
+    hybrid.clear_cache()
+    assert len(hybrid.late._cache) == 0
+
+
+def test_the_exported_network_is_kept_between_processes(tmp_path, monkeypatch):
+    from overhang_framework.cnn import model as cnn_model
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})
+    exports = []
+    original = cnn_model.export_onnx
+    monkeypatch.setattr(cnn_model, "export_onnx", lambda *a: exports.append(1) or original(*a))
+    tower = [Geometry((Block(1.8, 0.0, 0), Block(0.6, 0.7, 1)))]
+    first = StabilityModel("default", device="cpu").probabilities(tower)
+    kept = list((tmp_path / "overhang_framework" / "onnx").glob("*.onnx"))
+    assert len(exports) == 1 and len(kept) == 1
+    monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})  # as a new process
+    np.testing.assert_array_equal(StabilityModel("default", device="cpu").probabilities(tower), first)
+    assert len(exports) == 1
+    kept[0].write_bytes(b"not a model")  # a damaged file is exported again and replaced
+    monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})
+    np.testing.assert_array_equal(StabilityModel("default", device="cpu").probabilities(tower), first)
+    assert len(exports) == 2 and kept[0].read_bytes() != b"not a model"
+
+
+def test_bad_inference_settings_are_refused():
+    world = static_world()
+    with pytest.raises(ConfigError, match="runtime must be one of onnxruntime, torch, got 'tensorrt'"):
+        Registry().create("predictor", {"name": "cnn", "runtime": "tensorrt"}, world=world)
+    with pytest.raises(ConfigError, match="fused must be true or false, got 'yes'"):
+        Registry().create("predictor", {"name": "cnn", "fused": "yes"}, world=world)
+
+
+def test_the_fit_benchmark_compares_the_tables_with_the_code_before(capsys):
+    from overhang_framework.bench import fit
+
+    assert fit.main(["--scale", "0.02", "--states", "1", "--depths", "2", "--families", "cnn", "--compare",
+                     "--trials", "0", "--world", "world.physics=static"]) == 0
+    out = capsys.readouterr().out
+    assert "before:" in out and "x faster; scores differ by at most" in out
+    assert "the same best action in 1 of 1 tables" in out
+
+
 def test_mirror_settings_parse_from_words_and_booleans():
     from overhang_framework.cnn.model import parse_mirror
 
@@ -480,8 +635,10 @@ def test_bench_prints_towers_and_images_per_second(capsys):
     from overhang_framework.cnn import bench
 
     both = bench.main(["--threads", "1", "--batches", "16", "--images", "40", "--mirror", "true"])
-    one = bench.main(["--threads", "1", "--batches", "16", "--images", "40", "--mirror", "false"])
+    one = bench.main(["--threads", "1", "--batches", "16", "--images", "40", "--mirror", "false",
+                      "--inference", "unfused"])
     assert both["mirror"] is True and one["mirror"] is False
+    assert both["inference"] == "onnxruntime" and one["inference"] == "unfused"
     rate = both["render_and_forward"]["threads=1,batch=16"]
     assert rate["images_per_s"] == pytest.approx(2 * rate["towers_per_s"])
     plain = one["predict_legal_actions"]["threads=1"]
@@ -512,8 +669,10 @@ def test_the_cnn_runs_on_one_torch_thread_by_default(overrides):
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
-        build_models(compose_config([*overrides, "world.physics=static"]))
+        predictor = build_models(compose_config([*overrides, "world.physics=static"]))["predictor"]
         assert torch.get_num_threads() == 1
+        network = getattr(predictor, "late", predictor).model.net  # ONNX Runtime's threads too
+        assert network.session.get_session_options().intra_op_num_threads == 1
         torch.set_num_threads(2)
         build_models(compose_config([*overrides, "world.physics=static", "predictor.threads=null"]
                                     if overrides == ["predictor=cnn"] else

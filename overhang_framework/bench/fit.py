@@ -15,6 +15,12 @@ It then projects the cold-cache cost of fitting the log in one process (tables x
 distinct decision states as the fit builds them by default, ``states=logged``, one
 table per sigma of a grid) from the measured seconds per table.
 
+With ``--compare``, each model whose family has a reference setting (:data:`REFERENCES`:
+the way it was computed before the engine's speed-ups, e.g. the CNN unfused and asked
+state by state) is also timed that way on the same states, alternating state by state,
+and the run prints both times, their ratio and the largest difference between the two
+score tables. Predictors' answer caches are emptied before every timed table.
+
 Without ``--log``, the log is the synthetic study of
 ``python -m overhang_framework.bench.analysis`` (paper size, ``--scale`` of it).
 Measured on whatever else the machine is doing: the figures are of this run.
@@ -34,6 +40,22 @@ import numpy as np
 
 #: The benchmark's models: family -> predictor config.
 FAMILIES = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03}, "cnn": {"name": "cnn"}, "hybrid": {"name": "hybrid"}}
+#: ``--compare``: family -> the predictor config that computes its tables as before the speed-ups.
+REFERENCES = {"cnn": {"name": "cnn", "fused": False, "batch_size": 512},
+              "hybrid": {"name": "hybrid", "late_params": {"fused": False, "batch_size": 512}}}
+
+
+def _timed_table(world, value, predictor, model, context, state) -> tuple[float, int, np.ndarray]:
+    """Seconds, predictor calls and scores of one cold table (fresh expander, the predictor's cache emptied)."""
+    from overhang_framework.fit.scores import ScoreTables
+
+    clear = getattr(predictor, "clear_cache", None)
+    if callable(clear):
+        clear()
+    tables = ScoreTables(world, value, predictor, model, context, None)
+    t0 = time.perf_counter()
+    scores = tables.table(state)
+    return time.perf_counter() - t0, tables.stats.predictor_calls, scores
 
 
 def _log(args, world_overrides: Sequence[str]) -> Path:
@@ -69,6 +91,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--trials", type=int, default=3, help="trials timed for the reuse across steps (default 3)")
     ap.add_argument("--sigmas", type=int, default=5, help="sigma grid size for the IPE's projection (default 5)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--compare", action="store_true",
+                    help="also time each family's reference setting (the code before) on the same states")
     ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = ap.parse_args(argv)
     from overhang_framework.preflight import overrides_problem
@@ -111,8 +135,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     depths = [int(d) for d in args.depths.split(",") if d]
     families = [f for f in args.families.split(",") if f]
     predictors = {f: registry.create("predictor", dict(FAMILIES[f]), world=world) for f in families}
+    references = {f: registry.create("predictor", dict(REFERENCES[f]), world=world)
+                  for f in families if args.compare and f in REFERENCES}
     for f in families:  # warm up (a network's first call, a backend's start)
-        ScoreTables(world, value, predictors[f], Model(FAMILIES[f], 1), context, None).table(sample[0])
+        for predictor in (predictors[f], references.get(f)):
+            if predictor is not None:
+                ScoreTables(world, value, predictor, Model(FAMILIES[f], 1), context, None).table(sample[0])
     print(f"\nscore table of one decision state (every root action exact; fresh expander, no cache; "
           f"{len(sample)} states, at most {args.cell_seconds:g} s per model):", flush=True)
     print(f"  {'model':<14}{'tables':>7}{'s/table':>10}{'calls/table':>13}{'projected cold fit':>22}", flush=True)
@@ -120,13 +148,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         for f in families:
             model = Model(FAMILIES[f], depth)
             seconds, calls, done = [], [], 0
+            before, difference, same_best = [], 0.0, 0
             t_cell = time.perf_counter()
             for state in sample:
-                tables = ScoreTables(world, value, predictors[f], model, context, None)
-                t0 = time.perf_counter()
-                tables.table(state)
-                seconds.append(time.perf_counter() - t0)
-                calls.append(tables.stats.predictor_calls)
+                if f in references and done % 2 == 0:  # alternate which goes first
+                    old = _timed_table(world, value, references[f], model, context, state)
+                t, n_calls, scores = _timed_table(world, value, predictors[f], model, context, state)
+                if f in references and done % 2 == 1:
+                    old = _timed_table(world, value, references[f], model, context, state)
+                if f in references:
+                    before.append(old[0])
+                    difference = max(difference, float(np.max(np.abs(scores - old[2]), initial=0.0)))
+                    same_best += int(np.argmax(scores) == np.argmax(old[2])) if len(scores) else 1
+                seconds.append(t)
+                calls.append(n_calls)
                 done += 1
                 if time.perf_counter() - t_cell > args.cell_seconds:
                     break
@@ -140,6 +175,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             print(f"  {model.label:<14}{done:>7}{per:>10.3f}{row['calls_per_table']:>13.1f}"
                   f"{projected / 60:>14.1f} min{' (x' + str(variants) + ' sigma)' if variants > 1 else '':>8}",
                   flush=True)
+            if before:
+                old_per = float(np.mean(before))
+                row.update({"reference": dict(REFERENCES[f]), "reference_seconds_per_table": old_per,
+                            "speedup": old_per / per, "max_score_difference": difference,
+                            "same_best_action": same_best})
+                print(f"  {'':<14}before: {old_per:.3f} s/table, now {old_per / per:.2f}x faster; scores differ "
+                      f"by at most {difference:.1e}, the same best action in {same_best} of {done} tables",
+                      flush=True)
 
     # reuse across the steps of a trial: one expander per model (the fit) against one per table
     mapped_trials = _grid_trials(world, placements)

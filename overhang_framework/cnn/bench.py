@@ -13,6 +13,7 @@ line is one JSON object with every figure.
     python -m overhang_framework.cnn.bench                 # the default setting, 1 and 2 threads
     python -m overhang_framework.cnn.bench --busy 1        # the same, with another process on one core
     python -m overhang_framework.cnn.bench --threads 1 --batches 64,512
+    python -m overhang_framework.cnn.bench --threads 1 --inference unfused   # the network as trained
 """
 
 from __future__ import annotations
@@ -25,6 +26,11 @@ import time
 from typing import Iterator
 
 import numpy as np
+
+
+#: ``--inference``: the predictor settings of each way to run the network.
+INFERENCE = {"onnxruntime": {"fused": True, "runtime": "onnxruntime"}, "torch": {"fused": True, "runtime": "torch"},
+             "unfused": {"fused": False}}
 
 
 def _spin() -> None:
@@ -88,6 +94,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--images", type=int, default=3000, help="towers per measurement (default 3000)")
     ap.add_argument("--mirror", default="auto", choices=["auto", "true", "false"],
                     help="mirror averaging, as predictor=cnn's mirror (default auto)")
+    ap.add_argument("--inference", default="onnxruntime", choices=list(INFERENCE),
+                    help="the network folded and run by onnxruntime (the predictor's default) or torch, or "
+                         "unfused: as trained, run by torch (default onnxruntime)")
     args = ap.parse_args(argv)
     if args.busy < 0:
         raise SystemExit(f"error: --busy takes a whole number of processes >= 0, got {args.busy}")
@@ -97,7 +106,8 @@ def main(argv=None) -> dict:
     world = Registry().create("world", {"name": "overhang", "physics": "static"})
     states = [State(g, (1.2,)) for g in random_towers(40, seed=12, min_blocks=2, max_blocks=6)]
     mirror = parse_mirror(args.mirror)
-    results = {"towers": args.images, "busy": args.busy, "render_and_forward": {}, "predict_legal_actions": {}}
+    results = {"towers": args.images, "busy": args.busy, "inference": args.inference, "render_and_forward": {},
+               "predict_legal_actions": {}}
     with busy_cores(args.busy):
         if args.busy:
             print(f"{args.busy} other process{'es' if args.busy > 1 else ''} busy on a core each")
@@ -117,7 +127,8 @@ def _measure(args, label: str, t: int, towers, world, states, mirror, batches, r
 
     torch.set_num_threads(t)
     for b in batches:
-        model = StabilityModel(args.checkpoint, device="cpu", batch_size=b, mirror=mirror)
+        model = StabilityModel(args.checkpoint, device="cpu", threads=t, batch_size=b, mirror=mirror,
+                               **INFERENCE[args.inference])
         k = model.images_per_tower
         results["mirror"] = model.mirror
         step = max(1, b // k)  # b images a pass
@@ -131,7 +142,8 @@ def _measure(args, label: str, t: int, towers, world, states, mirror, batches, r
         print(f"threads {label}, batch {b:4d} images: {rate:8.0f} towers/s, {k * rate:8.0f} images/s "
               f"(render + forward)")
     predictor = Registry().create("predictor", {"name": "cnn", "device": "cpu", "cache_size": 0, "threads": t,
-                                                "checkpoint": args.checkpoint, "mirror": mirror}, world=world)
+                                                "checkpoint": args.checkpoint, "mirror": mirror,
+                                                **INFERENCE[args.inference]}, world=world)
     calls = [(s, legal_actions(s.geometry, 1.2, 0.1)) for s in states]
     predictor.predict(*calls[0], np.random.default_rng(0))
     start = time.perf_counter()

@@ -6,7 +6,9 @@ the training never used (``seed``, default 1000; refused when it equals the
 checkpoint's data seed). It is kept in ``data_dir`` so that a rerun scores
 the same towers. The accuracy is measured with the checkpoint's own
 renderer; ``images_per_s`` times batched inference, rendering included, over
-the whole set, on ``threads`` torch threads.
+the whole set, on ``threads`` torch threads. ``fused`` and ``runtime`` are
+``predictor=cnn``'s: by default the network folded and run by ONNX Runtime;
+``fused=false`` scores with the network as trained.
 
 The last line printed is one JSON object with ``accuracy``,
 ``accuracy_near_critical``, ``n``, ``images_per_s`` and ``towers_per_s`` (and more); it is also
@@ -16,6 +18,7 @@ Examples::
 
     python -m overhang_framework.cnn.evaluate
     python -m overhang_framework.cnn.evaluate checkpoint=outputs/cnn/train/regnetx_002-seed0/best.pt n=4000
+    python -m overhang_framework.cnn.evaluate fused=false
 """
 
 from __future__ import annotations
@@ -33,7 +36,8 @@ from overhang_framework.results import atomic_write_json
 
 def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard_size: int = 500,
              threads: int = 1, device: str = "cpu", workers: int = 2, data_dir: str = "outputs/cnn/heldout",
-             batch_size: int = 512, mirror: str = "auto", progress: bool = True) -> dict:
+             batch_size: int = 64, mirror: str = "auto", fused: bool = True, runtime: str = "onnxruntime",
+             progress: bool = True) -> dict:
     """Accuracy of ``checkpoint`` on a fresh held-out set of about ``n`` questions, and its speed."""
     import torch
 
@@ -46,7 +50,7 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
     model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size,
-                           mirror=parse_mirror(mirror))
+                           mirror=parse_mirror(mirror), fused=fused, runtime=runtime)
     trained = dict(model.info.get("data") or {})
     if trained.get("seed") == seed:
         raise ValueError(f"seed {seed} is the seed of the checkpoint's training data; choose another")
@@ -69,7 +73,8 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
         rows = data["n_blocks"] == k
         by_blocks[int(k)] = float(((probs[rows] >= 0.5) == data["stable"][rows]).mean())
     result.update({"images_per_s": len(probs) * model.images_per_tower / seconds,
-                   "towers_per_s": len(probs) / seconds, "mirror": model.mirror, "threads": threads, "device": str(model.device),
+                   "towers_per_s": len(probs) / seconds, "mirror": model.mirror, "fused": model.fused,
+                   "runtime": model.runtime, "threads": threads, "device": str(model.device),
                    "torch_threads": torch.get_num_threads(), "accuracy_by_blocks": by_blocks,
                    "checkpoint": str(model.path), "seed": seed, "data_dir": str(directory)})
     return result

@@ -13,6 +13,7 @@ card is ``default.md`` beside it.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
@@ -110,6 +111,9 @@ def resolve_checkpoint(checkpoint: Optional[str]) -> Path:
     return Path(checkpoint).expanduser()
 
 
+RUNTIMES = ("onnxruntime", "torch")
+
+
 class StabilityModel:
     """A loaded checkpoint: renders geometries and returns stability probabilities, batched.
 
@@ -122,10 +126,20 @@ class StabilityModel:
     ``auto`` follows the checkpoint: its training records whether averaging
     scored higher on the validation set (older checkpoints: whether it trained
     on mirrored images).
+
+    ``fused`` (default) is the network for inference: every batch norm folded
+    into the convolution before it (:func:`fold_batch_norm`), run by
+    ``runtime``: ``onnxruntime`` (the default, on the CPU, with as many
+    threads as torch; the network is exported to ONNX once and kept, see
+    :func:`onnx_network`) or ``torch``. A GPU device always runs torch. Its probabilities equal the trained
+    network's up to float rounding. ``fused=False`` is the network as trained,
+    run by torch, the reference the tests compare with (``runtime`` is then not
+    used).
     """
 
     def __init__(self, checkpoint: Optional[str] = "default", device: str = "auto",
-                 threads: Optional[int] = None, batch_size: int = 512, mirror="auto"):
+                 threads: Optional[int] = None, batch_size: int = 64, mirror="auto", fused: bool = True,
+                 runtime: str = "onnxruntime"):
         import torch
 
         from overhang_framework.render import make_renderer
@@ -136,6 +150,10 @@ class StabilityModel:
             torch.set_num_threads(threads)
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise ValueError(f"batch_size must be a whole number >= 1, got {batch_size!r}")
+        if not isinstance(fused, bool):
+            raise ValueError(f"fused must be true or false, got {fused!r}")
+        if runtime not in RUNTIMES:
+            raise ValueError(f"runtime must be one of {', '.join(RUNTIMES)}, got {runtime!r}")
         mirror = parse_mirror(mirror)
         self.path = resolve_checkpoint(checkpoint)
         payload = read_checkpoint(self.path)
@@ -148,15 +166,37 @@ class StabilityModel:
         self.net = build_model(self.backbone, int(payload.get("outputs", 1)), self.renderer.channels)
         self.net.load_state_dict(payload["state_dict"])
         self.net.eval().to(self.device)
-        self._buffer = np.empty((0, *self.renderer.shape), dtype=np.float32)
+        self.fused = fused
+        #: batch norms folded into the convolution before them (0 unfused, or for a network torch.fx cannot trace)
+        self.folded = fold_batch_norm(self.net) if fused else 0
+        if self.folded:
+            self.net.to(memory_format=torch.channels_last)
+        #: what runs the network: ``onnxruntime`` or ``torch``
+        self.runtime = runtime if fused and self.device.type == "cpu" else "torch"
+        if self.runtime == "onnxruntime":
+            import hashlib
+
+            made = hashlib.sha256(self.path.read_bytes())
+            made.update(repr((torch.__version__, self.renderer.shape, self.folded)).encode())
+            self.net = onnx_network(self.net, self.renderer.shape, torch.get_num_threads(),
+                                    key=made.hexdigest()[:32])
+        self._buffer = self._new_buffer(0)
 
     @property
     def images_per_tower(self) -> int:
         return 2 if self.mirror else 1
 
+    def _new_buffer(self, n: int) -> np.ndarray:
+        """Images as the runtime takes them without a copy: ``(n, C, H, W)``, laid out channels last for
+        the fused network in torch (the unfused one takes them as it always did)."""
+        c, h, w = self.renderer.shape
+        if self.runtime == "torch" and self.fused:
+            return np.empty((n, h, w, c), dtype=np.float32).transpose(0, 3, 1, 2)
+        return np.empty((n, c, h, w), dtype=np.float32)
+
     def _images(self, n: int) -> np.ndarray:
         if self._buffer.shape[0] < n:
-            self._buffer = np.empty((max(n, 2 * self._buffer.shape[0]), *self.renderer.shape), dtype=np.float32)
+            self._buffer = self._new_buffer(max(n, 2 * self._buffer.shape[0]))
         return self._buffer[:n]
 
     def logits_of_arrays(self, widths, xs, layers, mask) -> np.ndarray:
@@ -169,7 +209,8 @@ class StabilityModel:
             stop = min(n, start + step)
             rows = (widths[start:stop], xs[start:stop], layers[start:stop], mask[start:stop])
             single, mirrored = tower_logits(self.net, self.renderer, *rows, self.device,
-                                            self._images((stop - start) * self.images_per_tower), self.mirror)
+                                            self._images((stop - start) * self.images_per_tower), self.mirror,
+                                            flip=self.fused)
             out[start:stop] = single if mirrored is None else (single + mirrored) / 2
         return out
 
@@ -183,11 +224,151 @@ class StabilityModel:
         return 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
 
 
+class OnnxNetwork:
+    """A network exported to ONNX and run by ONNX Runtime on the CPU: ``net(images)`` takes
+    ``(n, C, H, W)`` float32 NumPy images and returns the ``(n, outputs)`` logits as a NumPy array."""
+
+    def __init__(self, model: bytes, threads: Optional[int] = None):
+        import onnxruntime
+
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = int(threads or 0)  # 0: ONNX Runtime's default, one per core
+        options.inter_op_num_threads = 1
+        options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
+        self.session = onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
+        self.input = self.session.get_inputs()[0].name
+
+    def __call__(self, images: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {self.input: np.ascontiguousarray(images, dtype=np.float32)})[0]
+
+
+_ONNX_MODELS: dict = {}
+
+
+def onnx_cache_dir() -> Path:
+    """Where exported networks are kept between processes: ``$XDG_CACHE_HOME/overhang_framework/onnx``
+    (``~/.cache`` without it)."""
+    import os
+
+    return Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser() / "overhang_framework" / "onnx"
+
+
+def onnx_network(net, shape, threads: Optional[int] = None, key: Optional[str] = None) -> OnnxNetwork:
+    """``net`` (a torch network in eval mode, its batch norms folded) exported to ONNX with a free batch
+    size (``torch.onnx.export``, the ``torch.export``-based exporter) and run by ONNX Runtime with
+    ``threads`` threads. The export takes seconds, so with a ``key`` (a digest of everything that makes
+    the network: the checkpoint's bytes, the torch version, the input shape) it is kept, in the process
+    and as a file in :func:`onnx_cache_dir` (written atomically; a cache that cannot be written is
+    skipped)."""
+    model = _ONNX_MODELS.get(key) if key is not None else None
+    path = onnx_cache_dir() / f"{key}.onnx" if key is not None else None
+    if model is None and path is not None and path.is_file():
+        model = path.read_bytes()
+        try:
+            network = OnnxNetwork(model, threads)
+        except Exception:  # a damaged file: export again and replace it
+            model = None
+        else:
+            _ONNX_MODELS[key] = model
+            return network
+    if model is None:
+        model = export_onnx(net, shape)
+        if key is not None:
+            _ONNX_MODELS[key] = model
+            try:
+                with atomic_output(path) as tmp:
+                    Path(tmp).write_bytes(model)
+            except OSError:
+                pass
+    return OnnxNetwork(model, threads)
+
+
+def export_onnx(net, shape) -> bytes:
+    """The ONNX model of ``net`` for ``(batch, *shape)`` float32 inputs, the batch size left free."""
+    import io
+    import logging
+    import warnings
+
+    import torch
+
+    quiet = [logging.getLogger(name) for name in ("torch.onnx", "torch.export", "onnxscript")]
+    levels = [log.level for log in quiet]
+    try:
+        for log in quiet:
+            log.setLevel(logging.ERROR)
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(net, (torch.zeros(2, *shape),), dynamo=True, input_names=["images"],
+                                        output_names=["logits"], optimize=True,
+                                        dynamic_shapes=({0: torch.export.Dim("batch")},))
+    finally:
+        for log, level in zip(quiet, levels):
+            log.setLevel(level)
+    return program.model_proto.SerializeToString()
+
+
+def fold_batch_norm(net) -> int:
+    """Fold every batch norm that directly follows a convolution into that convolution, in place.
+
+    For inference only (``net`` in eval mode): a batch norm then is a fixed affine map per channel, so
+    ``bn(conv(x))`` is one convolution with scaled weights and a bias
+    (``torch.nn.utils.fusion.fuse_conv_bn_eval``). The pairs are found on the network's ``torch.fx``
+    graph (convolutions and batch norms kept whole): a batch norm (``nn.BatchNorm2d`` or timm's
+    ``BatchNormAct2d``) whose input is a convolution's output that nothing else uses. Its place keeps
+    what the module applied after normalising (``BatchNormAct2d``: its dropout and activation), or
+    nothing. Returns the number of batch norms
+    folded; a network that ``torch.fx`` cannot trace is left as it is (0).
+    """
+    import torch
+    from torch import fx, nn
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    if net.training:
+        raise ValueError("fold_batch_norm needs a network in eval mode (net.eval()): training updates batch norms")
+
+    class Tracer(fx.Tracer):
+        def is_leaf_module(self, module, name):
+            return isinstance(module, (nn.Conv2d, nn.BatchNorm2d)) or super().is_leaf_module(module, name)
+
+    from timm.layers import BatchNormAct2d
+
+    foldable = (nn.BatchNorm2d, BatchNormAct2d)  # exactly these: a subclass may do more in its forward
+    try:
+        graph = Tracer().trace(net)
+    except Exception:  # any model code fx cannot follow: keep the network unfused
+        return 0
+    modules = dict(net.named_modules())
+    pairs = []
+    for node in graph.nodes:
+        if node.op != "call_module" or type(modules[node.target]) not in foldable:
+            continue
+        source = node.args[0] if node.args else None
+        if isinstance(source, fx.Node) and source.op == "call_module" and len(source.users) == 1 \
+                and isinstance(modules[source.target], nn.Conv2d) \
+                and modules[node.target].track_running_stats:
+            pairs.append((source.target, node.target))
+
+    def put(name: str, module) -> None:
+        parent, _, attr = name.rpartition(".")
+        setattr(net.get_submodule(parent) if parent else net, attr, module)
+
+    with torch.no_grad():
+        for conv_name, bn_name in pairs:
+            bn = modules[bn_name]
+            put(conv_name, fuse_conv_bn_eval(modules[conv_name], bn))
+            after = [m for m in (getattr(bn, "drop", None), getattr(bn, "act", None)) if isinstance(m, nn.Module)]
+            put(bn_name, nn.Sequential(*after) if after else nn.Identity())
+    return len(pairs)
+
+
 def tower_logits(net, renderer, widths, xs, layers, mask, device, images: np.ndarray,
-                 mirror: bool = False) -> tuple[np.ndarray, Optional[np.ndarray]]:
-    """The verdict logits of ``net`` (in eval mode) for the towers of padded block arrays, and with
-    ``mirror`` those of their mirror images (x -> -x), from one forward pass. ``images`` is the buffer the
-    towers are drawn into: at least one image a tower, two with ``mirror``. Returns ``(single, mirrored)``,
+                 mirror: bool = False, flip: bool = False) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """The verdict logits of ``net`` (a torch network in eval mode, or an :class:`OnnxNetwork`) for the
+    towers of padded block arrays, and with ``mirror`` those of their mirror images (x -> -x), from one
+    forward pass. ``images`` is the buffer the towers are drawn into: at least one image a tower, two
+    with ``mirror``. With ``flip`` and a renderer that can mirror its images
+    (:meth:`RasterRenderer.mirror_images`), the mirror images are the towers' images flipped, equal to
+    drawing them up to float rounding; otherwise they are drawn. Returns ``(single, mirrored)``,
     ``mirrored`` being ``None`` without ``mirror``."""
     import torch
 
@@ -195,9 +376,16 @@ def tower_logits(net, renderer, widths, xs, layers, mask, device, images: np.nda
     images = images[:k * (2 if mirror else 1)]
     renderer.render_arrays(widths, xs, layers, mask, out=images[:k])
     if mirror:
-        renderer.render_arrays(widths, -xs, layers, mask, out=images[k:])
-    with torch.inference_mode():
-        logits = net(as_input(images, device))[:, 0].float().cpu().numpy()
+        mirror_images = getattr(renderer, "mirror_images", None) if flip else None
+        if mirror_images is not None:
+            mirror_images(images[:k], out=images[k:])
+        else:
+            renderer.render_arrays(widths, -xs, layers, mask, out=images[k:])
+    if isinstance(net, OnnxNetwork):
+        logits = net(images)[:, 0].astype(np.float32)
+    else:
+        with torch.inference_mode():
+            logits = net(as_input(images, device))[:, 0].float().cpu().numpy()
     return logits[:k], (logits[k:] if mirror else None)
 
 

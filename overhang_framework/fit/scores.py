@@ -21,6 +21,13 @@ that the steps of a trial share, and the early states that participants doing
 the same task share, are searched once. Across processes and runs, the tables
 themselves are kept in a :class:`ScoreCache` (an SQLite file) keyed by the
 model's key and the state's canonical key.
+
+**Batches.** A predictor whose ``batched`` attribute is true (the CNN, and a
+hybrid with one) is asked for all the root's children in one call at depth 2
+and more: the exact table expands each child that may stand anyway, so the work
+and the scores are the same, in fewer, larger calls. Deeper levels are expanded
+as the search reaches them: expanding every grandchild ahead (the search's
+``prefetch``) would score the many that its bounds skip.
 """
 
 from __future__ import annotations
@@ -204,6 +211,11 @@ class ScoreTables:
         for name in ("computed", "cached", "predictor_calls", "seconds"):
             setattr(self.stats, name, getattr(self.stats, name) + getattr(stats, name))
 
+    def _expand_children(self, state: State) -> None:
+        """Expand the children of ``state`` that an exact table searches (those that may stand), in one call."""
+        root = self._expander.expand(state, force=True)
+        self._expander.expand_many([child for child, p in zip(root.children, root.p) if p > 0])
+
     def table(self, state: State) -> np.ndarray:
         """The model's score of every action of ``world.legal_actions(state)``, in that order."""
         self.stats.asked += 1
@@ -220,6 +232,9 @@ class ScoreTables:
             if len(self._expander._memo) > self.memo_limit:
                 self._expander = self._new_expander()
             calls = self._expander.stats.predictor_calls
+            batched = bool(getattr(self.predictor, "batched", False))
+            if batched and self.model.depth >= 2:
+                self._expand_children(state)
             scores = np.asarray(root_scores(self._expander, self.value, state, self.model.depth, True), dtype=float)
             self.stats.predictor_calls += self._expander.stats.predictor_calls - calls
             self.stats.computed += 1

@@ -31,44 +31,53 @@ class CNNPredictor(Predictor):
     images of one forward pass; ``cache_size`` the towers remembered (0: no
     cache). ``mirror`` averages the answers for each tower and its mirror
     image; ``auto`` follows the checkpoint, whose training records whether
-    that scored higher on validation. The predictor is deterministic: ``rng``
-    is not used.
+    that scored higher on validation. ``fused`` (default) folds the network's
+    batch norms into its convolutions and runs it with ``runtime``
+    (``onnxruntime`` or ``torch``), which changes the answers by float rounding
+    only, and marks the predictor :attr:`batched`: score tables then ask for
+    the towers of many states in one call; ``false`` is the network as
+    trained, run by torch and asked state by state (the reference for tests
+    and benchmarks). The predictor is deterministic: ``rng`` is not used.
     """
 
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
-                 threads: Optional[int] = 1, batch_size: int = 512, cache_size: int = 200_000,
-                 mirror="auto"):
+                 threads: Optional[int] = 1, batch_size: int = 64, cache_size: int = 200_000,
+                 mirror="auto", fused: bool = True, runtime: str = "onnxruntime"):
         from overhang_framework.cnn.model import StabilityModel
 
         if isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0:
             raise ValueError(f"cache_size must be a whole number >= 0, got {cache_size!r}")
         self.world = world
         self.model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size,
-                                    mirror=mirror)
+                                    mirror=mirror, fused=fused, runtime=runtime)
+        #: One large :meth:`predict_many` costs much less than many small ones (see ``fit.scores``).
+        self.batched = fused
         self.cache_size = cache_size
         self._cache: OrderedDict = OrderedDict()
         self.counts = {"towers": 0, "cache_hits": 0, "images": 0}
 
     def probabilities(self, geometries) -> np.ndarray:
-        """Stability probability of each geometry (cached by canonical key)."""
+        """Stability probability of each geometry (cached by canonical key; a tower listed twice in one
+        call is scored once when the cache is on)."""
         out = np.empty(len(geometries))
-        missing, keys = [], []
+        missing: dict = {}  # key -> the indices of the geometries that need it
         for i, g in enumerate(geometries):
             key = g.key
             hit = self._cache.get(key) if self.cache_size else None
             if hit is None:
-                missing.append(i)
-                keys.append(key)
+                missing.setdefault(key if self.cache_size else i, []).append(i)
             else:
                 out[i] = hit
         self.counts["towers"] += len(geometries)
         self.counts["cache_hits"] += len(geometries) - len(missing)
         if missing:
-            probs = self.model.probabilities([geometries[i] for i in missing])
-            self.counts["images"] += len(missing) * self.model.images_per_tower
-            out[missing] = probs
+            rows = list(missing.values())
+            probs = self.model.probabilities([geometries[r[0]] for r in rows])
+            self.counts["images"] += len(rows) * self.model.images_per_tower
+            for r, p in zip(rows, probs):
+                out[r] = p
             if self.cache_size:
-                for key, p in zip(keys, probs):
+                for key, p in zip(missing, probs):
                     self._cache[key] = float(p)
                 while len(self._cache) > self.cache_size:
                     self._cache.popitem(last=False)
@@ -88,6 +97,10 @@ class CNNPredictor(Predictor):
             bounds.append(len(towers))
         probs = self.probabilities(towers) if towers else np.zeros(0)
         return [probs[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+
+    def clear_cache(self) -> None:
+        """Forget the remembered answers (a benchmark that times cold work calls this)."""
+        self._cache.clear()
 
     def stats(self) -> dict:
         """Towers asked about, cache hits, and images the network scored."""

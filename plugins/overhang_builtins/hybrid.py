@@ -54,6 +54,8 @@ class HybridPredictor(Predictor):
         self.early = registry.create("predictor", {"name": early, **dict(early_params or {})}, world=world)
         self.late = registry.create("predictor", {"name": late, **dict(late_params or {})}, world=world)
         self.counts = {"early_calls": 0, "late_calls": 0, "early_actions": 0, "late_actions": 0}
+        #: Whether either predictor prefers one large :meth:`predict_many` to many small ones.
+        self.batched = bool(getattr(self.early, "batched", False) or getattr(self.late, "batched", False))
 
     def route(self, state: State) -> str:
         """``early`` or ``late``: who judges the towers one block larger than ``state``'s."""
@@ -76,6 +78,13 @@ class HybridPredictor(Predictor):
             for i, p in zip(rows, answers):
                 out[i] = np.asarray(p, dtype=float)
         return out
+
+    def clear_cache(self) -> None:
+        """Forget both predictors' remembered answers, where they keep any."""
+        for predictor in (self.early, self.late):
+            clear = getattr(predictor, "clear_cache", None)
+            if callable(clear):
+                clear()
 
     def stats(self) -> dict:
         """Calls and actions each predictor answered, with the predictors' names and the switch point."""
