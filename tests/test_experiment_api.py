@@ -245,7 +245,6 @@ def test_illegal_actions_are_refused_and_nothing_is_written(client, x, layer, wo
 
 def test_overlap_in_a_layer_is_refused(client):
     s = start(client).json()
-    pt = s["practice"][0]
     _, x, layer = practice_tower(client, 1)[1]
     place(client, s, "practice", 1, 1, x, layer)
     assert "overlaps" in error(place(client, s, "practice", 1, 2, x, layer), 422)
