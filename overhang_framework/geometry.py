@@ -95,14 +95,29 @@ class Geometry:
         return cls(tuple(Block(check_width(w), float(x), int(layer)) for w, x, layer in rows))
 
 
+def _key_row(block: Block) -> tuple:
+    """One block's entry in :func:`canonical_key`: width, x (rounded, ``-0.0`` made ``0.0``), layer."""
+    return (round(block.width, KEY_DECIMALS), round(block.x, KEY_DECIMALS) + 0.0, int(block.layer))
+
+
 def canonical_key(blocks: Iterable[Block]) -> tuple:
     """Order-independent key of a set of blocks (coordinates rounded to ``KEY_DECIMALS``)."""
-    return tuple(
-        sorted(
-            (round(b.width, KEY_DECIMALS), round(b.x, KEY_DECIMALS) + 0.0, int(b.layer))
-            for b in blocks
-        )
-    )
+    return tuple(sorted(_key_row(b) for b in blocks))
+
+
+def canonical_order(blocks: Sequence[Block]) -> list[int]:
+    """The indices of ``blocks`` in canonical order: bottom up, by layer, then x, then width.
+
+    The entries are those of :func:`canonical_key` (rounded alike), taken layer first: the order in which
+    a tower is built, and the order in which the search lists a state's blocks. Blocks whose rounded
+    entries tie (possible only for blocks that overlap) are ordered by their exact coordinates, so any
+    permutation of one list of blocks gives the same sequence of blocks.
+    """
+    def rank(i: int) -> tuple:
+        w, x, layer = _key_row(blocks[i])
+        return (layer, x, w), (blocks[i].x + 0.0, blocks[i].width)
+
+    return sorted(range(len(blocks)), key=rank)
 
 
 def overhang(geometry: Geometry) -> float:

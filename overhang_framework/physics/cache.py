@@ -3,9 +3,12 @@
 Verdicts are keyed by the backend's name and parameters, the geometry's
 canonical order-independent key (:attr:`Geometry.key`), and the gravity vector
 and per-block friction when given (friction is reordered with the blocks, so a
-permuted geometry with its permuted friction hits the same entry). One
-:class:`VerdictCache` can be shared by several :class:`CachedBackend` wrappers
-so that everything asking within a run shares its verdicts.
+permuted geometry with its permuted friction hits the same entry). The
+backends decide a tower alike whatever the order of its blocks (the reference
+simulates them in canonical order), so an entry does not depend on which
+order asked first. One :class:`VerdictCache` can be shared by several
+:class:`CachedBackend` wrappers so that everything asking within a run shares
+its verdicts.
 """
 
 from __future__ import annotations
@@ -16,6 +19,11 @@ from typing import Hashable, Optional, Sequence
 import numpy as np
 
 from overhang_framework.geometry import KEY_DECIMALS, Geometry, canonical_key
+
+FILE_FORMAT = "canonical-order"
+"""Part of every key in a verdict file: the reference simulates each tower with its blocks in canonical
+order, so its verdict does not depend on the order asked; files whose verdicts came from runs in the
+order the blocks were listed have other keys and are not read."""
 
 
 def verdict_key(geometry: Geometry, gravity=None, friction=None, context: Hashable = None) -> tuple:
@@ -154,10 +162,10 @@ class DiskCachedBackend:
     """A backend whose verdicts are also kept in an SQLite file, for every later run and process to reuse.
 
     Verdicts are keyed like :class:`CachedBackend`'s (the backend's name and parameters, the canonical
-    geometry, gravity and friction), so a file serves any run with the same physics and never answers
-    for other parameters. Each batch is looked up in one query and its misses written in one
-    transaction; several processes (the jobs of a sweep) can share one file. Meant for verdicts that
-    are dear (the full-window reference), not for microsecond static checks.
+    geometry, gravity and friction, with :data:`FILE_FORMAT`), so a file serves any run with the same
+    physics and never answers for other parameters. Each batch is looked up in one query and its misses
+    written in one transaction; several processes (the jobs of a sweep) can share one file. Meant for
+    verdicts that are dear (the full-window reference), not for microsecond static checks.
     """
 
     def __init__(self, backend, path):
@@ -183,7 +191,7 @@ class DiskCachedBackend:
     def _key(self, geometry, gravity, friction) -> str:
         import hashlib
 
-        return hashlib.blake2b(repr(verdict_key(geometry, gravity, friction, self._context)).encode(),
+        return hashlib.blake2b(repr((FILE_FORMAT, verdict_key(geometry, gravity, friction, self._context))).encode(),
                                digest_size=16).hexdigest()
 
     def stable(self, geometry: Geometry, gravity=None, friction=None) -> bool:

@@ -23,6 +23,16 @@ changes of the geometry can flip the verdict. ``jitters > 0`` selects a
 geometry and in each of ``jitters`` fixed copies whose blocks are moved along
 x by ``+jitter`` or ``-jitter`` (signs from a fixed seed, the same for every
 tower of a given size).
+
+The verdict is a function of the tower, not of the order its blocks are
+listed in. The engine's solver visits bodies and contacts in the order they
+were created, and near a tipping point that order can decide the verdict; so
+every run creates the blocks in the canonical order of
+:func:`~overhang_framework.geometry.canonical_order` (bottom up: by layer,
+then x, then width), and a verdict cache keyed by the canonical key gives one
+answer whichever order asked first. Per-block friction travels with its
+block, the jitter patterns are laid on the blocks in that order, and
+:meth:`PyBulletSimulator.motion` returns its frames in the listed order.
 """
 
 from __future__ import annotations
@@ -35,7 +45,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import BLOCK_HEIGHT, Geometry
+from overhang_framework.geometry import BLOCK_HEIGHT, Geometry, canonical_order
 from overhang_framework.physics import check_fields
 
 
@@ -112,6 +122,10 @@ def jitter_offsets(n_blocks: int, jitters: int, jitter: float) -> list[np.ndarra
 class PyBulletSimulator:
     """One DIRECT-mode PyBullet client, reused for many checks."""
 
+    _listed_order = False
+    """True: create the blocks in the order they are listed (the order-dependent behaviour of earlier
+    versions, kept for side-by-side benchmarks only)."""
+
     def __init__(self, params: PyBulletParams = PyBulletParams()):
         pybullet = import_pybullet()
         self.params = params
@@ -165,6 +179,7 @@ class PyBulletSimulator:
         docstring); the outcome is the first that falls, else the exact one's
         with the steps of all runs.
         """
+        geometry, friction, _ = self._canonical(geometry, friction)
         outcome = self._run(geometry, gravity, friction, early_stop)
         steps = outcome.steps
         for offsets in jitter_offsets(len(geometry), self.params.jitters, self.params.jitter):
@@ -176,6 +191,16 @@ class PyBulletSimulator:
             if not out.stable:
                 return Outcome(False, out.displacement, steps)
         return Outcome(outcome.stable, outcome.displacement, steps)
+
+    def _canonical(self, geometry: Geometry, friction):
+        """``geometry`` with its blocks in canonical order, ``friction`` reordered alike, and the order
+        (``None`` when the blocks already are in it)."""
+        order = None if self._listed_order else canonical_order(geometry.blocks)
+        if order is None or order == sorted(order):
+            return geometry, friction, None
+        blocks = geometry.blocks
+        return (Geometry(tuple(blocks[i] for i in order)),
+                None if friction is None else [friction[i] for i in order], order)
 
     def _run(self, geometry: Geometry, gravity, friction, early_stop: Optional[bool]) -> Outcome:
         p, cid, prm = self._p, self._client, self.params
@@ -219,10 +244,17 @@ class PyBulletSimulator:
 
         ``angle`` is in radians, counter-clockwise in the x-z plane seen with x to the right and z up. The
         run ends at ``duration``, or once every block has rested for ``settle`` seconds after the first
-        (the rest of the window would repeat the last frame).
+        (the rest of the window would repeat the last frame). The blocks are simulated in canonical order;
+        each frame lists them in ``geometry``'s order.
         """
         p, cid, prm = self._p, self._client, self.params
+        geometry, _, order = self._canonical(geometry, None)
         bodies = self._build(geometry, None, None)
+        if order is not None:  # body of the k-th listed block
+            listed = [0] * len(order)
+            for position, k in enumerate(order):
+                listed[k] = bodies[position]
+            bodies = listed
         total = int(round(prm.duration / prm.time_step))
         every = max(1, int(round(1.0 / (fps * prm.time_step))))
         rest_needed = max(1, int(round(settle / prm.time_step / every)))
