@@ -41,8 +41,10 @@ import numpy as np
 #: The benchmark's models: family -> predictor config.
 FAMILIES = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03}, "cnn": {"name": "cnn"}, "hybrid": {"name": "hybrid"}}
 #: ``--compare``: family -> the predictor config that computes its tables as before the speed-ups.
-REFERENCES = {"cnn": {"name": "cnn", "fused": False, "batch_size": 512},
-              "hybrid": {"name": "hybrid", "late_params": {"fused": False, "batch_size": 512}}}
+REFERENCES = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03, "scenes": "objects", "backend_params": {"lp_nnls": False}},
+              "cnn": {"name": "cnn", "fused": False, "batch_size": 512},
+              "hybrid": {"name": "hybrid", "early_params": {"scenes": "objects", "backend_params": {"lp_nnls": False}},
+                         "late_params": {"fused": False, "batch_size": 512}}}
 
 
 def _timed_table(world, value, predictor, model, context, state) -> tuple[float, int, np.ndarray]:

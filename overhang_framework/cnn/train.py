@@ -255,6 +255,7 @@ def _fit_process(rank: int, processes: int, job: dict, port: int, result) -> Non
         out = fit(rank, processes, job)
         if rank == 0:
             result.put(out)
+        dist.barrier()  # leave together: a process tearing gloo down while a peer still talks to it aborts
     finally:
         dist.destroy_process_group()
 

@@ -71,6 +71,8 @@ from overhang_framework.interfaces import Predictor, State, World
 from overhang_framework.physics import PhysicsBackend
 
 BACKENDS = ("static", "pybullet", "world")
+#: How scenes reach a backend that takes arrays: as arrays, or as a Geometry each (the reference path).
+SCENE_PATHS = ("arrays", "objects")
 DEFAULT_FRICTION = 0.5
 DEFAULT_GRAVITY = 9.81
 
@@ -157,16 +159,39 @@ def separate_overlaps(xs: np.ndarray, widths: np.ndarray, layers: np.ndarray,
 class Scenes:
     """What one decision asks the backend: the scenes, candidate-major, and how to read the verdicts.
 
-    ``repeat`` marks noise-free scenes, one per candidate, whose verdict
+    The scenes are arrays of shape ``(scenes, blocks)``: every block's ``widths``, the ``xs`` of its
+    centre and its ``layers``. ``repeat`` marks noise-free scenes, one per candidate, whose verdict
     stands for all ``samples`` simulations.
     """
 
-    geometries: list[Geometry]
+    widths: np.ndarray
+    xs: np.ndarray
+    layers: np.ndarray
     gravity: Optional[np.ndarray]
     friction: Optional[np.ndarray]
     candidates: int
     samples: int
     repeat: bool
+
+    @property
+    def size(self) -> int:
+        return int(self.widths.shape[0])
+
+    @property
+    def geometries(self) -> list[Geometry]:
+        """The scenes as :class:`Geometry` objects (for backends that take only those)."""
+        out = []
+        for w_row, x_row, l_row in zip(self.widths.tolist(), self.xs.tolist(), self.layers.tolist()):
+            out.append(Geometry(tuple(Block(w, x, int(l)) for w, x, l in zip(w_row, x_row, l_row))))
+        return out
+
+    @classmethod
+    def of(cls, geometries: Sequence[Geometry], gravity, friction, candidates: int, samples: int,
+           repeat: bool) -> "Scenes":
+        n = len(geometries[0]) if geometries else 0
+        arr = np.stack([g.as_array() for g in geometries]) if geometries else np.zeros((0, n, 3))
+        return cls(arr[:, :, 0], arr[:, :, 1], arr[:, :, 2].astype(np.int64), gravity, friction, candidates,
+                   samples, repeat)
 
 
 def _stack(parts: list):
@@ -178,6 +203,14 @@ def _stack(parts: list):
     if len({p.shape[1:] for p in parts}) == 1:
         return np.concatenate(parts, axis=0)
     return [row for p in parts for row in p]
+
+
+def _padded(parts: list, fill) -> np.ndarray:
+    """``(rows, n_i)`` arrays side by side as one ``(rows, max n_i)`` array, padded with ``fill``."""
+    n = max(p.shape[1] for p in parts)
+    if all(p.shape[1] == n for p in parts):
+        return np.concatenate(parts, axis=0)
+    return np.concatenate([np.pad(p, ((0, 0), (0, n - p.shape[1])), constant_values=fill) for p in parts], axis=0)
 
 
 class IPEPredictor(Predictor):
@@ -192,13 +225,15 @@ class IPEPredictor(Predictor):
     world uses, through ``world.backend``), or a backend object to use as is
     (a process pool, say). ``static`` and ``pybullet`` take the
     world's parameters for that backend (``world.backend_params``), updated by
-    ``backend_params``. The module docstring defines each perturbation.
+    ``backend_params``. ``scenes`` is how the scenes reach a backend that takes arrays (the static one):
+    ``arrays`` (no Python object per scene) or ``objects`` (a :class:`Geometry` each, the reference path;
+    the same verdicts). The module docstring defines each perturbation.
     """
 
     def __init__(self, world: World, K: int = 50, sigma: float = 0.03,
                  sigma_position: Optional[float] = None, sigma_gravity: Optional[float] = None,
                  sigma_friction: Optional[float] = None, backend: Union[str, PhysicsBackend] = "static",
-                 backend_params: Optional[Mapping[str, Any]] = None):
+                 backend_params: Optional[Mapping[str, Any]] = None, scenes: str = "arrays"):
         if isinstance(K, bool) or not isinstance(K, (int, float)) or int(K) != K or K < 1:
             raise ValueError(f"K must be a whole number >= 1, got {K!r}")
         for name, value in (("sigma", sigma), ("sigma_position", sigma_position),
@@ -208,6 +243,9 @@ class IPEPredictor(Predictor):
                 raise ValueError(f"{name} must be a number >= 0, got {value!r}")
         if isinstance(backend, str) and backend not in BACKENDS:
             raise ValueError(f"unknown IPE backend {backend!r}; allowed: {', '.join(BACKENDS)}")
+        if scenes not in SCENE_PATHS:
+            raise ValueError(f"unknown IPE scenes {scenes!r}; allowed: {', '.join(SCENE_PATHS)}")
+        self.scene_path = scenes
         self.world = world
         self.K = int(K)
         self.noise = Noise(
@@ -264,25 +302,39 @@ class IPEPredictor(Predictor):
         ``len(actions)`` successors themselves when every sigma is 0 (then ``rng`` is not used)."""
         geometries = self.successors(state, actions)
         if not geometries:
-            return Scenes([], None, None, 0, self.K, repeat=True)
+            return Scenes.of([], None, None, 0, self.K, repeat=True)
         if self.noise.zero:
-            return Scenes(geometries, None, None, len(geometries), self.K, repeat=True)
+            return Scenes.of(geometries, None, None, len(geometries), self.K, repeat=True)
         draws = Draws.sample(rng, self.K, len(geometries[0]))
-        batch, gravity, friction = self.perturb(geometries, draws)
-        return Scenes(batch, gravity, friction, len(geometries), self.K, repeat=False)
+        (widths, xs, layers), gravity, friction = self.perturb_arrays(geometries, draws)
+        return Scenes(widths, xs, layers, gravity, friction, len(geometries), self.K, repeat=False)
 
     def run(self, scenes: Sequence["Scenes"]) -> list[np.ndarray]:
-        """Simulate several :class:`Scenes` in one backend call; one ``(candidates, K)`` boolean array each."""
-        geometries = [g for sc in scenes for g in sc.geometries]
-        if not geometries:
+        """Simulate several :class:`Scenes` in one backend call; one ``(candidates, K)`` boolean array each.
+
+        A backend with ``stable_arrays`` (the static one) takes the scenes as arrays, unless ``scenes`` is
+        ``objects``; any other gets a :class:`Geometry` per scene.
+        """
+        busy = [sc for sc in scenes if sc.size]
+        if not busy:
             return [np.zeros((sc.candidates, sc.samples), dtype=bool) for sc in scenes]
-        gravity = _stack([sc.gravity for sc in scenes if sc.geometries])
-        friction = _stack([sc.friction for sc in scenes if sc.geometries])
-        verdicts = np.asarray(self.backend.stable_batch(geometries, gravity, friction), dtype=bool)
+        gravity = _stack([sc.gravity for sc in busy])
+        friction = _stack([sc.friction for sc in busy])
+        backend = self.backend
+        if self.scene_path == "arrays" and hasattr(backend, "stable_arrays") and not isinstance(friction, list):
+            widths = _padded([sc.widths for sc in busy], 0.0)
+            if friction is not None and friction.shape[1] != widths.shape[1]:
+                friction = _padded([sc.friction for sc in busy], 0.0)
+            verdicts = backend.stable_arrays(widths, _padded([sc.xs for sc in busy], 0.0),
+                                             _padded([sc.layers for sc in busy], -1), gravity, friction)
+        else:
+            geometries = [g for sc in busy for g in sc.geometries]
+            verdicts = backend.stable_batch(geometries, gravity, friction)
+        verdicts = np.asarray(verdicts, dtype=bool)
         out, start = [], 0
         for sc in scenes:
-            chunk = verdicts[start:start + len(sc.geometries)]
-            start += len(sc.geometries)
+            chunk = verdicts[start:start + sc.size]
+            start += sc.size
             if sc.repeat:
                 out.append(np.repeat(chunk[:, None], sc.samples, axis=1))
             else:
@@ -294,25 +346,27 @@ class IPEPredictor(Predictor):
         """Boolean ``(len(actions), K)`` verdicts of every simulation, under common random numbers."""
         return self.run([self.scenes(state, actions, rng)])[0]
 
-    def perturb(self, geometries: Sequence[Geometry], draws: Draws):
-        """The ``len(geometries) * K`` perturbed scenes, candidate-major, with gravity and friction.
+    def perturb_arrays(self, geometries: Sequence[Geometry], draws: Draws):
+        """The ``len(geometries) * K`` perturbed scenes, candidate-major, as arrays.
 
-        Returns ``(scenes, gravity, friction)``: ``gravity`` is ``(C*K, 2)`` or
-        ``None`` when its sigma is 0, ``friction`` ``(C*K, n)`` or ``None``
-        likewise.
+        Returns ``((widths, xs, layers), gravity, friction)``: three ``(C*K, n)`` arrays, ``gravity``
+        ``(C*K, 2)`` or ``None`` when its sigma is 0, ``friction`` ``(C*K, n)`` or ``None`` likewise.
         """
         arr = np.stack([g.as_array() for g in geometries])  # (C, n, 3)
         c, n, _ = arr.shape
-        widths, layers = arr[:, :, 0], arr[:, :, 2].astype(int)
+        k = draws.position.shape[0]
+        widths, layers = arr[:, :, 0], arr[:, :, 2].astype(np.int64)
         xs = arr[:, None, :, 1] + self.noise.position * draws.position[None]  # (C, K, n)
         if self.noise.position > 0:
+            # candidates with the same layers and left-to-right order in each layer are separated together
+            order = np.lexsort((arr[:, :, 1], layers), axis=1)
+            groups: dict = {}
             for i in range(c):
-                xs[i] = separate_overlaps(xs[i], widths[i], layers[i], arr[i, :, 1])
-        scenes = []
-        for i in range(c):
-            w_i, l_i = widths[i].tolist(), layers[i].tolist()
-            for row in xs[i].tolist():
-                scenes.append(Geometry(tuple(Block(w, x, l) for w, x, l in zip(w_i, row, l_i))))
+                groups.setdefault((layers[i].tobytes(), order[i].tobytes(), widths[i].tobytes()), []).append(i)
+            for members in groups.values():
+                i = members[0]
+                rows = xs[members].reshape(len(members) * k, n)
+                xs[members] = separate_overlaps(rows, widths[i], layers[i], arr[i, :, 1]).reshape(len(members), k, n)
         gravity = None
         if self.noise.gravity > 0:
             g = self._constant("gravity", DEFAULT_GRAVITY)
@@ -325,7 +379,15 @@ class IPEPredictor(Predictor):
             mu = self._constant("friction", DEFAULT_FRICTION)
             rows = np.maximum(mu + self.noise.friction * draws.friction, 0.0)
             friction = np.tile(rows, (c, 1))
-        return scenes, gravity, friction
+        shape = (c * k, n)
+        return ((np.broadcast_to(widths[:, None, :], (c, k, n)).reshape(shape), xs.reshape(shape),
+                 np.broadcast_to(layers[:, None, :], (c, k, n)).reshape(shape)), gravity, friction)
+
+    def perturb(self, geometries: Sequence[Geometry], draws: Draws):
+        """:meth:`perturb_arrays` with a :class:`Geometry` per scene: ``(scenes, gravity, friction)``."""
+        (widths, xs, layers), gravity, friction = self.perturb_arrays(geometries, draws)
+        scenes = Scenes(widths, xs, layers, gravity, friction, len(geometries), draws.position.shape[0], False)
+        return scenes.geometries, gravity, friction
 
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
         return self.sample_verdicts(state, actions, rng).mean(axis=1)

@@ -1,0 +1,102 @@
+"""The fast static engine gives the reference path's verdicts: scenes as arrays against a Geometry per
+scene, and the NNLS-certified LP stage against HiGHS, on thousands of scenes including near-critical ones."""
+
+import numpy as np
+import pytest
+
+from overhang_framework.bench.towers import family_towers, random_towers, with_last_x
+from overhang_framework.geometry import Geometry
+from overhang_framework.physics import static_backend as sb
+from overhang_framework.physics.static_backend import StaticBackend, StaticParams
+
+
+def _noisy(towers, copies: int, seed: int, sigma: float = 0.03):
+    """``copies`` perturbed scenes of each tower (x, gravity and friction noise), as padded arrays."""
+    rng = np.random.default_rng(seed)
+    n = max(len(g) for g in towers)
+    rows = [g.as_array() for g in towers for _ in range(copies)]
+    W, X, L = np.zeros((len(rows), n)), np.zeros((len(rows), n)), np.full((len(rows), n), -1)
+    for i, arr in enumerate(rows):
+        k = len(arr)
+        W[i, :k], X[i, :k], L[i, :k] = arr[:, 0], arr[:, 1] + sigma * rng.standard_normal(k), arr[:, 2]
+    theta = sigma * rng.standard_normal(len(rows))
+    grav = 9.81 * np.c_[np.sin(theta), -np.cos(theta)]
+    fric = np.where(W > 0, 0.5 + sigma * rng.standard_normal(W.shape), 0.0)
+    return W, X, L, grav, fric
+
+
+def _geometries(W, X, L):
+    return [Geometry.from_tuples((w, x, l) for w, x, l in zip(wr, xr, lr) if w > 0) for wr, xr, lr in zip(W, X, L)]
+
+
+def _lp_towers():
+    """Towers whose scenes reach the LP: bridges on two pillars, and random towers."""
+    return family_towers("indeterminate", 60, seed=3) + random_towers(60, seed=5, min_blocks=4)
+
+
+@pytest.mark.parametrize("nnls", [True, False], ids=["nnls", "highs"])
+def test_arrays_give_the_verdicts_of_a_geometry_per_scene(nnls):
+    W, X, L, grav, fric = _noisy(_lp_towers(), copies=15, seed=0)
+    backend = StaticBackend(lp_nnls=nnls)
+    arrays = backend.stable_arrays(W, X, L, grav, fric)
+    objects = backend.stable_batch(_geometries(W, X, L), grav, [f[w > 0] for f, w in zip(fric, W)])
+    assert len(arrays) == 1800
+    assert np.array_equal(arrays, objects)
+    assert 0.1 < arrays.mean() < 0.9
+
+
+def test_stable_arrays_refuses_arrays_of_different_shapes():
+    with pytest.raises(ValueError, match="one shape"):
+        StaticBackend().stable_arrays(np.ones((2, 3)), np.zeros((2, 2)), np.zeros((2, 3)))
+
+
+def _lp_rows(bt: sb._Batch, params: StaticParams) -> np.ndarray:
+    supported = ((bt.below.sum(axis=2) + bt.ground >= 1) | ~bt.valid).all(axis=1)
+    return np.flatnonzero(supported & ~bt.clash)
+
+
+def _near_critical(towers, params: StaticParams, offsets=(1e-3, 1e-5, 1e-7, 1e-9)):
+    """Each tower with its last block moved to within ``offsets`` of where HiGHS's verdict flips
+    (found by bisection along the block's x), on both sides."""
+    backend = StaticBackend(params, lp_nnls=False)
+    out = []
+    for g in towers:
+        x0 = g.blocks[-1].x
+        lo, hi = x0 - 0.6, x0 + 0.6
+        at = lambda x: bool(backend.stable_batch([with_last_x(g, x)])[0])
+        grid = np.linspace(lo, hi, 25)
+        verdicts = [at(x) for x in grid]
+        flips = [i for i in range(24) if verdicts[i] != verdicts[i + 1]]
+        if not flips:
+            continue
+        a, b = grid[flips[0]], grid[flips[0] + 1]
+        va = verdicts[flips[0]]
+        for _ in range(45):
+            m = (a + b) / 2
+            if at(m) == va:
+                a = m
+            else:
+                b = m
+        out += [with_last_x(g, (a + b) / 2 + s * d) for d in offsets for s in (-1, 1)]
+    return out
+
+
+@pytest.mark.parametrize("params", [StaticParams(), StaticParams(margin=0.005, height_margin=0.0),
+                                    StaticParams(friction_scale=0.3)], ids=["default", "margin", "low-friction"])
+def test_nnls_stage_decides_as_highs_on_thousands_of_lp_scenes(params):
+    towers = _lp_towers()
+    W, X, L, grav, fric = _noisy(towers, copies=25, seed=1)
+    bt = sb._Batch.from_arrays(W, X, L, grav, fric, params)
+    rows = _lp_rows(bt, params)
+    critical = _near_critical(family_towers("indeterminate", 40, seed=8), params)
+    bc = sb._Batch(critical, None, None, params)
+    crows = _lp_rows(bc, params)
+    assert rows.size > 2500 and crows.size > 200
+    stats: dict = {}
+    for batch, r in ((bt, rows), (bc, crows)):
+        highs = sb._lp_verdicts(batch, r, params)
+        nnls = sb._lp_nnls(batch, r, params, stats)
+        assert np.array_equal(nnls, highs), f"{int((nnls != highs).sum())} of {r.size} verdicts differ"
+        assert 0 < highs.sum() < r.size
+    # the certificates decide nearly everything; HiGHS only what lies within its tolerance of the edge
+    assert stats["certified"] >= 0.97 * (rows.size + crows.size)
