@@ -36,6 +36,8 @@ from overhang_framework.results import atomic_write_json
 from overhang_framework.search import Expander, lookahead_value, root_scores, settled_scores
 
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
+#: Backend parameters that choose how verdicts are computed, not the verdicts: left out of result keys.
+SOLVER_SETTINGS = ("lp_nnls",)
 
 
 
@@ -149,6 +151,8 @@ def _ident(physics: str, params: dict, resolution) -> dict:
         params = dataclasses.asdict(backend_params(physics, **params))  # every parameter, defaults included
     except (ValueError, TypeError):
         pass
+    for name in SOLVER_SETTINGS:  # how a verdict is computed, not what it is
+        params.pop(name, None)
     return {"physics": physics, "params": params, "resolution": resolution}
 
 

@@ -495,39 +495,48 @@ def _dense_lp(bt: _Batch, rows: np.ndarray, params: StaticParams) -> tuple[np.nd
     """
     h = BLOCK_HEIGHT
     r0 = rows[0]
+    G = rows.size
     blocks = np.flatnonzero(bt.valid[r0])
     pos = np.full(bt.N, -1)
     pos[blocks] = np.arange(blocks.size)
     cm = bt.cmargin
-    margin_of = (lambda i: cm) if np.isscalar(cm) else (lambda i: cm[rows, i])
-    contacts = []  # (body A, body B or -1, normal, tangent, (a_x, a_z), (c_x, c_z), mu)
-    for i, j in zip(*np.nonzero(bt.below[r0])):
-        a, c = _shrink(np.maximum(bt.left[rows, i], bt.left[rows, j]), np.minimum(bt.right[rows, i], bt.right[rows, j]),
-                       margin_of(i))
-        z = bt.layer[rows, i] * h
-        contacts.append((i, j, (0.0, 1.0), (1.0, 0.0), (a, z), (c, z), _combine(bt.mu[rows, i], bt.mu[rows, j], params)))
-    for i in np.flatnonzero(bt.ground[r0]):
-        a, c = _shrink(bt.left[rows, i], bt.right[rows, i], margin_of(i))
-        mu = _combine(bt.mu[rows, i], np.full(rows.size, params.ground_friction), params)
-        contacts.append((i, -1, (0.0, 1.0), (1.0, 0.0), (a, 0.0), (c, 0.0), mu))
-    for i, j in zip(*np.nonzero(bt.side[r0])):
-        xs = (bt.right[rows, i] + bt.left[rows, j]) / 2
-        z0, z1 = _shrink(bt.layer[rows, i] * h, bt.layer[rows, i] * h + h, params.margin)
-        contacts.append((j, i, (1.0, 0.0), (0.0, 1.0), (xs, z0), (xs, z1), _combine(bt.mu[rows, i], bt.mu[rows, j], params)))
-    G = rows.size
-    A = np.zeros((G, 3 * blocks.size, 4 * len(contacts)))
-    for q, (ba, bb, (nx, nz), (tx, tz), p0, p1, mu) in enumerate(contacts):
-        for e, (px, pz) in enumerate((p0, p1)):
-            for s, sgn in enumerate((1.0, -1.0)):
-                dx, dz = nx + sgn * mu * tx, nz + sgn * mu * tz
-                col = 4 * q + 2 * e + s
-                for body, sign in ((ba, 1.0), (bb, -1.0)):
-                    if body < 0:
-                        continue
-                    r = 3 * pos[body]
-                    A[:, r, col] = sign * dx
-                    A[:, r + 1, col] = sign * dz
-                    A[:, r + 2, col] = sign * ((px - bt.x[rows, body]) * dz - (pz - bt.zc[rows, body]) * dx)
+    R = rows[:, None]
+    # every contact of the structure: body A (gets +f), body B (gets -f; -1 the ground), the normal
+    # (vertical for bottom and ground contacts, +x for side ones), two end points, the friction
+    bi, bj = np.nonzero(bt.below[r0])
+    gi = np.flatnonzero(bt.ground[r0])
+    si, sj = np.nonzero(bt.side[r0])
+    a, c = _shrink(np.maximum(bt.left[R, bi], bt.left[R, bj]), np.minimum(bt.right[R, bi], bt.right[R, bj]),
+                   cm if np.isscalar(cm) else cm[R, bi])
+    ga, gc = _shrink(bt.left[R, gi], bt.right[R, gi], cm if np.isscalar(cm) else cm[R, gi])
+    xs = (bt.right[R, si] + bt.left[R, sj]) / 2
+    z0, z1 = _shrink(bt.layer[R, si] * h, bt.layer[R, si] * h + h, params.margin)
+    zb = bt.layer[R, bi] * h
+    body_a = np.concatenate([bi, gi, sj])
+    body_b = np.concatenate([bj, np.full(gi.size, -1), si])
+    vertical = np.r_[np.ones(bi.size + gi.size), np.zeros(si.size)]  # normal (0, 1), tangent (1, 0); else (1, 0), (0, 1)
+    ends = [(np.concatenate([a, ga, xs], axis=1), np.concatenate([zb, np.zeros_like(ga), z0], axis=1)),
+            (np.concatenate([c, gc, xs], axis=1), np.concatenate([zb, np.zeros_like(gc), z1], axis=1))]
+    mu = np.concatenate([_combine(bt.mu[R, bi], bt.mu[R, bj], params),
+                         _combine(bt.mu[R, gi], np.full((G, gi.size), params.ground_friction), params),
+                         _combine(bt.mu[R, si], bt.mu[R, sj], params)], axis=1)
+    Q = body_a.size
+    nx, nz = 1.0 - vertical, vertical
+    tx, tz = vertical, 1.0 - vertical
+    A = np.zeros((G, 3 * blocks.size, 4 * Q))
+    q = np.arange(Q)
+    for e, (px, pz) in enumerate(ends):
+        for s_, sgn in enumerate((1.0, -1.0)):
+            dx, dz = nx + sgn * mu * tx, nz + sgn * mu * tz
+            col = 4 * q + 2 * e + s_
+            for body, sign in ((body_a, 1.0), (body_b, -1.0)):
+                on = body >= 0
+                bd, cl = body[on], col[on]
+                r = 3 * pos[bd]
+                ddx, ddz = dx[:, on], dz[:, on]
+                A[:, r, cl] = sign * ddx
+                A[:, r + 1, cl] = sign * ddz
+                A[:, r + 2, cl] = sign * ((px[:, on] - bt.x[R, bd]) * ddz - (pz[:, on] - bt.zc[R, bd]) * ddx)
     m = bt.m[rows][:, blocks]
     mn = m / m.sum(axis=1, keepdims=True)
     b = np.zeros((G, 3 * blocks.size))
@@ -546,16 +555,14 @@ def _nnls_verdicts(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     forces ``f >= 0`` can then balance the weight. That is checked to within the tolerance, and asked only
     of residuals of at least :data:`NNLS_FALLS`, beyond what HiGHS's tolerances could call balanced.
     """
-    from scipy.optimize import nnls
-
     G = A.shape[0]
     F = np.zeros((G, A.shape[2]))
     ran = np.ones(G, dtype=bool)
+    solve = _nnls_solver()
+    A = np.ascontiguousarray(A, dtype=float)
+    rhs = np.ascontiguousarray(-b, dtype=float)
     for k in range(G):
-        try:
-            F[k] = nnls(A[k], -b[k])[0]
-        except RuntimeError:  # iteration limit: left to HiGHS
-            ran[k] = False
+        F[k], ran[k] = solve(A[k], rhs[k])
     r = (A @ F[:, :, None])[:, :, 0] + b
     miss = np.abs(r).max(axis=1)
     y = -r / np.maximum((r * r).sum(axis=1), 1e-300)[:, None]
@@ -564,6 +571,28 @@ def _nnls_verdicts(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     out = np.where(miss <= NNLS_STANDS, 1, np.where(falls, 0, -1)).astype(np.int8)
     out[~ran] = -1
     return out
+
+
+def _nnls_solver():
+    """``solve(A, b) -> (f, converged)``: SciPy's NNLS, called without ``scipy.optimize.nnls``'s input checks
+    (the systems are built here, finite and of the right shapes) where this SciPy has the routine."""
+    try:
+        from scipy.optimize._slsqplib import nnls as core
+    except ImportError:
+        core = None
+    if core is not None:
+        def solve(A, b):
+            f, _, info = core(A, b, 3 * A.shape[1])
+            return f, info != 3
+    else:
+        from scipy.optimize import nnls
+
+        def solve(A, b):
+            try:
+                return nnls(A, b)[0], True
+            except RuntimeError:  # iteration limit: left to HiGHS
+                return np.zeros(A.shape[1]), False
+    return solve
 
 
 def _lp_nnls(bt: _Batch, rows_b: np.ndarray, params: StaticParams, stats: Optional[dict] = None) -> np.ndarray:

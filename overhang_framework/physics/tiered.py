@@ -140,26 +140,34 @@ class TieredBackend:
             return out
         sp = self.static_params
         g = np.tile([0.0, -sp.gravity], (n, 1)) if gravity is None else np.asarray(gravity, dtype=float).reshape(n, 2)
-        fric = None if friction is None else [np.asarray(f, dtype=float) for f in friction]
+        # the geometries as padded arrays, built once for every stage (a width of 0 pads a shorter tower)
+        width = max(max(len(geo) for geo in geometries), 1)
+        W, X, L = np.zeros((n, width)), np.zeros((n, width)), np.full((n, width), -1, dtype=np.int64)
+        fric = None if friction is None else np.zeros((n, width))
+        for i, geo in enumerate(geometries):
+            k = len(geo)
+            if k:
+                arr = geo.as_array()
+                W[i, :k], X[i, :k], L[i, :k] = arr[:, 0], arr[:, 1], arr[:, 2]
+                if fric is not None:
+                    fric[i, :k] = np.asarray(friction[i], dtype=float)[:k]
 
         def ask(backend, rows, grav, fr):
-            return backend.stable_batch([geometries[i] for i in rows], grav[rows],
-                                        None if fr is None else [fr[i] for i in rows])
+            return backend.stable_arrays(W[rows], X[rows], L[rows], grav[rows], None if fr is None else fr[rows])
 
         t = self.tiers
         rows = np.arange(n)
         sure = np.ones(n, dtype=bool)
         settings = [(_tilted(g, t.stable_tilt), fric), (_tilted(g, -t.stable_tilt), fric)]
         if t.frictionless_stable:
-            settings.append((g, [np.zeros(len(geo)) for geo in geometries]))
+            settings.append((g, np.zeros((n, width))))
         for grav, fr in settings:
             rows = rows[sure[rows]]
             if not rows.size:
                 break
             sure[rows] = ask(self._stable, rows, grav, fr)
         out[sure] = 1
-        fric_fall = None if fric is None else [f * (t.fall_friction / sp.friction if sp.friction > 0 else 1.0)
-                                               for f in fric]
+        fric_fall = None if fric is None else fric * (t.fall_friction / sp.friction if sp.friction > 0 else 1.0)
         rows = np.flatnonzero(~sure)
         falls = np.zeros(n, dtype=bool)
         falls[rows] = True
