@@ -370,3 +370,30 @@ def test_recovery_refuses_bad_settings_in_one_line_before_it_writes_anything(tmp
         assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1
         assert (message or "no results directory given") in proc.stderr, proc.stderr
     assert not out.exists()
+
+
+def test_a_hybrid_shares_the_model_spaces_cnn_and_its_tables_stay_the_same(world, value):
+    from overhang_framework.fit.run import Predictors
+    from overhang_framework.fit.space import _predictor_config
+
+    cnn_config, hybrid_config = _predictor_config("cnn", {}), _predictor_config("hybrid", {"switch": 3})
+    pool = Predictors(Registry(), world)
+    hybrid = pool(hybrid_config)
+    cnn = pool(cnn_config)
+    assert hybrid.late is cnn and pool(cnn_config) is cnn and pool(hybrid_config) is hybrid
+    alone = Registry().create("predictor", dict(hybrid_config), world=world)
+    assert alone.late is not cnn
+    cnn_table = ScoreTables(world, value, cnn, Model(cnn_config, 2), CONTEXT).table(FIRST)
+    hits = cnn.counts["cache_hits"]
+    shared = ScoreTables(world, value, hybrid, Model(hybrid_config, 2), CONTEXT).table(FIRST)
+    assert cnn.counts["cache_hits"] > hits  # the hybrid's late towers came from what the CNN model asked
+    assert np.array_equal(shared, ScoreTables(world, value, alone, Model(hybrid_config, 2), CONTEXT).table(FIRST))
+    assert not np.array_equal(shared, cnn_table)
+
+
+def test_engine_settings_leave_a_tables_key_and_draws_alone():
+    fast = {"name": "ipe", "K": 50, "sigma": 0.03, "scenes": "arrays", "backend_params": {}}
+    reference = {**fast, "scenes": "objects", "backend_params": {"lp_nnls": False}}
+    other = {**fast, "K": 40}
+    assert Model(fast, 2).key(CONTEXT) == Model(reference, 2).key(CONTEXT) != Model(other, 2).key(CONTEXT)
+    assert Model(fast, 2).draw_seed(CONTEXT) == Model(reference, 2).draw_seed(CONTEXT) != Model(other, 2).draw_seed(CONTEXT)

@@ -120,7 +120,8 @@ def run(cfg: DictConfig) -> dict:
     """Fit this job's share of the units; write its part, and the aggregate when every part is there."""
     from overhang_framework.fit.compare import comparison, read_truth
     from overhang_framework.fit.fitting import log_placements
-    from overhang_framework.fit.run import (aggregate, check_directory, fit_units, units_of, write_part)
+    from overhang_framework.fit.run import (Predictors, aggregate, check_directory, fit_units, units_of,
+                                        write_part)
     from overhang_framework.fit.scores import ScoreCache
     from overhang_framework.progress import progress_bar
 
@@ -135,13 +136,7 @@ def run(cfg: DictConfig) -> dict:
     units = units_of(log_placements(checked["df"]), cfg.pooled)
     mine = [u for k, u in enumerate(units) if k % checked["shards"] == checked["shard"]]
     cache = ScoreCache(cfg.cache)
-    predictors: dict[str, Any] = {}
-
-    def build(config):
-        key = repr(sorted(config.items()))
-        if key not in predictors:
-            predictors[key] = checked["registry"].create("predictor", dict(config), world=world)
-        return predictors[key]
+    build = Predictors(checked["registry"], world)
 
     bar = progress_bar(total=len(mine) * len(space), desc="fits", unit="fit", disable=not cfg.progress,
                        miniters=1, mininterval=0.5, dynamic_ncols=True)

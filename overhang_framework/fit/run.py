@@ -104,35 +104,87 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
 CHUNK = 8
 
 
+class Predictors:
+    """The predictors of a model space, built once per settings and shared.
+
+    Models that differ only in depth share one predictor; a hybrid whose early or late part has the
+    settings of a predictor of the space is given that predictor as its part. A predictor that remembers
+    its answers (the CNN) then answers the hybrid's late towers from what the CNN model asked, and the
+    other way round: the same numbers, computed once.
+    """
+
+    def __init__(self, registry, world):
+        self.registry, self.world = registry, world
+        self.built: dict[str, Any] = {}
+
+    @staticmethod
+    def key(config: Mapping[str, Any]) -> str:
+        return repr(sorted(config.items()))
+
+    def __call__(self, config: Mapping[str, Any]):
+        key = self.key(config)
+        if key not in self.built:
+            self.built[key] = self.registry.create("predictor", dict(config), world=self.world)
+            for predictor in self.built.values():
+                self._share(predictor)
+        return self.built[key]
+
+    def _share(self, predictor) -> None:
+        names, params = getattr(predictor, "names", None), getattr(predictor, "params", None)
+        if not isinstance(names, dict) or not isinstance(params, dict):
+            return
+        from overhang_framework.fit.space import _predictor_config
+
+        for part in ("early", "late"):
+            if part not in names:
+                continue
+            try:
+                key = self.key(_predictor_config(str(names[part]), dict(params.get(part) or {})))
+            except (OverhangError, ValueError):
+                continue
+            if key in self.built and getattr(predictor, part, None) is not self.built[key]:
+                setattr(predictor, part, self.built[key])
+
+
 def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs: int,
                 on_table: Callable[[], None] = lambda: None, on_total: Callable[[int], None] = lambda n: None) -> None:
     """Compute, on ``jobs`` worker processes, every table of ``all_tables`` x ``states`` that neither memory
     nor the cache holds, and hand each to its :class:`ScoreTables` (which keeps it and writes it to the cache).
 
     The states keep their order (a trial's steps stay together, so a worker's expander reuses the subtrees
-    they share); each item is one model's next few states. A table is the same whichever process computes
-    it (common random numbers).
+    they share); each item is the next few states, with every model's tables of them, so that models
+    sharing a predictor (:class:`Predictors`) share its answers. A table is the same whichever process
+    computes it (common random numbers).
     """
     from overhang_framework.parallel import pool_map
 
-    items = []
+    todo: dict[str, list] = {}  # state key -> [state, models that need its table]
     for k, tables in enumerate(all_tables):
-        todo, seen = [], set()
         for state in states:
             key = state_key(state)
-            if key in seen or tables.known(state):
+            entry = todo.get(key)
+            if entry is not None and k in entry[1]:
                 continue
-            seen.add(key)
-            todo.append(state)
-        items += [(k, todo[i:i + CHUNK]) for i in range(0, len(todo), CHUNK)]
-    on_total(sum(len(chunk) for _, chunk in items))
+            if tables.known(state):
+                continue
+            if entry is None:
+                entry = todo[key] = [state, []]
+            entry[1].append(k)
+    rows = list(todo.values())
+    items = []
+    for i in range(0, len(rows), CHUNK):
+        chunk = rows[i:i + CHUNK]
+        items.append([(k, [state for state, ks in chunk if k in ks]) for k in range(len(all_tables))
+                      if any(k in ks for _, ks in chunk)])
+    on_total(sum(len(ks) for _, ks in rows))
     if not items:
         return
     first = all_tables[0]
     setup = (dict(first.context), [dict(t.model.predictor) for t in all_tables], [t.model.depth for t in all_tables],
              [t.model.family for t in all_tables])
-    for (k, chunk), (scores, stats), _ in pool_map(_tables_setup, setup, _tables_work, items, jobs, on_table):
-        all_tables[k].receive(chunk, scores, stats)
+    for item, results, _ in pool_map(_tables_setup, setup, _tables_work, items, jobs, on_table):
+        for (k, chunk), (scores, stats) in zip(item, results):
+            all_tables[k].receive(chunk, scores, stats)
 
 
 def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, families: list) -> list:
@@ -142,28 +194,25 @@ def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, fa
     registry = Registry()
     world = registry.create("world", dict(context["world"]))
     value = registry.create("value", dict(context["value"]), world=world)
-    built: dict[str, Any] = {}
-    out = []
-    for config, depth, family in zip(predictors, depths, families):
-        key = repr(sorted(config.items()))
-        if key not in built:
-            built[key] = registry.create("predictor", dict(config), world=world)
-        out.append(ScoreTables(world, value, built[key], Model(config, depth, family), context, None))
-    return out
+    built = Predictors(registry, world)
+    return [ScoreTables(world, value, built(config), Model(config, depth, family), context, None)
+            for config, depth, family in zip(predictors, depths, families)]
 
 
-def _tables_work(tables: list, item: tuple) -> tuple[list, TableStats]:
+def _tables_work(tables: list, item: list) -> list[tuple[list, TableStats]]:
     from overhang_framework.parallel import tick
 
-    k, states = item
-    mine = tables[k]
-    before = TableStats(**vars(mine.stats))
-    scores = []
-    for state in states:
-        scores.append(mine.table(state))
-        tick()
-    delta = TableStats(**{name: getattr(mine.stats, name) - getattr(before, name) for name in vars(before)})
-    return scores, delta
+    out = []
+    for k, states in item:
+        mine = tables[k]
+        before = TableStats(**vars(mine.stats))
+        scores = []
+        for state in states:
+            scores.append(mine.table(state))
+            tick()
+        delta = TableStats(**{name: getattr(mine.stats, name) - getattr(before, name) for name in vars(before)})
+        out.append((scores, delta))
+    return out
 
 
 @contextlib.contextmanager

@@ -47,16 +47,23 @@ from overhang_framework.search import Expander, root_scores, state_key
 
 #: Predictor settings that set a noise level; the draw seed leaves them out (common random numbers).
 NOISE_KEYS = ("sigma", "sigma_position", "sigma_gravity", "sigma_friction")
+#: Settings that choose how the same numbers are computed (the IPE's scene path, the static LP stage):
+#: a table's key and draw seed leave them out, so either way gives and finds the same tables.
+ENGINE_KEYS = ("scenes", "lp_nnls")
 
 
 def _digest(data: Any) -> str:
     return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _strip_noise(config: Any) -> Any:
+def _strip(config: Any, keys: tuple) -> Any:
     if isinstance(config, Mapping):
-        return {k: _strip_noise(v) for k, v in config.items() if k not in NOISE_KEYS}
+        return {k: _strip(v, keys) for k, v in config.items() if k not in keys}
     return config
+
+
+def _strip_noise(config: Any) -> Any:
+    return _strip(config, NOISE_KEYS + ENGINE_KEYS)
 
 
 @dataclass(frozen=True)
@@ -89,7 +96,8 @@ class Model:
 
     def key(self, context: Mapping[str, Any]) -> str:
         """The key of this model's tables: every setting that changes a score (``context``: world and value)."""
-        return _digest({"predictor": dict(self.predictor), "depth": self.depth, "context": dict(context)})
+        return _digest({"predictor": _strip(dict(self.predictor), ENGINE_KEYS), "depth": self.depth,
+                        "context": _strip(dict(context), ENGINE_KEYS)})
 
     def draw_seed(self, context: Mapping[str, Any]) -> int:
         """The seed of the predictor's draws: the model's settings without its noise levels."""

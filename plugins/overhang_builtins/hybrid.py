@@ -51,6 +51,8 @@ class HybridPredictor(Predictor):
         self.world = world
         self.switch = switch
         self.names = {"early": early, "late": late}
+        #: The settings each part was built with (a fit hands a part its own predictor of the same settings).
+        self.params = {"early": dict(early_params or {}), "late": dict(late_params or {})}
         self.early = registry.create("predictor", {"name": early, **dict(early_params or {})}, world=world)
         self.late = registry.create("predictor", {"name": late, **dict(late_params or {})}, world=world)
         self.counts = {"early_calls": 0, "late_calls": 0, "early_actions": 0, "late_actions": 0}
