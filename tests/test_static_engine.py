@@ -100,3 +100,26 @@ def test_nnls_stage_decides_as_highs_on_thousands_of_lp_scenes(params):
         assert 0 < highs.sum() < r.size
     # the certificates decide nearly everything; HiGHS only what lies within its tolerance of the edge
     assert stats["certified"] >= 0.97 * (rows.size + crows.size)
+
+
+def test_the_ipe_gives_the_same_predictions_on_arrays_and_objects_across_states_of_several_sizes():
+    from overhang_framework.geometry import Block
+    from overhang_framework.interfaces import State
+    from overhang_framework.plugins import Registry
+
+    world = Registry().create("world", {"name": "overhang", "physics": "static"})
+    states = [State(Geometry((Block(1.2, 0.0, 0),)), (1.8, 0.6)),
+              State(Geometry((Block(1.8, 0.0, 0), Block(0.6, -0.6, 1), Block(0.6, 0.6, 1))), (1.8,)),
+              State(Geometry((Block(1.2, 0.0, 0), Block(1.8, 0.4, 1), Block(0.6, 1.0, 2))), (1.2, 0.6))]
+    requests = [(s, world.legal_actions(s)) for s in states]
+    fast, reference = (Registry().create("predictor", {"name": "ipe", "K": 20, "sigma": 0.05, "scenes": path,
+                                                         "backend_params": {"lp_nnls": path == "arrays"}}, world=world)
+                       for path in ("arrays", "objects"))
+    rngs = lambda: [np.random.default_rng([3, i]) for i in range(len(requests))]
+    together = fast.predict_many(requests, rngs())
+    assert [len(p) for p in together] == [len(a) for _, a in requests]
+    for p, q in zip(together, reference.predict_many(requests, rngs())):
+        assert np.array_equal(p, q)
+    for (state, actions), p, rng in zip(requests, together, rngs()):
+        assert np.array_equal(fast.predict(state, actions, rng), p)
+    assert any(0 < v < 1 for p in together for v in p)
