@@ -397,3 +397,32 @@ def test_engine_settings_leave_a_tables_key_and_draws_alone():
     other = {**fast, "K": 40}
     assert Model(fast, 2).key(CONTEXT) == Model(reference, 2).key(CONTEXT) != Model(other, 2).key(CONTEXT)
     assert Model(fast, 2).draw_seed(CONTEXT) == Model(reference, 2).draw_seed(CONTEXT) != Model(other, 2).draw_seed(CONTEXT)
+    # the static LP stage set on the world is an engine setting too
+    plain = {**CONTEXT, "world": {**CONTEXT["world"], "static": {"margin": 0.001}}}
+    world = {**CONTEXT, "world": {**CONTEXT["world"], "static": {"margin": 0.001, "lp_nnls": False}}}
+    assert Model(fast, 2).key(world) == Model(fast, 2).key(plain)
+    assert Model(fast, 2).draw_seed(world) == Model(fast, 2).draw_seed(plain)
+
+
+def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monkeypatch):
+    from types import SimpleNamespace
+
+    from overhang_framework import parallel
+    from overhang_framework.fit import run
+
+    states = [state([[1.2, 0.0, 0], [0.6, 0.1 * i, 1]], [1.2]) for i in range(10)]
+    known = [{3, 4}, set()]  # model 0 already has the tables of states 3 and 4
+
+    class Tables(SimpleNamespace):
+        def known(self, s):
+            return states.index(s) in known[self.k]
+
+    tables = [Tables(k=k, context=CONTEXT, model=Model({"name": "ipe"}, 1)) for k in (0, 1)]
+    seen = {}
+    monkeypatch.setattr(parallel, "pool_map", lambda setup, args, work, items, jobs, tick: seen.setdefault("items", items) and [])
+    totals = []
+    run.fill_tables(tables, states + states[:2], jobs=2, on_total=totals.append)
+    asked = [(k, states.index(s)) for item in seen["items"] for k, chunk in item for s in chunk]
+    assert totals == [18] and len(asked) == 18 and len(set(asked)) == 18
+    assert [i for k, i in asked if k == 1] == list(range(10)) and [i for k, i in asked if k == 0] == [0, 1, 2, 5, 6, 7, 8, 9]
+    assert len(seen["items"]) >= 2 * 2  # enough items for two workers

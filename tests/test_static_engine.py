@@ -123,3 +123,11 @@ def test_the_ipe_gives_the_same_predictions_on_arrays_and_objects_across_states_
     for (state, actions), p, rng in zip(requests, together, rngs()):
         assert np.array_equal(fast.predict(state, actions, rng), p)
     assert any(0 < v < 1 for p in together for v in p)
+
+
+def test_scenes_without_blocks_get_the_verdict_of_empty_geometries():
+    backend = StaticBackend()
+    empty = np.zeros((2, 0))
+    expected = backend.stable_batch([Geometry(), Geometry()])
+    assert np.array_equal(backend.stable_arrays(empty, empty, empty), expected)
+    assert np.array_equal(backend.stable_arrays(empty, empty, empty, None, np.zeros((2, 0))), expected)

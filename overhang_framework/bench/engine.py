@@ -70,7 +70,7 @@ def episode(overrides: Sequence[str], index: int, lp_nnls: str) -> dict:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.bench.engine", description=__doc__.split("\n\n")[0])
     ap.add_argument("overrides", nargs="*", help="config overrides (tasks=..., world....)")
-    ap.add_argument("--tasks", type=int, default=3, help="paper20 tasks timed (default 3)")
+    ap.add_argument("--tasks", type=int, default=3, help="tasks timed, the task set's first ones (default 3)")
     ap.add_argument("--skip-optimum", action="store_true", help="time the main job only")
     ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = ap.parse_args(argv)
@@ -79,6 +79,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     problem = overrides_problem(args.overrides)
     if problem is not None:
         print(f"error: {problem}", file=sys.stderr)
+        return 2
+    from overhang_framework.config import compose_config
+    from overhang_framework.tasks import tasks_from_config
+
+    available = len(tasks_from_config(compose_config(list(args.overrides)).tasks))
+    if not 1 <= args.tasks <= available:
+        print(f"error: --tasks must be a whole number from 1 to {available} (the task set's tasks), got {args.tasks}",
+              file=sys.stderr)
         return 2
     figures: dict = {}
     cells = [("episode", episode)] + ([] if args.skip_optimum else [("optimum", optimum)])
@@ -101,9 +109,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               f"the same result in {same} of {args.tasks}", flush=True)
     print(json.dumps(figures))
     if args.json:
-        from pathlib import Path
+        from overhang_framework.results import atomic_write_json
 
-        Path(args.json).write_text(json.dumps(figures, indent=2))
+        atomic_write_json(args.json, figures)
     return 0
 
 

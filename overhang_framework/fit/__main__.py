@@ -122,14 +122,16 @@ def run(cfg: DictConfig) -> dict:
     from overhang_framework.fit.fitting import log_placements
     from overhang_framework.fit.run import (Predictors, aggregate, check_directory, fit_units, units_of,
                                         write_part)
-    from overhang_framework.fit.scores import ScoreCache
+    from overhang_framework.fit.scores import ENGINE_KEYS, ScoreCache, _strip
     from overhang_framework.progress import progress_bar
 
     checked = check_config(cfg)
     out = Path(cfg.out)
     world, value, space = checked["world"], checked["value"], checked["space"]
     context = {"world": _plain(cfg.world), "value": _plain(cfg.value)}
-    description = {"logs": checked["logs"], "models": [[m.label, dict(m.predictor)] for i in space for m in i.variants],
+    # the models as their tables are keyed: settings of how they are computed (ENGINE_KEYS) left out
+    description = {"logs": checked["logs"],
+                   "models": [[m.label, _strip(dict(m.predictor), ENGINE_KEYS)] for i in space for m in i.variants],
                    "context": context, "pooled": cfg.pooled, "shards": checked["shards"],
                    "states": cfg.states}
     check_directory(out, description)

@@ -158,22 +158,20 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
     """
     from overhang_framework.parallel import pool_map
 
-    todo: dict[str, list] = {}  # state key -> [state, models that need its table]
-    for k, tables in enumerate(all_tables):
-        for state in states:
-            key = state_key(state)
-            entry = todo.get(key)
-            if entry is not None and k in entry[1]:
-                continue
-            if tables.known(state):
-                continue
-            if entry is None:
-                entry = todo[key] = [state, []]
-            entry[1].append(k)
-    rows = list(todo.values())
+    rows, seen = [], set()  # (state, the models that need its table), in the states' order
+    for state in states:
+        key = state_key(state)
+        if key in seen:
+            continue
+        seen.add(key)
+        ks = [k for k, tables in enumerate(all_tables) if not tables.known(state)]
+        if ks:
+            rows.append((state, ks))
+    # chunks of CHUNK states, fewer when there are few states, so that every worker has items
+    size = max(1, min(CHUNK, len(rows) // (4 * max(jobs, 1))))
     items = []
-    for i in range(0, len(rows), CHUNK):
-        chunk = rows[i:i + CHUNK]
+    for i in range(0, len(rows), size):
+        chunk = rows[i:i + size]
         items.append([(k, [state for state, ks in chunk if k in ks]) for k in range(len(all_tables))
                       if any(k in ks for _, ks in chunk)])
     on_total(sum(len(ks) for _, ks in rows))

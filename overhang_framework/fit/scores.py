@@ -101,7 +101,7 @@ class Model:
 
     def draw_seed(self, context: Mapping[str, Any]) -> int:
         """The seed of the predictor's draws: the model's settings without its noise levels."""
-        digest = _digest({"predictor": _strip_noise(dict(self.predictor)), "context": dict(context)})
+        digest = _digest({"predictor": _strip_noise(dict(self.predictor)), "context": _strip(dict(context), ENGINE_KEYS)})
         return int(digest[:16], 16)
 
 

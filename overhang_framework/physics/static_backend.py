@@ -162,6 +162,7 @@ class _Batch:
         if w.shape[1] == 0:
             B = w.shape[0]
             w, x, layer = np.zeros((B, 1)), np.zeros((B, 1)), np.full((B, 1), -10, dtype=np.int64)
+            friction = None
         valid = w > 0
         layer = np.where(valid, layer, -10)
         mu = np.full(w.shape, float(params.friction))
@@ -706,7 +707,7 @@ class StaticBackend:
         base = params or StaticParams()
         self.params = StaticParams(**{**asdict(base), **overrides}) if overrides else base
         self.lp_solved = 0
-        self.lp_stats: dict = {}
+        self.lp_certified = 0
         self.checked = 0
 
     def stable(self, geometry: Geometry, gravity: Optional[Sequence[float]] = None,
@@ -753,10 +754,11 @@ class StaticBackend:
         rows = np.flatnonzero(need_lp)
         if rows.size:
             if self.params.lp_nnls:
-                stable[rows] = _lp_nnls(bt, rows, self.params, self.lp_stats)
+                counts: dict = {}
+                stable[rows] = _lp_nnls(bt, rows, self.params, counts)
+                self.lp_certified += counts["certified"]
             else:
                 stable[rows] = _lp_verdicts(bt, rows, self.params)
-                self.lp_stats["solved"] = self.lp_stats.get("solved", 0) + int(rows.size)
         stable &= ~bt.clash
         self.checked += bt.B
         self.lp_solved += int(rows.size)

@@ -321,11 +321,11 @@ class IPEPredictor(Predictor):
         gravity = _stack([sc.gravity for sc in busy])
         friction = _stack([sc.friction for sc in busy])
         backend = self.backend
-        if self.scene_path == "arrays" and hasattr(backend, "stable_arrays") and not isinstance(friction, list):
-            widths = _padded([sc.widths for sc in busy], 0.0)
-            if friction is not None and friction.shape[1] != widths.shape[1]:
+        if self.scene_path == "arrays" and hasattr(backend, "stable_arrays"):
+            # scenes of states with fewer blocks are padded (width 0), their friction rows alike
+            if friction is not None:
                 friction = _padded([sc.friction for sc in busy], 0.0)
-            verdicts = backend.stable_arrays(widths, _padded([sc.xs for sc in busy], 0.0),
+            verdicts = backend.stable_arrays(_padded([sc.widths for sc in busy], 0.0), _padded([sc.xs for sc in busy], 0.0),
                                              _padded([sc.layers for sc in busy], -1), gravity, friction)
         else:
             geometries = [g for sc in busy for g in sc.geometries]
