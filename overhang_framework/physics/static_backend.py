@@ -471,7 +471,7 @@ def _lp_verdicts(bt: _Batch, rows_b: np.ndarray, params: StaticParams) -> np.nda
 #: before: a scene that balances to 1e-10 may be one HiGHS calls falling.
 NNLS_STANDS = 1e-12
 NNLS_FALLS = 1e-6
-CERT_TOLERANCE = 1e-9
+CERT_TOLERANCE = 1e-10
 
 
 def _structures(bt: _Batch, rows: np.ndarray) -> list[np.ndarray]:
@@ -554,7 +554,9 @@ def _nnls_verdicts(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     within :data:`NNLS_STANDS`. Falling: at the least-squares optimum the residual ``r = A f + b`` has
     ``A^T r >= 0`` (zero where ``f > 0``), so ``y = -r / |r|^2`` has ``A^T y <= 0`` and ``b . y = -1``; no
     forces ``f >= 0`` can then balance the weight. That is checked to within the tolerance, and asked only
-    of residuals of at least :data:`NNLS_FALLS`, beyond what HiGHS's tolerances could call balanced.
+    of residuals of at least :data:`NNLS_FALLS`, beyond what HiGHS's tolerances could call balanced. With
+    ``|r| >= NNLS_FALLS``, forces balancing the weight would have to total at least
+    ``1 / (CERT_TOLERANCE / NNLS_FALLS)`` (10,000) times the tower's weight.
     """
     G = A.shape[0]
     F = np.zeros((G, A.shape[2]))
