@@ -141,16 +141,14 @@ class TieredBackend:
         sp = self.static_params
         g = np.tile([0.0, -sp.gravity], (n, 1)) if gravity is None else np.asarray(gravity, dtype=float).reshape(n, 2)
         # the geometries as padded arrays, built once for every stage (a width of 0 pads a shorter tower)
-        width = max(max(len(geo) for geo in geometries), 1)
-        W, X, L = np.zeros((n, width)), np.zeros((n, width)), np.full((n, width), -1, dtype=np.int64)
+        from overhang_framework.render import block_arrays
+
+        W, X, L, _ = block_arrays(geometries)
+        width = W.shape[1]
         fric = None if friction is None else np.zeros((n, width))
-        for i, geo in enumerate(geometries):
-            k = len(geo)
-            if k:
-                arr = geo.as_array()
-                W[i, :k], X[i, :k], L[i, :k] = arr[:, 0], arr[:, 1], arr[:, 2]
-                if fric is not None:
-                    fric[i, :k] = np.asarray(friction[i], dtype=float)[:k]
+        if fric is not None:
+            for i, geo in enumerate(geometries):
+                fric[i, :len(geo)] = np.asarray(friction[i], dtype=float)[:len(geo)]
 
         def ask(backend, rows, grav, fr):
             return backend.stable_arrays(W[rows], X[rows], L[rows], grav[rows], None if fr is None else fr[rows])
