@@ -237,9 +237,9 @@ def _expected_truth_rows(truth: pd.DataFrame, fits: pd.DataFrame, log: Path) -> 
         out[t.id] = {"participant": t.id, "condition": t.condition,
                      "true model": f"ipe/{'myopic' if t.depth == 1 else f'D{t.depth}'}",
                      "true depth (reached)": f"{t.depth:g} ({reached[t.id]:g})",
-                     "true sigma": f"{t.sigma:.3g}", "true beta": f"{t.beta:.3g}", "true lapse": f"{t.lapse:.3g}",
-                     "best model": fit["model"],
-                     "fitted sigma": "–" if pd.isna(fit["sigma"]) else f"{fit['sigma']:.3g}",
+                     "true sigma": f"{t.sigma:.3g}", "true switch": "–", "true beta": f"{t.beta:.3g}",
+                     "true lapse": f"{t.lapse:.3g}", "best model": fit["model"],
+                     "fitted sigma": "–" if pd.isna(fit["sigma"]) else f"{fit['sigma']:.3g}", "fitted switch": "–",
                      "fitted beta": f"{fit['beta']:.3g}", "fitted lapse": f"{fit['lapse']:.3g}"}
     return out
 

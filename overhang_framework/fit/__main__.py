@@ -9,7 +9,7 @@ sentences; winners, summed BIC, random-effects BMS, parameters between condition
 for simulated participants their true models and parameters beside the fitted ones,
 from the ``participants.csv`` next to the log or ``--truth CSV``) and ``fit.json``
 (what was fitted). Hydra overrides choose the model space (``depths=[1,2,3]``,
-``models.ipe.sigma=[0.02,0.04]``, ``~models.cnn``); ``-m shard=0,1,2,3 shards=4``
+``models.ipe.sigma=[0.02,0.04]``, ``models.hybrid.switch=4``, ``~models.cnn``); ``-m shard=0,1,2,3 shards=4``
 spreads the participants over the jobs of a multirun (any launcher), which share
 the score cache and leave one ``fits.csv``. docs/fitting.md describes it all.
 
@@ -84,10 +84,12 @@ def check_config(cfg: DictConfig) -> dict:
     depths = _plain(cfg.depths)
     if not isinstance(depths, list):
         depths = [depths]
-    space = model_space(_plain(cfg.models) or {}, depths)
+    model_space(_plain(cfg.models) or {}, depths, check_only=True)  # a bad setting stops the command here
     truth = truth_files(_plain(cfg.get("truth")), logs)
     read_truth(truth, {})  # a file that is not a participants.csv stops the command here
     df = read_log([str(p) for p in logs])
+    blocks = max((len(s) for s in df["sequence"]), default=None) if len(df) else None
+    space = model_space(_plain(cfg.models) or {}, depths, blocks)
     registry = Registry()
     world = registry.create("world", _plain(cfg.world))
     value = registry.create("value", _plain(cfg.value), world=world)

@@ -29,7 +29,7 @@ ALPHA = 0.05
 TRUTH = "participants.csv"
 #: The columns of a truth table (:func:`read_truth`).
 TRUTH_COLUMNS = ["participant", "true_predictor", "true_family", "true_model", "true_depth", "depth_reached",
-                 "true_sigma", "true_beta", "true_lapse"]
+                 "true_sigma", "true_beta", "true_lapse", "true_switch"]
 
 
 def per_participant(fits: pd.DataFrame) -> pd.DataFrame:
@@ -95,10 +95,13 @@ def read_truth(paths: Sequence[Path], families: Mapping[str, str],
             sigma = _number(r.sigma)
             if sigma is None:
                 sigma = _number(predictor.get("sigma"))
+            switch = _number(getattr(r, "switch", None))
+            if switch is None:
+                switch = _number(predictor.get("switch"))
             label = Model({"name": name}, int(depth), family).label if family and depth else None
             rows.append({"participant": str(r.id), "true_predictor": name, "true_family": family, "true_model": label,
                          "true_depth": depth, "depth_reached": None, "true_sigma": sigma, "true_beta": beta,
-                         "true_lapse": _number(r.lapse)})
+                         "true_lapse": _number(r.lapse), "true_switch": switch})
     if not rows:
         return None
     truth = pd.DataFrame(rows, columns=TRUTH_COLUMNS).drop_duplicates("participant", keep="first")
@@ -179,8 +182,9 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     if len(pooled):
         best = pooled.loc[pooled.groupby("participant")["bic"].idxmin()]
         lines += ["", "## Each condition pooled", "",
-                  markdown_table(["condition", "best model", "sigma", "beta", "lapse", "BIC"],
-                                 [[r.condition, r.model, "" if pd.isna(r.sigma) else f"{r.sigma:g}", f"{r.beta:.2f}",
+                  markdown_table(["condition", "best model", "sigma", "switch", "beta", "lapse", "BIC"],
+                                 [[r.condition, r.model, "" if pd.isna(r.sigma) else f"{r.sigma:g}",
+                                   "" if pd.isna(getattr(r, "switch", None)) else f"{int(r.switch)}", f"{r.beta:.2f}",
                                    f"{r.lapse:.3f}", f"{r.bic:.1f}"] for r in best.itertuples()])]
     lines += ["", "Files: `fits.csv` (every participant x model), `comparison.csv`, `comparison.png`.", "",
               "![comparison.png](comparison.png)"]
@@ -271,7 +275,10 @@ def _differences(win: pd.DataFrame, conditions: list[str], seed: int) -> list[Di
     a, b = conditions
     out = []
     for name, label in (("depth", "depth of the best model"), ("beta", "beta of the best model"),
-                        ("sigma", "sigma of the best model (IPE winners)"), ("lapse", "lapse of the best model")):
+                        ("sigma", "sigma of the best model (IPE winners)"),
+                        ("switch", "switch point of the best model (hybrid winners)"), ("lapse", "lapse of the best model")):
+        if name not in win.columns:  # fits written before the column existed
+            continue
         xa = win[win["condition"] == a][name].dropna().to_numpy(dtype=float)
         xb = win[win["condition"] == b][name].dropna().to_numpy(dtype=float)
         p = permutation_p(xa, xb, N_RESAMPLES, seed) if len(xa) >= 2 and len(xb) >= 2 else float("nan")
@@ -339,14 +346,14 @@ def _truth_table(truth: pd.DataFrame, win: pd.DataFrame) -> list[str]:
         fit = best.loc[r.participant]
         depth = num(r.true_depth) + ("" if pd.isna(r.depth_reached) else f" ({num(r.depth_reached)})")
         rows.append([r.participant, fit["condition"], r.true_model or f"{r.true_predictor} (not fitted)", depth,
-                     num(r.true_sigma), num(r.true_beta), num(r.true_lapse), fit["model"], num(fit["sigma"]),
-                     num(fit["beta"]), num(fit["lapse"])])
+                     num(r.true_sigma), num(r.true_switch), num(r.true_beta), num(r.true_lapse), fit["model"],
+                     num(fit["sigma"]), num(fit.get("switch")), num(fit["beta"]), num(fit["lapse"])])
     return [markdown_table(["participant", "condition", "true model", "true depth (reached)", "true sigma",
-                            "true beta", "true lapse", "best model", "fitted sigma", "fitted beta", "fitted lapse"],
-                           rows), "",
+                            "true switch", "true beta", "true lapse", "best model", "fitted sigma", "fitted switch",
+                            "fitted beta", "fitted lapse"], rows), "",
             "True: the participants command's draws (participants.csv) and the generating model (run.json beside "
             "it); reached: the median depth the participant's searches completed in the log. Fitted: the best "
-            "model's parameters (sigma on the fitted grid)."]
+            "model's parameters (sigma and the hybrid's switch point on the fitted grids)."]
 
 
 def _figure(table: pd.DataFrame, win: pd.DataFrame, has_bms: bool, out: Path) -> None:

@@ -1,12 +1,14 @@
-"""Fitting models to behaviour: ``beta`` and the lapse by optimisation over score tables, ``sigma`` on a grid.
+"""Fitting models to behaviour: ``beta`` and the lapse by optimisation over score tables, ``sigma`` and a
+hybrid's switch point on grids.
 
 A *model index* is a predictor family and a depth (``ipe/D2``, ``cnn/myopic``).
-Its free parameters are the softmax's ``beta`` and the ``lapse`` (always), and
-the predictor's ``sigma`` when the model space gives a grid of several values
-(``ipe`` by default). For each grid value the tables are fixed, so ``beta`` and
-``lapse`` are fitted by L-BFGS-B (SciPy) from several starts; the grid value
+Its free parameters are the softmax's ``beta`` and the ``lapse`` (always), the
+predictor's ``sigma`` when the model space gives a grid of several values
+(``ipe`` by default), and a hybrid's ``switch`` point likewise (``hybrid`` by default: every
+switch point the tasks allow). For each grid point the tables are fixed, so ``beta`` and
+``lapse`` are fitted by L-BFGS-B (SciPy) from several starts; the grid point
 with the highest likelihood is kept. Each fit reports its log-likelihood, its
-number of parameters ``k`` (2, or 3 with a ``sigma`` grid), the number of
+number of parameters ``k`` (2, plus one for each grid of several values), the number of
 placements ``n`` it explains, ``BIC = k ln n - 2 LL`` and ``AIC = 2 k - 2 LL``.
 """
 
@@ -145,6 +147,7 @@ class ModelFit:
     k: int
     n: int
     unmapped: int
+    switch: Optional[int] = None
 
     @property
     def bic(self) -> float:
@@ -156,13 +159,14 @@ class ModelFit:
 
     def row(self) -> dict:
         return {"participant": self.participant, "condition": self.condition, "model": self.label,
-                "family": self.family, "depth": self.depth, "sigma": self.sigma, "beta": self.beta,
+                "family": self.family, "depth": self.depth, "sigma": self.sigma, "switch": self.switch, "beta": self.beta,
                 "lapse": self.lapse, "loglik": self.loglik, "k": self.k, "n": self.n, "bic": self.bic,
                 "aic": self.aic, "unmapped": self.unmapped}
 
 
 def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables], mapped: Mapped) -> ModelFit:
-    """Fit one model index, whose ``variants`` are its score tables on the sigma grid (one when not fitted)."""
+    """Fit one model index, whose ``variants`` are its score tables on the sigma and switch grids (one when
+    neither is fitted)."""
     best, best_model = None, None
     for tables in variants:
         decisions = Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
@@ -170,7 +174,6 @@ def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables],
         if best is None or fit.loglik > best.loglik + 1e-9:
             best, best_model = fit, tables.model
     model = best_model
-    k = 2 + (1 if len(variants) > 1 else 0)
-    return ModelFit(participant, condition, model.label, model.family, model.depth,
-                    model.sigma if len(variants) > 1 or model.sigma is not None else None, best.beta, best.lapse,
-                    best.loglik, k, len(mapped.states), mapped.unmapped)
+    grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch")]
+    return ModelFit(participant, condition, model.label, model.family, model.depth, model.sigma, best.beta,
+                    best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch)

@@ -83,7 +83,12 @@ def check_config(cfg: DictConfig) -> dict:
     if cfg.get("states") not in STATES:
         raise ConfigError(f"states must be one of {', '.join(STATES)}, got {cfg.get('states')!r}")
     depths = _plain(cfg.depths)
-    space = model_space(_plain(cfg.models) or {}, depths if isinstance(depths, list) else [depths])
+    from overhang_framework.config import compose_config
+    from overhang_framework.tasks import tasks_from_config
+
+    tasks = tasks_from_config(compose_config([f"tasks={cfg.tasks}"], config_name="participants").tasks)
+    blocks = max((len(t.sequence) for t in tasks), default=None)
+    space = model_space(_plain(cfg.models) or {}, depths if isinstance(depths, list) else [depths], blocks)
     fitted = {}  # predictor name -> the first fitted family that uses it
     for family, spec in (_plain(cfg.models) or {}).items():
         fitted.setdefault(str((spec or {}).get("predictor", family)), str(family))

@@ -32,7 +32,7 @@ PARTS = "parts"
 FITS = "fits.csv"
 FIT_JSON = "fit.json"
 #: The columns of fits.csv, in order.
-COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "beta", "lapse", "loglik", "k", "n",
+COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "beta", "lapse", "loglik", "k", "n",
            "bic", "aic", "unmapped"]
 POOLED = "pooled:"
 
@@ -108,10 +108,14 @@ class Predictors:
     """The predictors of a model space, built once per settings and shared.
 
     Models that differ only in depth share one predictor; a hybrid whose early or late part has the
-    settings of a predictor of the space is given that predictor as its part. A predictor that remembers
-    its answers (the CNN) then answers the hybrid's late towers from what the CNN model asked, and the
-    other way round: the same numbers, computed once.
+    settings of a predictor of the space (or of another hybrid's part) is given that predictor as its part.
+    Every predictor that can remember its answers does (the CNN by tower, the IPE by tower and draws), so
+    the hybrids of every switch point, and a hybrid and the model of its part's settings where their draws
+    agree (the CNN's always do), ask once: the same numbers, computed once.
     """
+
+    #: Answers each predictor remembers (see :meth:`IPEPredictor.remember`).
+    MEMORY = 100_000
 
     def __init__(self, registry, world):
         self.registry, self.world = registry, world
@@ -124,10 +128,17 @@ class Predictors:
     def __call__(self, config: Mapping[str, Any]):
         key = self.key(config)
         if key not in self.built:
-            self.built[key] = self.registry.create("predictor", dict(config), world=self.world)
-            for predictor in self.built.values():
-                self._share(predictor)
+            predictor = self.registry.create("predictor", dict(config), world=self.world)
+            self._remember(predictor)
+            self.built[key] = predictor
+            for other in list(self.built.values()):
+                self._share(other)
         return self.built[key]
+
+    def _remember(self, predictor) -> None:
+        remember = getattr(predictor, "remember", None)
+        if callable(remember) and not getattr(predictor, "memory_size", 0):
+            remember(self.MEMORY)
 
     def _share(self, predictor) -> None:
         names, params = getattr(predictor, "names", None), getattr(predictor, "params", None)
@@ -142,7 +153,10 @@ class Predictors:
                 key = self.key(_predictor_config(str(names[part]), dict(params.get(part) or {})))
             except (OverhangError, ValueError):
                 continue
-            if key in self.built and getattr(predictor, part, None) is not self.built[key]:
+            if key not in self.built:  # the first hybrid's part serves every later one
+                self._remember(getattr(predictor, part))
+                self.built[key] = getattr(predictor, part)
+            elif getattr(predictor, part, None) is not self.built[key]:
                 setattr(predictor, part, self.built[key])
 
 

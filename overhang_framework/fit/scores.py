@@ -10,10 +10,12 @@ choice needs (:func:`overhang_framework.search.root_scores` with every score exa
 **Common random numbers.** The predictor's draws at every node of the search
 come from :func:`overhang_framework.search.node_rng`, a generator derived from
 the model's *draw seed* and the node's canonical key. The draw seed depends on
-the model's settings other than its noise level (``sigma``), so a table is a
-fixed function of the model and the state: the likelihood surface is
-deterministic, and the tables of neighbouring ``sigma`` share their standard
-normal draws (the IPE scales one set of draws by ``sigma``).
+the model's settings other than its noise level (``sigma``) and a hybrid's switch point, so a table is
+a fixed function of the model and the state: the likelihood surface is
+deterministic, the tables of neighbouring ``sigma`` share their standard
+normal draws (the IPE scales one set of draws by ``sigma``), and the hybrids of every switch point ask
+their parts the same questions with the same draws (a predictor that remembers its answers gives them
+once: :class:`~overhang_framework.fit.run.Predictors`).
 
 **Reuse.** Within a process, one :class:`~overhang_framework.search.Expander` per
 model keeps the nodes it has expanded (up to ``memo_limit``), so the subtrees
@@ -47,6 +49,9 @@ from overhang_framework.search import Expander, root_scores, state_key
 
 #: Predictor settings that set a noise level; the draw seed leaves them out (common random numbers).
 NOISE_KEYS = ("sigma", "sigma_position", "sigma_gravity", "sigma_friction")
+#: Other fitted settings the draw seed leaves out: a hybrid's switch point, so that the hybrids of every
+#: switch point ask their parts the same questions with the same draws and share the answers.
+SHARED_DRAW_KEYS = ("switch",)
 #: Settings that choose how the same numbers are computed (the IPE's scene path, the static LP stage):
 #: a table's key and draw seed leave them out, so either way gives and finds the same tables.
 ENGINE_KEYS = ("scenes", "lp_nnls")
@@ -63,7 +68,7 @@ def _strip(config: Any, keys: tuple) -> Any:
 
 
 def _strip_noise(config: Any) -> Any:
-    return _strip(config, NOISE_KEYS + ENGINE_KEYS)
+    return _strip(config, NOISE_KEYS + SHARED_DRAW_KEYS + ENGINE_KEYS)
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,12 @@ class Model:
         return None if value is None else float(value)
 
     @property
+    def switch(self) -> Optional[int]:
+        """The hybrid's switch point (towers of fewer blocks go to its early predictor), or None."""
+        value = self.predictor.get("switch")
+        return None if value is None else int(value)
+
+    @property
     def planner(self) -> str:
         return "myopic" if self.depth == 1 else f"D{self.depth}"
 
@@ -96,11 +107,15 @@ class Model:
 
     def key(self, context: Mapping[str, Any]) -> str:
         """The key of this model's tables: every setting that changes a score (``context``: world and value)."""
-        return _digest({"predictor": _strip(dict(self.predictor), ENGINE_KEYS), "depth": self.depth,
-                        "context": _strip(dict(context), ENGINE_KEYS)})
+        data = {"predictor": _strip(dict(self.predictor), ENGINE_KEYS), "depth": self.depth,
+                "context": _strip(dict(context), ENGINE_KEYS)}
+        shared = [k for k in SHARED_DRAW_KEYS if k in self.predictor]
+        if shared:  # these tables' draws leave those settings out (tables keyed before that are not reused)
+            data["draws_without"] = shared
+        return _digest(data)
 
     def draw_seed(self, context: Mapping[str, Any]) -> int:
-        """The seed of the predictor's draws: the model's settings without its noise levels."""
+        """The seed of the predictor's draws: the model's settings without its noise levels and switch point."""
         digest = _digest({"predictor": _strip_noise(dict(self.predictor)), "context": _strip(dict(context), ENGINE_KEYS)})
         return int(digest[:16], 16)
 

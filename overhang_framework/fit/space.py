@@ -1,9 +1,11 @@
-"""The model space of a fit: predictor families (with an optional sigma grid) crossed with planning depths."""
+"""The model space of a fit: predictor families (with an optional sigma grid, and a hybrid's switch points)
+crossed with planning depths."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 from overhang_framework.errors import ConfigError
 from overhang_framework.fit.scores import Model
@@ -14,7 +16,8 @@ MAX_DEPTH = 5
 
 @dataclass
 class ModelIndex:
-    """One model index (a family and a depth) and its variants: one model per sigma of the grid, else one."""
+    """One model index (a family and a depth) and its variants: one model per sigma of the grid and switch
+    point of the hybrid's grid, else one."""
 
     family: str
     depth: int
@@ -42,8 +45,34 @@ def _predictor_config(name: str, overrides: Mapping[str, Any]) -> dict:
     return base
 
 
-def model_space(models: Mapping[str, Any], depths: Sequence[int]) -> list[ModelIndex]:
-    """The model indices of ``models`` (``family: {predictor: name, sigma: [grid], <setting>: value}``) x ``depths``."""
+#: ``switch: all``: every switch point a task of ``blocks`` widths allows, from the late predictor judging every
+#: tower (2: the first placement makes a tower of 2 blocks) to the early one judging every tower (``blocks + 1``).
+ALL = "all"
+
+
+def switch_grid(grid: Any, family: str, blocks: Optional[int], check_only: bool = False) -> list:
+    """The switch points of ``fit.models.<family>.switch``: ``[None]`` when not set (and for ``all`` when
+    ``check_only``, which checks the setting before the tasks are known)."""
+    if grid is None:
+        return [None]
+    if grid == ALL:
+        if check_only:
+            return [None]
+        if blocks is None:
+            raise ConfigError(f"fit.models.{family}.switch: 'all' needs the tasks' number of blocks")
+        return list(range(2, int(blocks) + 2))
+    values = list(grid) if isinstance(grid, (list, tuple)) else [grid]
+    if not values or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in values):
+        raise ConfigError(f"fit.models.{family}.switch must be a whole number >= 1 of blocks, a list of them or "
+                          f"'{ALL}' (every switch point the tasks allow), got {grid!r}")
+    return sorted(set(values))
+
+
+def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Optional[int] = None,
+                check_only: bool = False) -> list[ModelIndex]:
+    """The model indices of ``models`` (``family: {predictor: name, sigma: [grid], switch: [grid] or all,
+    <setting>: value}``) x ``depths``; ``blocks`` is the largest number of widths of a task (for ``switch: all``).
+    ``check_only`` checks every setting without resolving ``switch: all``."""
     if not models:
         raise ConfigError("fit.models is empty; give at least one predictor family")
     if not depths:
@@ -62,11 +91,14 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int]) -> list[ModelI
             sigmas = list(grid) if isinstance(grid, (list, tuple)) else [grid]
             if not sigmas or any(isinstance(s, bool) or not isinstance(s, (int, float)) or s < 0 for s in sigmas):
                 raise ConfigError(f"fit.models.{family}.sigma must be a number >= 0 or a list of them, got {grid!r}")
+        switches = switch_grid(spec.pop("switch", None), str(family), blocks, check_only)
         configs = []
-        for sigma in sigmas:
+        for sigma, switch in itertools.product(sigmas, switches):
             overrides = dict(spec)
             if sigma is not None:
                 overrides["sigma"] = float(sigma)
+            if switch is not None:
+                overrides["switch"] = int(switch)
             configs.append(_predictor_config(str(name), overrides))
         for depth in depths:
             out.append(ModelIndex(str(family), int(depth), [Model(c, int(depth), str(family)) for c in configs]))

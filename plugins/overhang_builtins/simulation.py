@@ -61,6 +61,7 @@ successor is checked once, exactly as the veridical predictor checks it.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence, Union
 
@@ -205,6 +206,16 @@ def _stack(parts: list):
     return [row for p in parts for row in p]
 
 
+def _rng_state(rng: np.random.Generator):
+    """The state of ``rng``'s bit generator, hashable."""
+    state = rng.bit_generator.state
+    inner = state.get("state")
+    if isinstance(inner, dict) and set(inner) <= {"state", "inc"}:
+        return (state["bit_generator"], inner.get("state"), inner.get("inc"), state.get("has_uint32"),
+                state.get("uinteger"))
+    return repr(state)
+
+
 def _padded(parts: list, fill) -> np.ndarray:
     """``(rows, n_i)`` arrays side by side as one ``(rows, max n_i)`` array, padded with ``fill``."""
     n = max(p.shape[1] for p in parts)
@@ -248,6 +259,9 @@ class IPEPredictor(Predictor):
         self.scene_path = scenes
         self.world = world
         self.K = int(K)
+        self.memory_size = 0
+        self._memory: OrderedDict = OrderedDict()
+        self.counts = {"calls": 0, "remembered": 0}
         self.noise = Noise(
             position=float(sigma if sigma_position is None else sigma_position),
             gravity=float(sigma if sigma_gravity is None else sigma_gravity),
@@ -389,14 +403,55 @@ class IPEPredictor(Predictor):
         scenes = Scenes(widths, xs, layers, gravity, friction, len(geometries), draws.position.shape[0], False)
         return scenes.geometries, gravity, friction
 
+    def remember(self, size: int = 100_000) -> None:
+        """Keep the answers of the last ``size`` calls (0: none), keyed by the tower, the actions and the
+        generator's state, so a question asked again with the same draws (by the hybrids of every switch
+        point of a fit, say) is answered without simulating. The generator is left as the simulation would
+        leave it, so remembering changes no number."""
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+            raise ValueError(f"size must be a whole number >= 0, got {size!r}")
+        self.memory_size = size
+        while len(self._memory) > size:
+            self._memory.popitem(last=False)
+
+    def clear_cache(self) -> None:
+        """Forget the remembered answers."""
+        self._memory.clear()
+
+    def stats(self) -> dict:
+        """Calls answered, and how many of them from the remembered answers."""
+        return dict(self.counts)
+
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
-        return self.sample_verdicts(state, actions, rng).mean(axis=1)
+        return self.predict_many([(state, actions)], [rng])[0]
 
     def predict_many(self, requests: Sequence[tuple[State, Sequence[Action]]],
                      rngs: Sequence[np.random.Generator]) -> list[np.ndarray]:
         """:meth:`predict` for several states, simulated in one backend call."""
-        scenes = [self.scenes(state, actions, rng) for (state, actions), rng in zip(requests, rngs)]
-        return [verdicts.mean(axis=1) for verdicts in self.run(scenes)]
+        self.counts["calls"] += len(requests)
+        if not self.memory_size:
+            scenes = [self.scenes(state, actions, rng) for (state, actions), rng in zip(requests, rngs)]
+            return [verdicts.mean(axis=1) for verdicts in self.run(scenes)]
+        out: list = [None] * len(requests)
+        todo, keys = [], []
+        for i, ((state, actions), rng) in enumerate(zip(requests, rngs)):
+            key = (state.geometry.blocks, state.remaining, tuple(actions), _rng_state(rng))
+            hit = self._memory.get(key)
+            if hit is not None:
+                self._memory.move_to_end(key)
+                out[i], rng.bit_generator.state = hit[0].copy(), hit[1]
+                self.counts["remembered"] += 1
+            else:
+                todo.append(i)
+                keys.append(key)
+        if todo:
+            scenes = [self.scenes(requests[i][0], requests[i][1], rngs[i]) for i in todo]
+            for i, key, verdicts in zip(todo, keys, self.run(scenes)):
+                out[i] = verdicts.mean(axis=1)
+                self._memory[key] = (out[i].copy(), rngs[i].bit_generator.state)
+            while len(self._memory) > self.memory_size:
+                self._memory.popitem(last=False)
+        return out
 
 
 class VeridicalPredictor(IPEPredictor):
