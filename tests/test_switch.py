@@ -136,3 +136,58 @@ def test_fit_index_reports_the_switch_point_and_counts_it_as_a_parameter(world, 
     assert fit.k == 3 and fit.switch in (2, 5) and fit.row()["switch"] == fit.switch
     single = fit_index("p", "c", variants[:1], map_placements(world, placements))
     assert single.k == 2 and single.switch == 2
+
+
+def test_the_switch_point_of_simulated_hybrid_participants_is_recovered_within_one_stage(tmp_path):
+    """Myopic hybrids (IPE early, CNN late) with switch points 3 or 5 (five participants), 8 tasks each: the fit over every
+    switch point the tasks allow finds each participant's within one stage."""
+    import subprocess
+    import sys
+
+    import pandas as pd
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, run
+
+    cfg = compose_config(["predictor=hybrid", "world.physics=static", "progress=false",
+                          "cohort.participants.time_limited=0", "cohort.participants.unconstrained=5",
+                          "cohort.n_tasks=8"], config_name=CONFIG_NAME)
+    OmegaConf.set_struct(cfg, False)
+    cfg.predictor.early_params = {"K": 20}
+    cfg.cohort.parameters = {"depth": {"dist": "fixed", "value": 1}, "beta": {"dist": "fixed", "value": 20.0},
+                             "lapse": {"dist": "fixed", "value": 0.02},
+                             "switch": {"dist": "categorical", "values": [3, 5], "p": [0.5, 0.5]}}
+    run(cfg, tmp_path / "sim")
+    truth = pd.read_csv(tmp_path / "sim" / "participants.csv").set_index("id")["switch"]
+    assert set(truth) == {3, 5}
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(tmp_path / "sim" / "log.jsonl"),
+                           "--out", str(tmp_path / "fit"), "~models.ipe", "~models.cnn",
+                           "+models.hybrid.early_params={K: 20}", "depths=[1]", "world.physics=static",
+                           f"cache={tmp_path / 'scores.sqlite'}", "progress=false", "pooled=false"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    fits = pd.read_csv(tmp_path / "fit" / "fits.csv").set_index("participant")
+    assert (fits["k"] == 3).all()
+    error = (fits["switch"] - truth.reindex(fits.index)).abs()
+    assert (error <= 1).all(), pd.DataFrame({"true": truth, "fitted": fits["switch"]})
+    assert "fitted switch" in (tmp_path / "fit" / "comparison.md").read_text()
+
+
+def test_a_cohort_draws_whole_switch_points_only_and_writes_them_only_when_drawn():
+    from overhang_framework.behaviour.participants import cohort_from_config, draw_participants, participants_csv
+
+    base = {"name": "c", "participants": {"un": 3}, "parameters": {"lapse": {"dist": "fixed", "value": 0.0}},
+            "decision_time": {"t0": 2.0, "per_call": 0.07, "noise": 0.3}, "motor": {"sd": 0.02, "retries": 5}}
+    conditions = {"un": {}}
+    plain = draw_participants(cohort_from_config(base, conditions), 0)
+    assert participants_csv(plain).splitlines()[0] == "id,index,condition,sigma,depth,beta,lapse"
+    drawn = {**base, "parameters": {**base["parameters"], "switch": {"dist": "categorical", "values": [2, 6],
+                                                                     "p": [0.5, 0.5]}}}
+    people = draw_participants(cohort_from_config(drawn, conditions), 0)
+    assert {p.switch for p in people} <= {2, 6} and participants_csv(people).splitlines()[0].endswith(",switch")
+    # drawing the switch point leaves every other draw as it was
+    assert [(p.lapse, p.depth) for p in people] == [(p.lapse, p.depth) for p in plain]
+    bad = {**base, "parameters": {"switch": {"dist": "uniform", "low": 2, "high": 6}}}
+    with pytest.raises(ConfigError, match="switch must give whole numbers"):
+        cohort_from_config(bad, conditions)

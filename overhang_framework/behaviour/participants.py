@@ -7,7 +7,9 @@ distributions:
 * ``sigma``: the noise of its IPE (the predictor's ``sigma``);
 * ``depth``: its search horizon (the planner's ``depth``; 1 is the myopic-equivalent lookahead);
 * ``beta``: the inverse temperature of its softmax choice over the planner's root scores;
-* ``lapse``: the probability that a placement is a uniformly random legal action instead.
+* ``lapse``: the probability that a placement is a uniformly random legal action instead;
+* ``switch``: the switch point of its hybrid predictor (towers of fewer blocks go to the early
+  predictor; the predictor's ``switch``), drawn only when the cohort gives it a distribution.
 
 Each decision runs the planner on the grid of legal actions under the
 condition's budget of predictor calls (``call_limit``, the machine-independent
@@ -47,9 +49,10 @@ from overhang_framework.interfaces import Budget, Task, World
 from overhang_framework.plugins import Registry, accepted_parameters
 
 #: The parameters each participant draws, and the model parameter each one sets.
-PARAMETERS = ("sigma", "depth", "beta", "lapse")
+PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch")
 #: Where a drawn parameter goes: (model group, parameter name).
-TARGETS = {"sigma": ("predictor", "sigma"), "depth": ("planner", "depth"), "beta": ("planner", "beta")}
+TARGETS = {"sigma": ("predictor", "sigma"), "depth": ("planner", "depth"), "beta": ("planner", "beta"),
+           "switch": ("predictor", "switch")}
 #: The deepest search a participant may have (a paper20 trial has 5 placements).
 MAX_DEPTH = 5
 #: The distributions a parameter may be drawn from, with their arguments.
@@ -267,6 +270,8 @@ def cohort_from_config(cohort: Mapping[str, Any], conditions: Mapping[str, Any])
                 _check_range(where, dist, 0.0, 1.0, "a probability from 0 to 1")
             elif name == "depth":
                 _check_range(where, dist, 1, MAX_DEPTH, f"a depth from 1 to {MAX_DEPTH}", whole=True)
+            elif name == "switch":
+                _check_range(where, dist, 1, math.inf, "a whole number of blocks >= 1", whole=True)
             else:
                 _check_range(where, dist, 0.0, math.inf, "a number >= 0")
         dists[name] = dist
@@ -298,6 +303,7 @@ class Participant:
     depth: Optional[int]
     beta: Optional[float]
     lapse: float
+    switch: Optional[int] = None
 
 
 def participant_rngs(seed: int, index: int) -> tuple[np.random.Generator, np.random.Generator]:
@@ -319,13 +325,17 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
             out.append(Participant(
                 id=f"sim-{spec.code}-{k + 1:03d}", index=index, condition=spec.name,
                 sigma=drawn["sigma"], depth=None if drawn["depth"] is None else int(drawn["depth"]),
-                beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"])))
+                beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"]),
+                switch=None if drawn.get("switch") is None else int(drawn["switch"])))
     return out
 
 
 def participants_csv(participants: Sequence[Participant]) -> str:
-    """``participants.csv``: one row per participant with its true parameters (empty: not drawn)."""
+    """``participants.csv``: one row per participant with its true parameters (empty: not drawn; the switch
+    point's column only when a cohort draws it)."""
     fields = [f.name for f in dataclasses.fields(Participant)]
+    if all(p.switch is None for p in participants):
+        fields.remove("switch")
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(fields)
