@@ -120,6 +120,7 @@ class Predictors:
     def __init__(self, registry, world):
         self.registry, self.world = registry, world
         self.built: dict[str, Any] = {}
+        self._parts: dict[tuple, Optional[str]] = {}
 
     @staticmethod
     def key(config: Mapping[str, Any]) -> str:
@@ -149,9 +150,14 @@ class Predictors:
         for part in ("early", "late"):
             if part not in names:
                 continue
-            try:
-                key = self.key(_predictor_config(str(names[part]), dict(params.get(part) or {})))
-            except (OverhangError, ValueError):
+            asked = (str(names[part]), repr(sorted(dict(params.get(part) or {}).items())))
+            if asked not in self._parts:  # composing a config costs a Hydra compose: once per part's settings
+                try:
+                    self._parts[asked] = self.key(_predictor_config(asked[0], dict(params.get(part) or {})))
+                except (OverhangError, ValueError):
+                    self._parts[asked] = None
+            key = self._parts[asked]
+            if key is None:
                 continue
             if key not in self.built:  # the first hybrid's part serves every later one
                 self._remember(getattr(predictor, part))
