@@ -8,7 +8,9 @@ participant x model: parameters, log-likelihood, k, n, BIC, AIC),
 sentences; winners, summed BIC, random-effects BMS, parameters between conditions;
 for simulated participants their true models and parameters beside the fitted ones,
 from the ``participants.csv`` next to the log or ``--truth CSV``) and ``fit.json``
-(what was fitted). Hydra overrides choose the model space (``depths=[1,2,3]``,
+(what was fitted). ``cv=K`` also fits each model on K - 1 of K folds of each participant's trials
+and scores the fold left out: ``fits.csv`` gets the held-out log-likelihood, and ``comparison.md``
+sets the winners by it beside those by BIC. Hydra overrides choose the model space (``depths=[1,2,3]``,
 ``models.ipe.sigma=[0.02,0.04]``, ``models.hybrid.switch=4``, ``~models.cnn``); ``-m shard=0,1,2,3 shards=4``
 spreads the participants over the jobs of a multirun (any launcher), which share
 the score cache and leave one ``fits.csv``. docs/fitting.md describes it all.
@@ -17,6 +19,7 @@ Examples::
 
     python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit
     python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit '~models.hybrid' depths=[1,2,3]
+    python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit_cv cv=5
     python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit -m shard=0,1 shards=2 \\
         hydra/launcher=joblib hydra.launcher.n_jobs=2
 """
@@ -39,7 +42,7 @@ enable_plugin_configs()
 log = logging.getLogger("overhang_framework.fit")
 CONFIG_NAME = "fit"
 TOP = ("world", "value", "logs", "out", "models", "depths", "cache", "shard", "shards", "pooled", "progress",
-       "states", "jobs", "truth")
+       "states", "jobs", "truth", "cv")
 
 
 def _plain(node) -> Any:
@@ -72,6 +75,9 @@ def check_config(cfg: DictConfig) -> dict:
         raise ConfigError("no results directory given: add --out DIR")
     shard, shards = _whole(cfg, "shard", 0), _whole(cfg, "shards", 1)
     _whole(cfg, "jobs", 1)
+    cv = cfg.get("cv")
+    if isinstance(cv, bool) or not isinstance(cv, int) or cv < 0 or cv == 1:
+        raise ConfigError(f"cv must be 0 (no cross-validation) or a number of folds >= 2, got {cv!r}")
     if shard >= shards:
         raise ConfigError(f"shard must be from 0 to shards - 1 = {shards - 1}, got {shard}")
     for key in ("pooled", "progress"):
@@ -135,7 +141,7 @@ def run(cfg: DictConfig) -> dict:
     description = {"logs": checked["logs"],
                    "models": [[m.label, _strip(dict(m.predictor), ENGINE_KEYS)] for i in space for m in i.variants],
                    "context": context, "pooled": cfg.pooled, "shards": checked["shards"],
-                   "states": cfg.states}
+                   "states": cfg.states, "cv": cfg.cv}
     check_directory(out, description)
     units = units_of(log_placements(checked["df"]), cfg.pooled)
     mine = [u for k, u in enumerate(units) if k % checked["shards"] == checked["shard"]]
@@ -157,7 +163,7 @@ def run(cfg: DictConfig) -> dict:
 
     try:
         result = fit_units(mine, world, value, context, space, cache, build, on_unit, cfg.states, cfg.jobs,
-                           lambda: table_bar.update(1), set_total)
+                           lambda: table_bar.update(1), set_total, cfg.cv)
     finally:
         table_bar.close()
         bar.close()

@@ -147,11 +147,18 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     summed = bic.sum()
     rows = []
     result = bms(-bic.to_numpy() / 2, seed=seed) if len(models) > 1 else None
+    held = heldout_winners(fits)
+    if held is not None:
+        held_ll = df.pivot_table(index="participant", columns="model", values="heldout_loglik").reindex(
+            index=pids, columns=models).sum()
+        held_counts = held["model"].value_counts().reindex(models, fill_value=0)
     for j, m in enumerate(models):
         row = {"model": m, "summed_bic": float(summed[m]), "delta_summed_bic": float(summed[m] - summed.min()),
                "participants_best": int(counts[m])}
         if result is not None:
             row.update(frequency=float(result.frequencies[j]), ep=float(result.ep[j]), pxp=float(result.pxp[j]))
+        if held is not None:
+            row.update(summed_heldout_loglik=float(held_ll[m]), participants_best_heldout=int(held_counts[m]))
         rows.append(row)
     table = pd.DataFrame(rows)
     atomic_write_text(out / "comparison.csv", table.to_csv(index=False))
@@ -159,16 +166,21 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     differences = _differences(win, conditions, seed) if len(conditions) == 2 else None
     truth = _matched(truth, win)
     lines += findings(table, result, len(pids), win, conditions, differences, truth)
+    if held is not None:
+        lines.append(heldout_sentence(table, win, held, int(df["folds"].dropna().iloc[0])))
     lines += ["", "## Models", "",
               f"{len(pids)} participants, {len(models)} models; each participant's best model by BIC, the BIC "
               "summed over participants, and random-effects Bayesian model selection on log evidence -BIC/2 "
               "(Stephan et al. 2009; protected exceedance probabilities, Rigoux et al. 2014).", ""]
     header = ["model", "Σ BIC", "Δ Σ BIC", "best for"] + (["frequency", "EP", "PXP"] if result is not None else [])
+    header += ["Σ held-out LL", "best for (held-out)"] if held is not None else []
     body = []
     for r in rows:
         cells = [r["model"], f"{r['summed_bic']:.1f}", f"{r['delta_summed_bic']:.1f}", r["participants_best"]]
         if result is not None:
             cells += [f"{r['frequency']:.3f}", f"{r['ep']:.3f}", f"{r['pxp']:.3f}"]
+        if held is not None:
+            cells += [f"{r['summed_heldout_loglik']:.1f}", r["participants_best_heldout"]]
         body.append(cells)
     lines.append(markdown_table(header, body))
     if result is not None:
@@ -191,6 +203,39 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     _figure(table, win, result is not None, out)
     text = "\n".join(lines) + "\n"
     atomic_write_text(out / "comparison.md", text)
+    return text
+
+
+def heldout_winners(fits: pd.DataFrame) -> Optional[pd.DataFrame]:
+    """Each participant's best model by held-out log-likelihood (its row of fits.csv); None without one."""
+    if "heldout_loglik" not in fits.columns:
+        return None
+    df = per_participant(fits).dropna(subset=["heldout_loglik"])
+    if not len(df):
+        return None
+    return df.loc[df.groupby("participant")["heldout_loglik"].idxmax()].reset_index(drop=True)
+
+
+def heldout_sentence(table: pd.DataFrame, win: pd.DataFrame, held: pd.DataFrame, folds: int) -> str:
+    """The winners by held-out likelihood set beside those by BIC, in a sentence."""
+    best = table.sort_values(["summed_heldout_loglik", "model"], ascending=[False, True]).iloc[0]
+    by_bic = win.set_index(win["participant"].astype(str))["model"]
+    by_held = held.set_index(held["participant"].astype(str))["model"]
+    common = [p for p in by_bic.index if p in by_held.index]
+    differ = [p for p in common if by_bic[p] != by_held[p]]
+    text = (f"- **Held-out likelihood** ({folds} folds of each participant's trials, each model fitted on the "
+            f"others): {best['model']} predicts the held-out trials best (Σ held-out log-likelihood "
+            f"{best['summed_heldout_loglik']:.1f}). Each participant's best model by held-out likelihood is the "
+            f"one BIC picks for {len(common) - len(differ)} of {len(common)}")
+    if differ:
+        shown = ", ".join(f"{p} (BIC {by_bic[p]}, held-out {by_held[p]})" for p in differ[:8])
+        more = f" and {len(differ) - 8} more" if len(differ) > 8 else ""
+        text += f"; they disagree for {shown}{more}."
+    else:
+        text += "."
+    bic_top = table.sort_values(["summed_bic", "model"]).iloc[0]["model"]
+    if bic_top != best["model"]:
+        text += f" Summed over participants, BIC favours {bic_top} and held-out likelihood {best['model']}."
     return text
 
 

@@ -15,7 +15,7 @@ placements ``n`` it explains, ``BIC = k ln n - 2 LL`` and ``AIC = 2 k - 2 LL``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
 import numpy as np
@@ -68,6 +68,8 @@ class Mapped:
     states: list[State]
     chosen: list[int]
     unmapped: int
+    #: The (participant, trial) of each mapped placement: the unit of held-out folds.
+    trials: list[tuple[str, int]] = field(default_factory=list)
 
 
 #: How decision states are built: ``logged`` takes the log's towers, ``grid`` replays each trial's mapped grid actions.
@@ -89,7 +91,7 @@ def map_placements(world: World, placements: Sequence[Placement], states: str = 
     """
     if states not in STATES:
         raise ValueError(f"unknown decision states {states!r}; allowed: {', '.join(STATES)}")
-    out, chosen, unmapped = [], [], 0
+    out, chosen, trials, unmapped = [], [], [], 0
     after: dict[tuple, State] = {}  # (participant, trial) -> the grid state after its last mapped placement
     for p in placements:
         state = p.state
@@ -103,9 +105,10 @@ def map_placements(world: World, placements: Sequence[Placement], states: str = 
             continue
         out.append(state)
         chosen.append(index)
+        trials.append((p.participant, p.trial))
         if states == "grid":
             after[trial] = world.successor(state, world.legal_actions(state)[index])
-    return Mapped(out, chosen, unmapped)
+    return Mapped(out, chosen, unmapped, trials)
 
 
 @dataclass
@@ -148,6 +151,9 @@ class ModelFit:
     n: int
     unmapped: int
     switch: Optional[int] = None
+    #: Held-out log-likelihood summed over the folds of a cross-validation (None: not cross-validated).
+    heldout: Optional[float] = None
+    folds: Optional[int] = None
 
     @property
     def bic(self) -> float:
@@ -161,19 +167,72 @@ class ModelFit:
         return {"participant": self.participant, "condition": self.condition, "model": self.label,
                 "family": self.family, "depth": self.depth, "sigma": self.sigma, "switch": self.switch, "beta": self.beta,
                 "lapse": self.lapse, "loglik": self.loglik, "k": self.k, "n": self.n, "bic": self.bic,
-                "aic": self.aic, "unmapped": self.unmapped}
+                "aic": self.aic, "unmapped": self.unmapped, "heldout_loglik": self.heldout, "folds": self.folds}
 
 
-def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables], mapped: Mapped) -> ModelFit:
-    """Fit one model index, whose ``variants`` are its score tables on the sigma and switch grids (one when
-    neither is fitted)."""
-    best, best_model = None, None
-    for tables in variants:
-        decisions = Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
-        fit = fit_softmax(decisions)
+def fold_of(trials: Sequence[tuple[str, int]], folds: int, seed: int = 0) -> np.ndarray:
+    """The fold (0 .. ``folds - 1``) of each placement's trial: each participant's trials, sorted, are dealt
+    into the folds in an order drawn from ``(seed, participant)``, so that the folds are as even as the
+    trials allow, a trial's placements stay together, and a participant's folds are the same in their own
+    fit and in a pooled one, whatever the order of the log."""
+    import hashlib
+
+    assigned: dict[tuple[str, int], int] = {}
+    by_participant: dict[str, list[int]] = {}
+    for participant, trial in trials:
+        by_participant.setdefault(str(participant), []).append(int(trial))
+    for participant, numbers in by_participant.items():
+        numbers = sorted(set(numbers))
+        word = int.from_bytes(hashlib.blake2b(participant.encode(), digest_size=8).digest(), "little")
+        order = np.random.default_rng(np.random.SeedSequence([int(seed), word])).permutation(len(numbers))
+        for rank, i in enumerate(order):
+            assigned[(participant, numbers[int(i)])] = rank % folds
+    return np.array([assigned[(str(p), int(t))] for p, t in trials], dtype=int)
+
+
+def _decisions(tables: ScoreTables, mapped: Mapped, rows: Optional[np.ndarray] = None) -> Decisions:
+    idx = range(len(mapped.states)) if rows is None else rows
+    return Decisions.of([tables.table(mapped.states[i]) for i in idx], [mapped.chosen[i] for i in idx])
+
+
+def _best(variants: Sequence[ScoreTables], decisions: Sequence[Decisions]) -> tuple[SoftmaxFit, int]:
+    best, which = None, 0
+    for k, d in enumerate(decisions):
+        fit = fit_softmax(d)
         if best is None or fit.loglik > best.loglik + 1e-9:
-            best, best_model = fit, tables.model
-    model = best_model
+            best, which = fit, k
+    return best, which
+
+
+def heldout_loglik(variants: Sequence[ScoreTables], mapped: Mapped, folds: int, seed: int = 0) -> float:
+    """The log-likelihood of each fold's placements under the model index fitted (grid point, ``beta``,
+    ``lapse``) to the other folds, summed over the folds. A fold without placements adds nothing, nor does one
+    that holds every placement (nothing is left to fit on)."""
+    fold = fold_of(mapped.trials, folds, seed)
+    every = [_decisions(t, mapped) for t in variants]
+    total = 0.0
+    for k in range(folds):
+        test, train = np.flatnonzero(fold == k), np.flatnonzero(fold != k)
+        if not test.size or not train.size:
+            continue
+        fit, which = _best(variants, [_subset(d, train) for d in every])
+        total += log_likelihood(_subset(every[which], test), fit.beta, fit.lapse)
+    return total
+
+
+def _subset(d: Decisions, rows: np.ndarray) -> Decisions:
+    return Decisions(d.scores[rows], d.sizes[rows], d.chosen[rows])
+
+
+def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables], mapped: Mapped,
+              folds: int = 0, seed: int = 0) -> ModelFit:
+    """Fit one model index, whose ``variants`` are its score tables on the sigma and switch grids (one when
+    neither is fitted). With ``folds >= 2`` the fit also reports its held-out log-likelihood
+    (:func:`heldout_loglik`)."""
+    best, which = _best(variants, [_decisions(t, mapped) for t in variants])
+    model = variants[which].model
     grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch")]
+    heldout = heldout_loglik(variants, mapped, folds, seed) if folds >= 2 else None
     return ModelFit(participant, condition, model.label, model.family, model.depth, model.sigma, best.beta,
-                    best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch)
+                    best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch,
+                    heldout, folds if folds >= 2 else None)

@@ -33,7 +33,7 @@ FITS = "fits.csv"
 FIT_JSON = "fit.json"
 #: The columns of fits.csv, in order.
 COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "beta", "lapse", "loglik", "k", "n",
-           "bic", "aic", "unmapped"]
+           "bic", "aic", "unmapped", "heldout_loglik", "folds"]
 POOLED = "pooled:"
 
 
@@ -74,7 +74,7 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
               cache: Optional[ScoreCache], build_predictor: Callable[[Mapping[str, Any]], Any],
               on_unit: Callable[[str, Unit], None] = lambda label, unit: None, states: str = "logged",
               jobs: int = 1, on_table: Callable[[], None] = lambda: None,
-              on_total: Callable[[int], None] = lambda n: None) -> JobResult:
+              on_total: Callable[[int], None] = lambda n: None, folds: int = 0) -> JobResult:
     """Fit every model index of ``space`` to every unit. Tables are shared across units (one
     :class:`ScoreTables` per model) and kept in ``cache``. ``states`` says how decision states are built
     (:func:`~overhang_framework.fit.fitting.map_placements`). With ``jobs > 1`` the tables not in the
@@ -90,7 +90,7 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
     stats: dict[str, TableStats] = {}
     for index, variants in zip(space, tables):
         for unit in units:
-            fits.append(fit_index(unit.name, unit.condition, variants, mapped[unit.name]))
+            fits.append(fit_index(unit.name, unit.condition, variants, mapped[unit.name], folds))
             on_unit(index.label, unit)
         total = TableStats()
         for v in variants:
@@ -255,6 +255,7 @@ def check_directory(out: Path, description: Mapping[str, Any]) -> None:
                 raise OverhangError(f"{path} is not a fit description; move it away or use another --out") from None
             description = json.loads(json.dumps(readable(dict(description))))  # as the file holds it
             previous.setdefault("states", "logged")  # fits written before the setting existed used the logged towers
+            previous.setdefault("cv", 0)  # and no cross-validation
             if previous != description:
                 keys = sorted(k for k in set(previous) | set(description) if previous.get(k) != description.get(k))
                 raise OverhangError(f"{out} holds fits of another {' and '.join(keys)}; use another --out, "
