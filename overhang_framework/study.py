@@ -1,0 +1,510 @@
+"""Planted and null studies: ``python -m overhang_framework.study {dual_transition,null} --out DIR``.
+
+Can the whole pipeline find the paper's dual transition where it is present, and not find it where
+it is absent? A study simulates a cohort of known participants, analyses their log as a lab would
+analyse people's, fits the models, checks the fits, and reports the paper's findings one by one:
+
+* ``dual_transition`` (``cohort=dual_transition``, ``predictor=hybrid``): the paper's hypothesis by
+  construction. Every participant is a hybrid (the IPE below its own switch point, the CNN from it on);
+  both conditions intend the same searches (depth 1 or 2), and the 5 s budget truncates the time-limited
+  ones. Each finding below should be there.
+* ``null`` (``cohort=null_effect``, ``predictor=ipe``): one predictor family, no switch, and the same
+  myopic search in both conditions, which the budget never truncates. None should be there, beyond chance.
+
+The steps, each continued where it stopped when the command is run again with the same settings:
+``sim/`` (:mod:`overhang_framework.participants`), ``analysis/`` (Table 1, Γ, Fig. 4 of
+:mod:`overhang_framework.analyze`), ``fit/`` (:mod:`overhang_framework.fit`, the default model space with
+the hybrid's switch point fitted, score tables in ``scores.sqlite``), ``fit/check/``
+(:mod:`overhang_framework.fit.check`), then ``study.md``, ``findings.csv``, ``power.csv`` and
+``participants.csv`` (one row per participant: every quantity a finding tests).
+
+The findings (:data:`FINDINGS`), each a test across participants at ``alpha = .05``:
+
+1. ``overhang``: lower average overhang under time pressure (permutation test, Table 1);
+2. ``stable``: no difference in the stable proportion (permutation test; holds when p >= alpha);
+3. ``gamma``: Γ lower under time pressure (permutation test);
+4. ``baseline``: both approximate models beat the veridical one on the executed placements (Fig. 4: each
+   participant's mean ``LL_ipe - LL_veridical`` and ``LL_cnn - LL_veridical``, one-sample t-tests; holds when
+   both are above 0 at p < alpha);
+5. ``crossover``: the CNN overtakes the IPE as blocks accumulate (each participant's mean ``LL_cnn - LL_ipe``
+   on towers of at least :data:`LATE` blocks minus that on towers of at most :data:`EARLY`; one-sample t-test);
+6. ``depth``: the fitted depth (of each participant's best model by BIC) lower under time pressure
+   (permutation test);
+7. ``hybrid``: the hybrid family wins: random-effects BMS over families (each family's evidence the
+   log-mean-exp of its models' ``-BIC/2``), protected exceedance probability above 0.95;
+8. ``switch``: the fitted switch point near the planted one: among participants whose best model is a
+   hybrid, the mean absolute difference at most one stage (planted study only).
+
+**Power and false positives.** Each participant's simulation, analysis and fit are their own, so a study
+of the same size can be redrawn by resampling participants: ``--resamples`` studies of the cohort's size,
+each drawing its participants of each condition with replacement from those simulated (``--pool``
+simulates that many times more participants, so the draws come from a larger cohort). The share of
+redrawn studies in which a finding holds is its power (planted) or its false-positive rate (null). Where
+the planted power is below 0.8, larger studies are redrawn the same way (1.5 to 8 times the size) and the
+smallest that reaches 0.8 is reported, with the effect's size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+import pandas as pd
+
+from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.results import atomic_write_json, atomic_write_text
+
+#: Study name -> (cohort config, participants overrides, planted).
+STUDIES = {"dual_transition": ("dual_transition", ["predictor=hybrid"], True),
+           "null": ("null_effect", ["predictor=ipe"], False)}
+ALPHA = 0.05
+#: Towers of at most EARLY blocks are early, of at least LATE blocks late (Fig. 4's crossover).
+EARLY, LATE = 3, 5
+#: The BMS criterion of the hybrid finding.
+PXP = 0.95
+#: Permutations of each test inside the power resamples (the report's own tests use the analysis's 10,000).
+POWER_PERMUTATIONS = 1_000
+#: Study sizes, as multiples of the cohort's, redrawn when a planted finding's power is below 0.8.
+MULTIPLES = (1.5, 2.0, 3.0, 4.0, 6.0, 8.0)
+TARGET_POWER = 0.8
+
+
+@dataclass(frozen=True)
+class Finding:
+    name: str
+    text: str
+    #: what the paper reports, and so what the planted study should show
+    paper: str
+
+
+FINDINGS = (
+    Finding("overhang", "average overhang lower under time pressure", "1.321 against 1.460, p < .001"),
+    Finding("stable", "no difference in the stable proportion", "70.2% against 67.8%, p = .482"),
+    Finding("gamma", "Γ lower under time pressure", "0.15 against 0.24, p = .022"),
+    Finding("baseline", "both approximate models beat the veridical one (Fig. 4)", "both, p < .001"),
+    Finding("crossover", "the CNN overtakes the IPE as blocks accumulate (Fig. 4)", "the CNN ahead later, p < .001"),
+    Finding("depth", "fitted depth lower under time pressure", "shallower lookahead under time pressure"),
+    Finding("hybrid", "the hybrid family wins (BMS)", "a dual transition, IPE-like early and CNN-like late"),
+    Finding("switch", "the fitted switch point within one stage of the planted one", "(planted study only)"),
+)
+TL, UN = "time_limited", "unconstrained"
+
+
+# --- per-participant quantities ------------------------------------------------------------------------
+
+def participant_table(out: Path) -> pd.DataFrame:
+    """One row per participant: condition, the true parameters, Table 1's and Γ's values, Fig. 4's log-likelihood
+    differences, the best model by BIC, and each family's evidence (``evidence_<family>``)."""
+    truth = pd.read_csv(out / "sim" / "participants.csv").rename(columns={"id": "participant"})
+    truth = truth.rename(columns={c: f"true_{c}" for c in ("sigma", "depth", "beta", "lapse", "switch")
+                                  if c in truth.columns})
+    t1 = pd.read_csv(out / "analysis" / "table1_participants.csv")[
+        ["participant", "stable_pct", "avg_overhang", "reward_per_trial"]]
+    gamma = pd.read_csv(out / "analysis" / "gamma_participants.csv")[["participant", "gamma"]]
+    fig4 = pd.read_csv(out / "analysis" / "fig4_placements.csv")
+    rows = []
+    for pid, at in fig4.groupby("participant", sort=True):
+        early, late = at[at["n_blocks"] <= EARLY], at[at["n_blocks"] >= LATE]
+        lead = (late["ll_cnn"] - late["ll_ipe"]).mean() - (early["ll_cnn"] - early["ll_ipe"]).mean() \
+            if len(early) and len(late) else np.nan
+        rows.append({"participant": pid, "ipe_vs_veridical": float((at["ll_ipe"] - at["ll_veridical"]).mean()),
+                     "cnn_vs_veridical": float((at["ll_cnn"] - at["ll_veridical"]).mean()), "cnn_lead": lead})
+    prediction = pd.DataFrame(rows, columns=["participant", "ipe_vs_veridical", "cnn_vs_veridical", "cnn_lead"])
+    from overhang_framework.fit.compare import per_participant, winners
+
+    fits = pd.read_csv(out / "fit" / "fits.csv")
+    best = winners(fits)[["participant", "model", "family", "depth", "switch"]].rename(
+        columns={"model": "best_model", "family": "best_family", "depth": "fitted_depth", "switch": "fitted_switch"})
+    people = per_participant(fits)
+    evidence = {}
+    for family, at in people.groupby("family"):
+        table = at.pivot_table(index="participant", columns="model", values="bic")
+        e = -table.to_numpy() / 2
+        evidence[f"evidence_{family}"] = pd.Series(np.logaddexp.reduce(e, axis=1) - math.log(e.shape[1]),
+                                                   index=table.index)
+    evidence = pd.DataFrame(evidence).reset_index().rename(columns={"index": "participant"})
+    df = truth
+    for part in (t1, gamma, prediction, best, evidence):
+        part = part.copy()
+        part["participant"] = part["participant"].astype(str)
+        df = df.merge(part, on="participant", how="left")
+    return df.sort_values("participant").reset_index(drop=True)
+
+
+# --- the findings --------------------------------------------------------------------------------------
+
+def _perm(a: np.ndarray, b: np.ndarray, n: int, seed: int) -> float:
+    from overhang_framework.behaviour.analysis import permutation_p
+
+    return permutation_p(a, b, n, seed)
+
+
+def _one_sample(x: np.ndarray) -> tuple[float, float]:
+    from scipy.stats import ttest_1samp
+
+    x = x[np.isfinite(x)]
+    if x.size < 2:
+        return float("nan"), float("nan")
+    return float(x.mean()), float(ttest_1samp(x, 0.0).pvalue)
+
+
+def family_pxp(df: pd.DataFrame, seed: int = 0) -> dict[str, float]:
+    """Protected exceedance probability of each family (random-effects BMS over families)."""
+    from overhang_framework.fit.bms import bms
+
+    cols = [c for c in df.columns if c.startswith("evidence_")]
+    e = df[cols].to_numpy(dtype=float)
+    e = e[np.isfinite(e).all(axis=1)]
+    if len(cols) < 2 or not len(e):
+        return {c[len("evidence_"):]: float("nan") for c in cols}
+    result = bms(e, seed=seed)
+    return {c[len("evidence_"):]: float(p) for c, p in zip(cols, result.pxp)}
+
+
+def evaluate(df: pd.DataFrame, permutations: int = 10_000, seed: int = 0) -> dict[str, dict]:
+    """Every finding of :data:`FINDINGS` on the participants of ``df``: its statistic, p and whether it holds."""
+    tl, un = df[df["condition"] == TL], df[df["condition"] == UN]
+    out = {}
+
+    def compare(name: str, column: str, want_lower: bool = True) -> None:
+        a, b = tl[column].to_numpy(dtype=float), un[column].to_numpy(dtype=float)
+        p = _perm(a, b, permutations, seed)
+        ma, mb = float(np.nanmean(a)) if np.isfinite(a).any() else np.nan, \
+            float(np.nanmean(b)) if np.isfinite(b).any() else np.nan
+        lower = ma < mb
+        out[name] = {"statistic": f"{ma:.3f} ({TL}) against {mb:.3f} ({UN})", "p": p,
+                     "holds": bool(np.isfinite(p) and p < ALPHA and lower == want_lower), "effect": ma - mb}
+
+    compare("overhang", "avg_overhang")
+    stable = tl["stable_pct"].to_numpy(dtype=float), un["stable_pct"].to_numpy(dtype=float)
+    p = _perm(*stable, permutations, seed)
+    out["stable"] = {"statistic": f"{np.nanmean(stable[0]):.1f}% against {np.nanmean(stable[1]):.1f}%", "p": p,
+                     "holds": bool(np.isfinite(p) and p >= ALPHA),
+                     "effect": float(np.nanmean(stable[0]) - np.nanmean(stable[1]))}
+    compare("gamma", "gamma")
+    mi, pi = _one_sample(df["ipe_vs_veridical"].to_numpy(dtype=float))
+    mc, pc = _one_sample(df["cnn_vs_veridical"].to_numpy(dtype=float))
+    out["baseline"] = {"statistic": f"LL_ipe − LL_vrd {mi:+.3f}, LL_cnn − LL_vrd {mc:+.3f}",
+                       "p": float(np.nanmax([pi, pc])) if np.isfinite([pi, pc]).all() else float("nan"),
+                       "holds": bool(mi > 0 and mc > 0 and pi < ALPHA and pc < ALPHA), "effect": min(mi, mc)}
+    ml, pl = _one_sample(df["cnn_lead"].to_numpy(dtype=float))
+    out["crossover"] = {"statistic": f"LL_cnn − LL_ipe, late minus early {ml:+.3f}", "p": pl,
+                        "holds": bool(np.isfinite(pl) and pl < ALPHA and ml > 0), "effect": ml}
+    compare("depth", "fitted_depth")
+    pxp = family_pxp(df, seed)
+    top = max(pxp, key=lambda k: (pxp[k] if np.isfinite(pxp[k]) else -1)) if pxp else None
+    out["hybrid"] = {"statistic": ", ".join(f"{k} {v:.2f}" for k, v in sorted(pxp.items())) + " (PXP)",
+                     "p": float("nan"), "holds": bool(pxp.get("hybrid", 0) > PXP), "effect": pxp.get("hybrid"),
+                     "top": top}
+    hybrid = df[(df["best_family"] == "hybrid") & df.get("true_switch", pd.Series(np.nan, index=df.index)).notna()]
+    if "true_switch" in df.columns and len(hybrid):
+        error = (hybrid["fitted_switch"] - hybrid["true_switch"]).abs()
+        out["switch"] = {"statistic": f"fitted and planted differ by {error.mean():.2f} stages on average, over "
+                                      f"{len(hybrid)} hybrid winners ({(error <= 1).mean():.0%} within one)",
+                         "p": float("nan"), "holds": bool(error.mean() <= 1), "effect": float(error.mean())}
+    else:
+        out["switch"] = {"statistic": "no planted switch point" if "true_switch" not in df.columns
+                         else "no participant's best model is a hybrid", "p": float("nan"), "holds": False,
+                         "effect": float("nan")}
+    return out
+
+
+def resample(df: pd.DataFrame, sizes: dict[str, int], rng: np.random.Generator) -> pd.DataFrame:
+    """A study of ``sizes`` participants per condition, drawn with replacement from ``df``'s."""
+    parts = []
+    for condition, n in sizes.items():
+        pool = df[df["condition"] == condition]
+        if len(pool) and n:
+            parts.append(pool.iloc[rng.integers(len(pool), size=n)])
+    out = pd.concat(parts, ignore_index=True)
+    out["participant"] = [f"r{i}" for i in range(len(out))]
+    return out
+
+
+def power(df: pd.DataFrame, sizes: dict[str, int], resamples: int, seed: int,
+          on_resample: Callable[[], None] = lambda: None) -> dict[str, float]:
+    """The share of ``resamples`` redrawn studies of ``sizes`` in which each finding holds."""
+    rng = np.random.default_rng(seed)
+    hits = {f.name: 0 for f in FINDINGS}
+    for b in range(resamples):
+        found = evaluate(resample(df, sizes, rng), POWER_PERMUTATIONS, seed + b)
+        for name in hits:
+            hits[name] += int(found[name]["holds"])
+        on_resample()
+    return {name: h / resamples for name, h in hits.items()}
+
+
+# --- the command ---------------------------------------------------------------------------------------
+
+def _digest(*paths: Path, extra: Any = None) -> str:
+    h = hashlib.sha256(json.dumps(extra, sort_keys=True, default=str).encode())
+    for path in paths:
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+class Steps:
+    """``steps.json``: each finished step with the digest of what it was made from, and its seconds."""
+
+    def __init__(self, out: Path):
+        self.path = out / "steps.json"
+        self.done = json.loads(self.path.read_text()) if self.path.exists() else {}
+
+    def current(self, name: str, digest: str) -> bool:
+        return self.done.get(name, {}).get("digest") == digest
+
+    def finish(self, name: str, digest: str, seconds: float) -> None:
+        self.done[name] = {"digest": digest, "seconds": seconds}
+        atomic_write_json(self.path, self.done)
+
+    def seconds(self, name: str) -> Optional[float]:
+        return self.done.get(name, {}).get("seconds")
+
+
+def _compose(words: Sequence[str], config_name: str, what: str):
+    """The config ``config_name`` with ``words``, or a one-line :class:`ConfigError` naming the step."""
+    from overhang_framework.config import compose_config
+
+    try:
+        return compose_config(list(words), config_name=config_name)
+    except OverhangError:
+        raise
+    except Exception as err:  # Hydra's composition errors: the first line says what is wrong
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(f"{what}: {first}") from None
+
+
+def run(study: str, out: Path, scale: float = 1.0, pool: float = 1.0, n_tasks: Optional[int] = None,
+        jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 200, replicas: int = 39, seed: int = 0,
+        world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
+        progress: bool = True, say: Callable[[str], None] = lambda s: None) -> dict:
+    """Run ``study`` into ``out``; see the module docstring."""
+    from omegaconf import OmegaConf
+
+    if study not in STUDIES:
+        raise ConfigError(f"unknown study {study!r}; studies: {', '.join(STUDIES)}")
+    if not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+        raise ConfigError(f"--scale must be a number > 0, got {scale!r}")
+    if not isinstance(pool, (int, float)) or not math.isfinite(pool) or pool < 1:
+        raise ConfigError(f"--pool must be a number >= 1, got {pool!r}")
+    for name, value, low in (("--jobs", jobs, 1), ("--resamples", resamples, 0), ("--replicas", replicas, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ConfigError(f"{name} must be a whole number >= {low}, got {value!r}")
+    cohort, model, planted = STUDIES[study]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    steps = Steps(out)
+    started = time.perf_counter()
+    base = _compose([f"cohort={cohort}"], "participants", "--participants")
+    counts = {str(k): int(v) for k, v in OmegaConf.to_container(base.cohort.participants).items()}
+    sizes = {k: max(1, round(v * scale)) for k, v in counts.items()}
+    simulated = {k: max(n, round(n * pool)) for k, n in sizes.items()}
+    words = [f"cohort={cohort}", *model, *world, f"seed={seed}", f"jobs={jobs}", f"progress={str(progress).lower()}",
+             *[f"cohort.participants.{k}={n}" for k, n in simulated.items()]]
+    if n_tasks is not None:
+        words.append(f"cohort.n_tasks={int(n_tasks)}")
+    words += list(participants)
+
+    fit_words = [*world, f"jobs={jobs}", f"cache={out / 'scores.sqlite'}", f"progress={str(progress).lower()}",
+                 f"depths=[{','.join(str(int(d)) for d in depths)}]", *fit]
+    from overhang_framework.participants import CONFIG_NAME, run as simulate
+
+    sim_cfg = _compose(words, CONFIG_NAME, "--participants")  # both configs checked before any work
+    _compose(fit_words, "fit", "--fit")
+
+    # 1. the participants
+    t0 = time.perf_counter()
+    say(f"simulating {sum(simulated.values())} participants ({', '.join(f'{n} {k}' for k, n in simulated.items())})")
+    simulate(sim_cfg, out / "sim")
+    log = out / "sim" / "log.jsonl"
+    if not steps.seconds("participants") or not steps.current("participants", _digest(log)):
+        steps.finish("participants", _digest(log), time.perf_counter() - t0)
+
+    # 2. the analyses a lab runs on people's logs
+    from overhang_framework.behaviour.analysis import Settings, run as analyse
+
+    digest = _digest(log, extra={"world": list(world), "seed": seed})
+    if not steps.current("analysis", digest):
+        t0 = time.perf_counter()
+        say("analysing the log (Table 1, Γ, Fig. 4)")
+        analyse([log], out / "analysis", Settings(world_overrides=tuple(world), seed=seed,
+                                                  only=("table1", "gamma", "prediction"), progress=progress))
+        steps.finish("analysis", digest, time.perf_counter() - t0)
+
+    # 3. the fit
+    from overhang_framework.fit.__main__ import run as fit_run
+
+    digest = _digest(log, extra=fit_words)
+    if not steps.current("fit", digest):
+        t0 = time.perf_counter()
+        say("fitting the models")
+        cfg = _compose(fit_words, "fit", "--fit")
+        OmegaConf.update(cfg, "logs", [str(log.resolve())])
+        OmegaConf.update(cfg, "out", str((out / "fit").resolve()))
+        OmegaConf.update(cfg, "truth", None)
+        fit_run(cfg)
+        steps.finish("fit", digest, time.perf_counter() - t0)
+
+    # 4. the predictive check
+    if replicas:
+        from overhang_framework.fit import check
+
+        digest = _digest(out / "fit" / "fits.csv", extra={"replicas": replicas, "seed": seed})
+        if not steps.current("check", digest):
+            t0 = time.perf_counter()
+            say(f"checking the fits ({replicas} replicas per participant)")
+            check.run(out / "fit", out / "fit" / "check", replicas, None, str(out / "scores.sqlite"), jobs, seed,
+                      progress)
+            steps.finish("check", digest, time.perf_counter() - t0)
+
+    # 5. the findings, and their power by resampling participants
+    t0 = time.perf_counter()
+    df = participant_table(out)
+    atomic_write_text(out / "participants.csv", df.to_csv(index=False))
+    people = df[df["condition"].isin(sizes)]
+    found = evaluate(people, seed=seed)
+    from overhang_framework.progress import progress_bar
+
+    rows = []
+    bar = progress_bar(total=resamples, desc="power", unit="study", disable=not progress or not resamples,
+                       miniters=1, mininterval=0.5)
+    rates = power(people, sizes, resamples, seed, lambda: bar.update(1)) if resamples else {}
+    bar.close()
+    larger: dict[str, Optional[float]] = {}
+    if planted and resamples:
+        for f in FINDINGS:
+            if f.name in ("stable",) or rates.get(f.name, 1.0) >= TARGET_POWER:
+                continue
+            larger[f.name] = None
+        for multiple in MULTIPLES:
+            todo = [n for n, m in larger.items() if m is None]
+            if not todo:
+                break
+            bigger = {k: int(round(n * multiple)) for k, n in sizes.items()}
+            r = power(people, bigger, max(50, resamples // 2), seed + int(multiple * 100))
+            for name in todo:
+                if r[name] >= TARGET_POWER:
+                    larger[name] = multiple
+    for f in FINDINGS:
+        got = found[f.name]
+        rows.append({"finding": f.name, "text": f.text, "statistic": got["statistic"], "p": got["p"],
+                     "holds": got["holds"], "expected": planted if f.name != "stable" else True,
+                     "rate": rates.get(f.name), "size_for_power": _size(larger.get(f.name, "n/a"), sizes),
+                     "paper": f.paper})
+    table = pd.DataFrame(rows)
+    atomic_write_text(out / "findings.csv", table.to_csv(index=False))
+    atomic_write_text(out / "power.csv", pd.DataFrame([{"finding": k, "rate": v, "resamples": resamples,
+                                                         "sizes": json.dumps(sizes)} for k, v in rates.items()])
+                      .to_csv(index=False))
+    steps.finish("findings", "", time.perf_counter() - t0)
+    text = report(study, table, steps, sizes, simulated, n_tasks, resamples, planted, depths,
+                  time.perf_counter() - started)
+    atomic_write_text(out / "study.md", text)
+    return {"out": str(out), "findings": table, "report": text}
+
+
+def _size(multiple: Any, sizes: dict[str, int]) -> str:
+    if multiple == "n/a":
+        return ""
+    n = sum(sizes.values())
+    if multiple is None:
+        return f"more than {int(round(n * MULTIPLES[-1]))}"
+    return f"about {int(round(n * multiple))}"
+
+
+def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int], simulated: dict[str, int],
+           n_tasks: Optional[int], resamples: int, planted: bool, depths: Sequence[int], seconds: float) -> str:
+    from overhang_framework.behaviour.analysis import fmt_p, markdown_table
+
+    n = sum(sizes.values())
+    shown = table[table["finding"] != "switch"] if not planted else table
+    holds = shown[shown["holds"] & (shown["finding"] != "stable")]
+    kind = "planted" if planted else "null"
+    expected = "each finding" if planted else "none of them (beyond chance)"
+    lines = [f"# Study: {study} ({kind})", "",
+             f"{n} participants ({', '.join(f'{v} {k}' for k, v in sizes.items())}), "
+             f"{'all' if n_tasks is None else n_tasks} tasks each, fitted depths {', '.join(map(str, depths))}; "
+             f"the study should show {expected}.", ""]
+    names = ", ".join(f"{r.finding}" for r in holds.itertuples()) or "none"
+    effects = len(shown[shown["finding"] != "stable"])
+    lines.append(f"- **Found:** {len(holds)} of {effects} effects at α = .05 ({names}); the stable proportion "
+                 f"{'does not differ' if bool(table.set_index('finding').loc['stable', 'holds']) else 'differs'} "
+                 "between the conditions.")
+    if resamples:
+        word = "power" if planted else "false-positive rate"
+        rates = "; ".join(f"{r.finding} {r.rate:.0%}" for r in shown.itertuples() if r.rate is not None
+                          and r.finding != "stable")
+        lines.append(f"- **{word.capitalize()}** ({resamples} studies of {n} redrawn from the {sum(simulated.values())} "
+                     f"simulated participants): {rates}.")
+        if planted:
+            low = shown[(shown["rate"] < TARGET_POWER) & (shown["finding"] != "stable")]
+            if len(low):
+                lines.append("- **Below 0.8:** " + "; ".join(
+                    f"{r.finding} ({r.rate:.0%} at {n}; {r.size_for_power or 'not redrawn'} participants reach 0.8)"
+                    for r in low.itertuples()) + ".")
+    lines += ["", "## Findings", ""]
+    body = []
+    for r in table.itertuples():
+        if not planted and r.finding == "switch":
+            continue
+        body.append([r.text, r.statistic, "–" if not np.isfinite(r.p) else fmt_p(r.p), "yes" if r.holds else "no",
+                     "yes" if (r.expected if planted else r.finding == "stable") else "no",
+                     "–" if r.rate is None or (isinstance(r.rate, float) and math.isnan(r.rate)) else f"{r.rate:.0%}",
+                     r.size_for_power or "", r.paper])
+    lines.append(markdown_table(["finding", "statistic", "p", "found", "expected",
+                                 "power" if planted else "false-positive rate", "size for 0.8", "paper"], body))
+    lines += ["", "## Steps", ""]
+    lines.append(markdown_table(["step", "seconds"], [[k, f"{v['seconds']:.0f}"] for k, v in steps.done.items()]))
+    lines += ["", f"Total this run: {seconds:.0f} s. Files: `sim/`, `analysis/report.md`, `fit/comparison.md`, "
+                  "`fit/check/check.md`, `participants.csv`, `findings.csv`, `power.csv`."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.study", description=__doc__.split("\n\n")[0])
+    ap.add_argument("study", help=f"one of: {', '.join(STUDIES)}")
+    ap.add_argument("--out", required=True, help="the study's directory")
+    ap.add_argument("--scale", type=float, default=1.0, help="participants per condition, share of the paper's 43 + 38")
+    ap.add_argument("--pool", type=float, default=1.0, help="simulate this many times more participants to redraw from")
+    ap.add_argument("--tasks", type=int, default=None, help="tasks per participant (default: all 20)")
+    ap.add_argument("--depths", default="1,2", help="fitted depths (default 1,2)")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--resamples", type=int, default=200, help="redrawn studies for power (default 200; 0: none)")
+    ap.add_argument("--replicas", type=int, default=39, help="predictive check replicas (default 39; 0: no check)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--world", action="append", default=[], metavar="OVERRIDE", help="world override, every step")
+    ap.add_argument("--participants", action="append", default=[], metavar="OVERRIDE",
+                    help="participants override (repeatable)")
+    ap.add_argument("--fit", action="append", default=[], metavar="OVERRIDE", help="fit override (repeatable)")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+    say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    try:
+        depths = [int(d) for d in args.depths.split(",") if d.strip()]
+    except ValueError:
+        print(f"error: --depths must be whole numbers separated by commas, got {args.depths!r}", file=sys.stderr)
+        return 2
+    try:
+        summary = run(args.study, Path(args.out), args.scale, args.pool, args.tasks, args.jobs, depths, args.resamples,
+                      args.replicas, args.seed, args.world, args.participants, args.fit, not args.no_progress, say)
+    except OverhangError as err:
+        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: each finished step and part is kept; run the same command to continue", file=sys.stderr)
+        return 130
+    print(summary["report"].split("\n## ")[0].strip())
+    print(f"\nwrote {Path(summary['out']) / 'study.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

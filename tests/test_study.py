@@ -1,0 +1,92 @@
+"""Planted and null studies (python -m overhang_framework.study): the findings' tests on participants whose
+answer is known, power by redrawing participants, and both commands end to end at a small size."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from overhang_framework.study import FINDINGS, evaluate, power, resample
+
+
+def _people(effect: bool, n: int = 40, seed: int = 0) -> pd.DataFrame:
+    """Participants built by hand: with ``effect``, every finding of the paper is there, strongly; without, none."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for condition in ("time_limited", "unconstrained"):
+        tl = condition == "time_limited"
+        for i in range(n):
+            shift = (-1 if tl else 0) if effect else 0
+            hybrid = effect
+            evidence = {"evidence_hybrid": -100.0 + (10 if hybrid else -10) + rng.normal(0, 1),
+                        "evidence_ipe": -100.0 + rng.normal(0, 1), "evidence_cnn": -100.0 + rng.normal(0, 1)}
+            rows.append({"participant": f"{condition}-{i}", "condition": condition,
+                         "avg_overhang": 1.45 + 0.1 * shift + rng.normal(0, 0.05),
+                         "stable_pct": 70 + rng.normal(0, 5), "gamma": 0.24 + 0.08 * shift + rng.normal(0, 0.05),
+                         "ipe_vs_veridical": (0.2 if effect else -0.2) + rng.normal(0, 0.1),
+                         "cnn_vs_veridical": (0.2 if effect else -0.2) + rng.normal(0, 0.1),
+                         "cnn_lead": (0.2 if effect else 0.0) + rng.normal(0, 0.1),
+                         "fitted_depth": (1 if tl else 2) if effect else int(rng.integers(1, 3)),
+                         "best_family": "hybrid" if hybrid else "ipe",
+                         "true_switch": 4, "fitted_switch": 4 + int(rng.integers(-1, 2)) if hybrid else np.nan,
+                         **evidence})
+    return pd.DataFrame(rows)
+
+
+def test_every_finding_holds_where_it_was_built_in_and_none_where_it_was_not():
+    planted = evaluate(_people(True), permutations=2000)
+    assert all(planted[f.name]["holds"] for f in FINDINGS), {k: v["statistic"] for k, v in planted.items()}
+    null = evaluate(_people(False, seed=1), permutations=2000)
+    assert not any(null[f.name]["holds"] for f in FINDINGS if f.name != "stable")
+    assert null["stable"]["holds"]  # the absence of a difference is found
+    assert planted["hybrid"]["top"] == "hybrid" and null["hybrid"]["top"] != "hybrid"
+
+
+def test_power_redraws_studies_of_the_given_size_from_the_participants():
+    people = _people(True, n=30)
+    drawn = resample(people, {"time_limited": 5, "unconstrained": 7}, np.random.default_rng(0))
+    assert drawn["condition"].value_counts().to_dict() == {"time_limited": 5, "unconstrained": 7}
+    assert drawn["participant"].is_unique
+    strong = power(people, {"time_limited": 30, "unconstrained": 30}, 10, 0)
+    assert strong["overhang"] == 1.0 and strong["hybrid"] == 1.0
+    weak = power(people, {"time_limited": 2, "unconstrained": 2}, 10, 0)
+    assert weak["overhang"] < strong["overhang"]
+
+
+@pytest.mark.parametrize("study", ["dual_transition", "null"])
+def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
+    out = tmp_path / study
+    args = [sys.executable, "-m", "overhang_framework.study", study, "--out", str(out), "--scale", "0.05",
+            "--tasks", "2", "--depths", "1", "--resamples", "5", "--replicas", "2", "--no-progress",
+            "--world", "world.physics=static", "--fit", "models.ipe.sigma=[0.03]", "--fit", "models.ipe.K=10",
+            "--fit", "+models.hybrid.early_params={K: 10}"]
+    args += ["--participants", "+predictor.early_params.K=10"] if study == "dual_transition" else \
+        ["--participants", "predictor.K=10"]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    findings = pd.read_csv(out / "findings.csv")
+    assert list(findings["finding"]) == [f.name for f in FINDINGS]
+    people = pd.read_csv(out / "participants.csv")
+    assert len(people) == 4 and set(people["condition"]) == {"time_limited", "unconstrained"}
+    truth = pd.read_csv(out / "sim" / "participants.csv")
+    assert ("switch" in truth.columns) == (study == "dual_transition")
+    text = (out / "study.md").read_text()
+    assert ("(planted)" in text) == (study == "dual_transition") and "**Found:**" in text
+    assert ("**Power**" if study == "dual_transition" else "**False-positive rate**") in text
+    assert (out / "fit" / "check" / "check.md").exists() and (out / "analysis" / "report.md").exists()
+    # run again: every step is current, nothing is computed twice
+    again = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    assert again.returncode == 0 and "fitting the models" not in again.stderr, again.stderr[-2000:]
+
+
+def test_an_unknown_study_or_a_bad_size_is_refused_in_one_line(tmp_path):
+    for extra, message in ((["nope"], "unknown study 'nope'; studies: dual_transition, null"),
+                           (["null", "--scale", "0"], "--scale must be a number > 0"),
+                           (["null", "--participants", "cohort.nope=1"], "--participants: ")):
+        proc = subprocess.run([sys.executable, "-m", "overhang_framework.study", *extra, "--out", str(tmp_path)],
+                              capture_output=True, text=True)
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and message in proc.stderr, proc.stderr
