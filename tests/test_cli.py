@@ -232,7 +232,7 @@ def test_a_typo_is_one_line_as_typed_from_the_repository_root():
     assert proc.stderr.count("\n") == 1
 
 
-TOP_FIT = "cache, depths, jobs, logs, models, out, pooled, progress, shard, shards, states, truth, value, world"
+TOP_FIT = "cache, cv, depths, jobs, logs, models, out, pooled, progress, shard, shards, states, truth, value, world"
 
 
 @pytest.mark.parametrize("command, args, expected", [

@@ -183,11 +183,15 @@ def test_every_cohort_composes_and_checks():
     from overhang_framework.config import group_options
     from overhang_framework.participants import CONFIG_NAME, check_config
 
+    from overhang_framework.study import STUDIES
+
     cohorts = group_options("cohort")
-    assert {"small", "paper"} <= set(cohorts)
+    assert {"small", "paper", "dual_transition", "null_effect"} <= set(cohorts)
+    models = {cohort: words for cohort, words, _ in STUDIES.values()}  # the studies' cohorts name their predictor
     sizes = {}
     for name in cohorts:
-        cfg = compose_config([f"cohort={name}", "world.physics=static"], config_name=CONFIG_NAME)
+        cfg = compose_config([f"cohort={name}", "world.physics=static", *models.get(name, [])],
+                             config_name=CONFIG_NAME)
         checked = check_config(cfg)
         assert checked.cohort.name == name
         sizes[name] = {c.name: c.n for c in checked.cohort.conditions}
