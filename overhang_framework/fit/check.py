@@ -30,7 +30,8 @@ statistics but not in the agreement ones (they have no grid action).
 
 Writes ``FITDIR/check/`` (or ``--out``): ``check.md`` (what was found, in sentences, then the tables),
 ``participants.csv`` (participant x statistic: observed, the replicas' median and interval, flagged),
-``conditions.csv``, ``check.png`` (observed against simulated with intervals, flagged in red) and
+``conditions.csv``, ``check.png`` (observed against simulated with intervals, for each participant and each
+condition's mean, flagged in red) and
 ``parts/`` (each participant's replicas, written as they finish: a stopped check continues where it
 was). Score tables come from and go to the fit's score cache (``--cache``), so the states the fit has
 already scored cost nothing.
@@ -409,7 +410,7 @@ def findings(people: pd.DataFrame, conditions: pd.DataFrame, replicas: int, whic
     return out
 
 
-def figure(people: pd.DataFrame, out: Path) -> None:
+def figure(people: pd.DataFrame, conditions: pd.DataFrame, out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -429,6 +430,14 @@ def figure(people: pd.DataFrame, out: Path) -> None:
                             xerr=[s["simulated"] - s["low"], s["high"] - s["simulated"]], fmt="o", ms=3.5,
                             color=colour, ecolor=colour, alpha=0.75, elinewidth=0.8,
                             label="outside the interval" if flagged else "within")
+        c = conditions[(conditions["statistic"] == name) & conditions["observed"].notna()
+                       & conditions["simulated"].notna()]
+        for r in c.itertuples():
+            colour = "#c0392b" if r.flagged else "#222222"
+            ax.errorbar([r.simulated], [r.observed], xerr=[[r.simulated - r.low], [r.high - r.simulated]], fmt="D",
+                        ms=6, color=colour, ecolor=colour, elinewidth=1.4, zorder=5)
+            ax.annotate(str(r.condition), (r.simulated, r.observed), textcoords="offset points", xytext=(5, 5),
+                        fontsize=7, color=colour)
         if len(t):
             lo = float(np.nanmin(t[["low", "observed"]].to_numpy()))
             hi = float(np.nanmax(t[["high", "observed"]].to_numpy()))
@@ -440,10 +449,14 @@ def figure(people: pd.DataFrame, out: Path) -> None:
         ax.tick_params(labelsize=7)
     for ax in axes.ravel()[len(STATISTICS):]:
         ax.axis("off")
-    handles, labels = axes.ravel()[0].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="lower right", fontsize=8, frameon=False)
-    fig.suptitle("Posterior predictive check: each participant against replicas of their fitted model", fontsize=10)
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], marker="o", ls="", color="#2f6db5", label="participant, within its interval"),
+               Line2D([], [], marker="o", ls="", color="#c0392b", label="outside its interval (flagged)"),
+               Line2D([], [], marker="D", ls="", color="#222222", label="condition mean")]
+    fig.legend(handles=handles, loc="lower right", fontsize=8, frameon=False, bbox_to_anchor=(0.98, 0.12))
+    fig.suptitle("Posterior predictive check: each participant (dots) and each condition's mean (diamonds) against "
+                 "replicas of the fitted models", fontsize=10)
     fig.tight_layout()
     save_figure(fig, out / "check.png")
 
@@ -459,7 +472,7 @@ def report(parts: Sequence[Mapping[str, Any]], out: Path, replicas: int, which: 
     conditions = condition_table(parts)
     atomic_write_text(out / "participants.csv", people.to_csv(index=False))
     atomic_write_text(out / "conditions.csv", conditions.to_csv(index=False))
-    figure(people, out)
+    figure(people, conditions, out)
     fmt = {name: f for name, _, f in STATISTICS}
     lines = ["# Posterior predictive check", "",
              f"{len(parts)} participants, {which}, {replicas} replicas each ({seconds:.0f} s).", ""]
