@@ -35,13 +35,19 @@ The findings (:data:`FINDINGS`), each a test across participants at ``alpha = .0
 8. ``switch``: the fitted switch point near the planted one: among participants whose best model is a
    hybrid, the mean absolute difference at most one stage (planted study only).
 
-**Power and false positives.** Each participant's simulation, analysis and fit are their own, so a study
-of the same size can be redrawn by resampling participants: ``--resamples`` studies of the cohort's size,
-each drawing its participants of each condition with replacement from those simulated (``--pool``
-simulates that many times more participants, so the draws come from a larger cohort). The share of
-redrawn studies in which a finding holds is its power (planted) or its false-positive rate (null). Where
-the planted power is below 0.8, larger studies are redrawn the same way (1.5 to 8 times the size) and the
-smallest that reaches 0.8 is reported, with the effect's size.
+A directional finding holds when its two-sided p is below ``alpha`` and the difference goes the paper's way,
+so a null study shows it by chance at most ``alpha / 2`` of the time.
+
+The study proper is the cohort's size (``--scale`` times the paper's 43 + 38): the first participants of
+each condition. **Power and false positives.** Each participant's simulation, analysis and fit are their
+own, so a study of the same size can be redrawn by resampling participants. ``--pool 2`` (the default)
+simulates twice as many participants, and ``--resamples`` studies of the cohort's size are drawn from them
+without replacement. The share of redrawn studies in which a finding holds is its power (planted) or its
+false-positive rate (null). With ``--pool 1`` the draws are with replacement from the study's own
+participants: a bootstrap, which gives the rate of the effect this sample happens to show (optimistic), and
+the report says so. Where the planted power is below 0.8, larger studies are redrawn (1.5 to 8 times the
+size; with replacement once they outgrow the pool, so optimistic) and the smallest that reaches 0.8 is
+reported.
 """
 
 from __future__ import annotations
@@ -217,13 +223,21 @@ def evaluate(df: pd.DataFrame, permutations: int = 10_000, seed: int = 0) -> dic
     return out
 
 
+def replaced(df: pd.DataFrame, sizes: dict[str, int]) -> bool:
+    """Whether a study of ``sizes`` must draw ``df``'s participants with replacement (a condition has too few)."""
+    return any(n > int((df["condition"] == c).sum()) for c, n in sizes.items())
+
+
 def resample(df: pd.DataFrame, sizes: dict[str, int], rng: np.random.Generator) -> pd.DataFrame:
-    """A study of ``sizes`` participants per condition, drawn with replacement from ``df``'s."""
+    """A study of ``sizes`` participants per condition drawn from ``df``'s: without replacement when every
+    condition has enough of them, else with replacement (:func:`replaced`)."""
     parts = []
+    replace = replaced(df, sizes)
     for condition, n in sizes.items():
         pool = df[df["condition"] == condition]
         if len(pool) and n:
-            parts.append(pool.iloc[rng.integers(len(pool), size=n)])
+            rows = rng.integers(len(pool), size=n) if replace else rng.choice(len(pool), size=n, replace=False)
+            parts.append(pool.iloc[rows])
     out = pd.concat(parts, ignore_index=True)
     out["participant"] = [f"r{i}" for i in range(len(out))]
     return out
@@ -282,7 +296,7 @@ def _compose(words: Sequence[str], config_name: str, what: str):
         raise ConfigError(f"{what}: {first}") from None
 
 
-def run(study: str, out: Path, scale: float = 1.0, pool: float = 1.0, n_tasks: Optional[int] = None,
+def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: Optional[int] = None,
         jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 200, replicas: int = 39, seed: int = 0,
         world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
         progress: bool = True, say: Callable[[str], None] = lambda s: None) -> dict:
@@ -359,6 +373,12 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 1.0, n_tasks: O
 
         digest = _digest(out / "fit" / "fits.csv", extra={"replicas": replicas, "seed": seed})
         if not steps.current("check", digest):
+            import shutil
+
+            made = out / "fit" / "check" / "check.json"
+            if made.exists() and json.loads(made.read_text()).get("fits") != \
+                    hashlib.sha256((out / "fit" / "fits.csv").read_bytes()).hexdigest():
+                shutil.rmtree(out / "fit" / "check")  # a check of earlier fits: started afresh
             t0 = time.perf_counter()
             say(f"checking the fits ({replicas} replicas per participant)")
             check.run(out / "fit", out / "fit" / "check", replicas, None, str(out / "scores.sqlite"), jobs, seed,
@@ -369,14 +389,17 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 1.0, n_tasks: O
     t0 = time.perf_counter()
     df = participant_table(out)
     atomic_write_text(out / "participants.csv", df.to_csv(index=False))
-    people = df[df["condition"].isin(sizes)]
+    pool_people = df[df["condition"].isin(sizes)]
+    # the study proper: the first participants of each condition; the rest of the pool only for redrawing
+    people = pd.concat([pool_people[pool_people["condition"] == c].sort_values("participant").head(n)
+                        for c, n in sizes.items()], ignore_index=True)
     found = evaluate(people, seed=seed)
     from overhang_framework.progress import progress_bar
 
     rows = []
     bar = progress_bar(total=resamples, desc="power", unit="study", disable=not progress or not resamples,
                        miniters=1, mininterval=0.5)
-    rates = power(people, sizes, resamples, seed, lambda: bar.update(1)) if resamples else {}
+    rates = power(pool_people, sizes, resamples, seed, lambda: bar.update(1)) if resamples else {}
     bar.close()
     larger: dict[str, Optional[float]] = {}
     if planted and resamples:
@@ -389,7 +412,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 1.0, n_tasks: O
             if not todo:
                 break
             bigger = {k: int(round(n * multiple)) for k, n in sizes.items()}
-            r = power(people, bigger, max(50, resamples // 2), seed + int(multiple * 100))
+            r = power(pool_people, bigger, max(50, resamples // 2), seed + int(multiple * 100))
             for name in todo:
                 if r[name] >= TARGET_POWER:
                     larger[name] = multiple
@@ -406,7 +429,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 1.0, n_tasks: O
                       .to_csv(index=False))
     steps.finish("findings", "", time.perf_counter() - t0)
     text = report(study, table, steps, sizes, simulated, n_tasks, resamples, planted, depths,
-                  time.perf_counter() - started)
+                  time.perf_counter() - started, replaced(pool_people, sizes))
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": table, "report": text}
 
@@ -421,7 +444,8 @@ def _size(multiple: Any, sizes: dict[str, int]) -> str:
 
 
 def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int], simulated: dict[str, int],
-           n_tasks: Optional[int], resamples: int, planted: bool, depths: Sequence[int], seconds: float) -> str:
+           n_tasks: Optional[int], resamples: int, planted: bool, depths: Sequence[int], seconds: float,
+           bootstrap: bool = False) -> str:
     from overhang_framework.behaviour.analysis import fmt_p, markdown_table
 
     n = sum(sizes.values())
@@ -442,14 +466,18 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
         word = "power" if planted else "false-positive rate"
         rates = "; ".join(f"{r.finding} {r.rate:.0%}" for r in shown.itertuples() if r.rate is not None
                           and r.finding != "stable")
+        how = ("with replacement from the study's own participants: a bootstrap, which gives the rate of the "
+               "effect this sample happens to show, an optimistic estimate; --pool 2 or more draws them without "
+               "replacement from a larger cohort" if bootstrap else "without replacement")
         lines.append(f"- **{word.capitalize()}** ({resamples} studies of {n} redrawn from the {sum(simulated.values())} "
-                     f"simulated participants): {rates}.")
+                     f"simulated participants, {how}): {rates}.")
         if planted:
             low = shown[(shown["rate"] < TARGET_POWER) & (shown["finding"] != "stable")]
             if len(low):
                 lines.append("- **Below 0.8:** " + "; ".join(
                     f"{r.finding} ({r.rate:.0%} at {n}; {r.size_for_power or 'not redrawn'} participants reach 0.8)"
-                    for r in low.itertuples()) + ".")
+                    for r in low.itertuples()) + ". Studies larger than the simulated cohort are drawn with "
+                    "replacement, so those sizes are optimistic.")
     lines += ["", "## Findings", ""]
     body = []
     for r in table.itertuples():
@@ -473,7 +501,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("study", help=f"one of: {', '.join(STUDIES)}")
     ap.add_argument("--out", required=True, help="the study's directory")
     ap.add_argument("--scale", type=float, default=1.0, help="participants per condition, share of the paper's 43 + 38")
-    ap.add_argument("--pool", type=float, default=1.0, help="simulate this many times more participants to redraw from")
+    ap.add_argument("--pool", type=float, default=2.0,
+                    help="simulate this many times the study's participants, to redraw studies from (default 2)")
     ap.add_argument("--tasks", type=int, default=None, help="tasks per participant (default: all 20)")
     ap.add_argument("--depths", default="1,2", help="fitted depths (default 1,2)")
     ap.add_argument("--jobs", type=int, default=1)

@@ -56,8 +56,9 @@ def test_a_cross_validated_fit_scores_every_fold_with_parameters_fitted_on_the_o
 
     cache = tmp_path / "scores.sqlite"
     proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(small_log), "--out", str(tmp_path / "fit"),
-                           "world.physics=static", "~models.cnn", "~models.hybrid", "~models.ipe",
-                           "+models.veridical={predictor: veridical}", "depths=[1,2]", "cv=2", f"cache={cache}",
+                           "world.physics=static", "~models.cnn", "~models.hybrid", "models.ipe.K=10",
+                           "models.ipe.sigma=[0.02,0.08]", "+models.veridical={predictor: veridical}",
+                           "depths=[1,2]", "cv=2", f"cache={cache}",
                            "progress=false"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     fits = pd.read_csv(tmp_path / "fit" / "fits.csv")
@@ -92,6 +93,21 @@ def test_a_cross_validated_fit_scores_every_fold_with_parameters_fitted_on_the_o
         total += log_likelihood(_subset(every, test), fit.beta, fit.lapse)
     assert tables.stats.computed == 0  # the fit's own tables, from its cache
     assert row["heldout_loglik"] == pytest.approx(total)
+    # a sigma grid: each fold picks its own grid point on the other fold
+    ipe = fits[(fits["participant"] == pid) & (fits["model"] == "ipe/myopic")].iloc[0]
+    base = OmegaConf.to_container(compose_config(["predictor=ipe"]).predictor, resolve=True)
+    grid = [ScoreTables(world, value, registry.create("predictor", {**base, "K": 10, "sigma": s}, world=world),
+                        Model({**base, "K": 10, "sigma": s}, 1, "ipe"), context, ScoreCache(cache))
+            for s in (0.02, 0.08)]
+    decisions = [_decisions(t, mapped) for t in grid]
+    total = 0.0
+    for k in range(2):
+        train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
+        fits_k = [fit_softmax(_subset(d, train)) for d in decisions]
+        best = int(np.argmax([f.loglik for f in fits_k]))
+        total += log_likelihood(_subset(decisions[best], test), fits_k[best].beta, fits_k[best].lapse)
+    assert sum(t.stats.computed for t in grid) == 0 and ipe["k"] == 3
+    assert ipe["heldout_loglik"] == pytest.approx(total)
 
 
 def test_cv_must_be_0_or_at_least_2_folds(tmp_path, small_log):
@@ -99,3 +115,23 @@ def test_cv_must_be_0_or_at_least_2_folds(tmp_path, small_log):
                            "cv=1"], capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1
     assert "cv must be 0 (no cross-validation) or a number of folds >= 2, got 1" in proc.stderr
+
+
+def test_a_participant_whose_placements_all_fall_in_one_fold_has_no_held_out_score():
+    from overhang_framework.fit.fitting import Mapped, heldout_loglik
+    from overhang_framework.fit.scores import Model, ScoreTables
+    from overhang_framework.geometry import Block, Geometry
+    from overhang_framework.interfaces import State
+    from overhang_framework.plugins import Registry
+
+    registry = Registry()
+    world = registry.create("world", {"name": "overhang", "physics": "static"})
+    value = registry.create("value", {"name": "overhang"}, world=world)
+    model = Model({"name": "veridical"}, 1)
+    tables = ScoreTables(world, value, registry.create("predictor", {"name": "veridical"}, world=world), model,
+                         {"world": {}, "value": {}})
+    state = State(Geometry((Block(1.2, 0.0, 0),)), (0.6, 1.2))
+    one_trial = Mapped([state, state], [0, 1], 0, [("p", 1), ("p", 1)])
+    assert np.isnan(heldout_loglik([tables], one_trial, 2))
+    two_trials = Mapped([state, state], [0, 1], 0, [("p", 1), ("p", 2)])
+    assert np.isfinite(heldout_loglik([tables], two_trials, 2))

@@ -87,6 +87,15 @@ def test_a_stopped_check_continues_from_its_parts_and_other_settings_are_refused
     assert (out / "participants.csv").read_text() == before  # the same replicas: seeded per participant
     proc = _check(fitted, "--replicas", "5", "--out", str(out))
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "other settings" in proc.stderr
+    # a refitted directory: the parts of the earlier fits are not reused
+    fits = fitted / "fit" / "fits.csv"
+    text = fits.read_text()
+    try:
+        fits.write_text(text.replace("veridical/myopic", "veridical/myopic", 1) + "\n")
+        proc = _check(fitted, "--replicas", "3", "--out", str(out))
+        assert proc.returncode == 2 and "holds a check of an earlier fits.csv" in proc.stderr, proc.stderr
+    finally:
+        fits.write_text(text)
 
 
 @pytest.mark.parametrize("args, message", [

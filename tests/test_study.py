@@ -47,10 +47,17 @@ def test_every_finding_holds_where_it_was_built_in_and_none_where_it_was_not():
 
 
 def test_power_redraws_studies_of_the_given_size_from_the_participants():
+    from overhang_framework.study import replaced
+
     people = _people(True, n=30)
+    people["who"] = people["participant"]
     drawn = resample(people, {"time_limited": 5, "unconstrained": 7}, np.random.default_rng(0))
     assert drawn["condition"].value_counts().to_dict() == {"time_limited": 5, "unconstrained": 7}
-    assert drawn["participant"].is_unique
+    assert drawn["participant"].is_unique and drawn["who"].is_unique  # without replacement from a larger pool
+    assert not replaced(people, {"time_limited": 30, "unconstrained": 30})
+    assert replaced(people, {"time_limited": 31, "unconstrained": 30})
+    bigger = resample(people, {"time_limited": 60, "unconstrained": 60}, np.random.default_rng(0))
+    assert len(bigger) == 120 and not bigger["who"].is_unique
     strong = power(people, {"time_limited": 30, "unconstrained": 30}, 10, 0)
     assert strong["overhang"] == 1.0 and strong["hybrid"] == 1.0
     weak = power(people, {"time_limited": 2, "unconstrained": 2}, 10, 0)
@@ -70,8 +77,9 @@ def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
     assert proc.returncode == 0, proc.stderr[-3000:]
     findings = pd.read_csv(out / "findings.csv")
     assert list(findings["finding"]) == [f.name for f in FINDINGS]
-    people = pd.read_csv(out / "participants.csv")
-    assert len(people) == 4 and set(people["condition"]) == {"time_limited", "unconstrained"}
+    people = pd.read_csv(out / "participants.csv")  # the study's 2 + 2 and as many more to redraw from
+    assert len(people) == 8 and set(people["condition"]) == {"time_limited", "unconstrained"}
+    assert "(2 time_limited, 2 unconstrained)" in (out / "study.md").read_text()
     truth = pd.read_csv(out / "sim" / "participants.csv")
     assert ("switch" in truth.columns) == (study == "dual_transition")
     text = (out / "study.md").read_text()

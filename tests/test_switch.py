@@ -98,6 +98,15 @@ def test_remembered_answers_are_the_simulated_ones_and_leave_the_generator_where
     # other draws are other questions
     remembering.predict(STATES[1], world.legal_actions(STATES[1]), node_rng(8, ("x",)))
     assert remembering.stats()["remembered"] == len(STATES)
+    # one generator asked twice in one batch: the second question is asked with the draws the first left
+    requests = [(STATES[2], world.legal_actions(STATES[2]))] * 2
+    for _ in range(2):
+        shared, alone = node_rng(9, ("y",)), node_rng(9, ("y",))
+        got = remembering.predict_many(requests, [shared, shared])
+        want = plain.predict_many(requests, [alone, alone])
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+        assert shared.random() == alone.random()
     with pytest.raises(ValueError, match="whole number >= 0"):
         remembering.remember(-1)
 
@@ -133,7 +142,7 @@ def test_fit_index_reports_the_switch_point_and_counts_it_as_a_parameter(world, 
         action = world.legal_actions(state)[int(np.argmax(verdicts))]
         placements.append(Placement("p", "c", state, action.x, action.layer))
     fit = fit_index("p", "c", variants, map_placements(world, placements))
-    assert fit.k == 3 and fit.switch in (2, 5) and fit.row()["switch"] == fit.switch
+    assert fit.k == 3 and fit.switch == 2 and fit.row()["switch"] == 2
     single = fit_index("p", "c", variants[:1], map_placements(world, placements))
     assert single.k == 2 and single.switch == 2
 
@@ -177,17 +186,20 @@ def test_the_switch_point_of_simulated_hybrid_participants_is_recovered_within_o
 def test_a_cohort_draws_whole_switch_points_only_and_writes_them_only_when_drawn():
     from overhang_framework.behaviour.participants import cohort_from_config, draw_participants, participants_csv
 
-    base = {"name": "c", "participants": {"un": 3}, "parameters": {"lapse": {"dist": "fixed", "value": 0.0}},
+    base = {"name": "c", "participants": {"un": 3}, "parameters": {"lapse": {"dist": "beta", "a": 1.0, "b": 30.0},
+                                                                   "beta": {"dist": "lognormal", "median": 10.0,
+                                                                            "sigma": 0.5}},
             "decision_time": {"t0": 2.0, "per_call": 0.07, "noise": 0.3}, "motor": {"sd": 0.02, "retries": 5}}
     conditions = {"un": {}}
     plain = draw_participants(cohort_from_config(base, conditions), 0)
     assert participants_csv(plain).splitlines()[0] == "id,index,condition,sigma,depth,beta,lapse"
+    assert len({p.lapse for p in plain}) == 3  # drawn, so a draw before them would change them
     drawn = {**base, "parameters": {**base["parameters"], "switch": {"dist": "categorical", "values": [2, 6],
                                                                      "p": [0.5, 0.5]}}}
     people = draw_participants(cohort_from_config(drawn, conditions), 0)
     assert {p.switch for p in people} <= {2, 6} and participants_csv(people).splitlines()[0].endswith(",switch")
     # drawing the switch point leaves every other draw as it was
-    assert [(p.lapse, p.depth) for p in people] == [(p.lapse, p.depth) for p in plain]
+    assert [(p.lapse, p.beta) for p in people] == [(p.lapse, p.beta) for p in plain]
     bad = {**base, "parameters": {"switch": {"dist": "uniform", "low": 2, "high": 6}}}
     with pytest.raises(ConfigError, match="switch must give whole numbers"):
         cohort_from_config(bad, conditions)

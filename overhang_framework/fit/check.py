@@ -82,7 +82,7 @@ def interval(values: Sequence[float]) -> tuple[float, float]:
     x = np.sort(np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=float))
     if not x.size:
         return float("nan"), float("nan")
-    k = min(interval_rank(len(values)), x.size)
+    k = interval_rank(x.size)
     return float(x[k - 1]), float(x[x.size - k])
 
 
@@ -199,8 +199,8 @@ def fitted_models(spec: Mapping[str, Any], fits: pd.DataFrame, model: Optional[s
                  if _same(c.get("sigma") if "sigma" in c else None, r.sigma if "sigma" in c else None)
                  and ("switch" not in c or pd.isna(switch) or int(c["switch"]) == int(switch))]
         if not found:
-            raise CheckError(f"fits.csv's {r.model} of {r.participant} (sigma {r.sigma}) is not among the models "
-                             "of fit.json; the directory mixes two fits")
+            raise CheckError(f"fits.csv's {r.model} of {r.participant} (sigma {r.sigma}, switch {switch}) is not among "
+                             "the models of fit.json; the directory mixes two fits")
         out.append(Fitted(str(r.participant), str(r.condition), str(r.model),
                           Model(found[0], int(r.depth), str(r.family)), float(r.beta), float(r.lapse), index))
     return out
@@ -370,7 +370,7 @@ def findings(people: pd.DataFrame, conditions: pd.DataFrame, replicas: int, whic
     """What the check found, one bullet per finding."""
     k = interval_rank(replicas)
     expected = 2 * k / (replicas + 1)
-    checked = people[people["replicas"] > 0]
+    checked = people[(people["replicas"] > 0) & people["observed"].notna()]
     flagged = checked[checked["flagged"]]
     n = len(checked)
     share = len(flagged) / n if n else float("nan")
@@ -465,7 +465,8 @@ def _cell(value: float, fmt: str) -> str:
     return "–" if value is None or not np.isfinite(value) else format(value, fmt)
 
 
-def report(parts: Sequence[Mapping[str, Any]], out: Path, replicas: int, which: str, seconds: float) -> str:
+def report(parts: Sequence[Mapping[str, Any]], out: Path, replicas: int, which: str, seconds: float,
+           skipped: Sequence[str] = ()) -> str:
     from overhang_framework.behaviour.analysis import markdown_table
 
     people = participant_table(parts)
@@ -477,6 +478,9 @@ def report(parts: Sequence[Mapping[str, Any]], out: Path, replicas: int, which: 
     lines = ["# Posterior predictive check", "",
              f"{len(parts)} participants, {which}, {replicas} replicas each ({seconds:.0f} s).", ""]
     lines += findings(people, conditions, replicas, which)
+    if skipped:
+        lines.append(f"- **Left out:** {', '.join(skipped)}: every trial ended on a timeout, and the model has no "
+                     "decision time to replay that.")
     lines += ["", "## Conditions", "",
               "The mean over each condition's participants, observed, and the median and 95% interval of the same "
               "mean over the replicas. ✗: outside the interval.", ""]
@@ -537,16 +541,32 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
     except OSError as err:
         raise CheckError(f"the fit's log cannot be read: {err}") from None
     which = f"the {model} model" if model else "each participant's best model (BIC)"
-    settings = {"fit": str(fitdir.resolve()), "replicas": replicas, "model": model, "seed": seed}
+    import hashlib
+
+    fitted_digest = hashlib.sha256((fitdir / "fits.csv").read_bytes()).hexdigest()
+    settings = {"fit": str(fitdir.resolve()), "fits": fitted_digest, "replicas": replicas, "model": model,
+                "seed": seed}
     (out / PARTS).mkdir(parents=True, exist_ok=True)
     settings_path = out / "check.json"
     if settings_path.exists():
         previous = json.loads(settings_path.read_text())
+        if previous.get("fits") != settings["fits"] and {k: v for k, v in previous.items() if k != "fits"} == \
+                {k: v for k, v in settings.items() if k != "fits"}:
+            raise CheckError(f"{out} holds a check of an earlier fits.csv; remove {out} (or use another --out) to "
+                             "check these fits")
         if previous != settings:
-            raise CheckError(f"{out} holds a check with other settings ({previous}); use another --out or remove it")
+            shown = {k: v for k, v in previous.items() if k != "fits"}
+            raise CheckError(f"{out} holds a check with other settings ({shown}); use another --out or remove it")
     else:
         atomic_write_json(settings_path, settings)
-    parts, items = {}, []
+    parts, items, skipped = {}, [], []
+    for fitted in list(chosen):
+        mine = df[df["participant"].astype(str) == fitted.participant]
+        if mine["timed_out"].astype(bool).groupby(mine["trial"]).any().all():
+            skipped.append(fitted.participant)  # nothing the model could replay
+            chosen.remove(fitted)
+    if not chosen:
+        raise CheckError(f"every trial of every participant of {fitdir} ended on a timeout: nothing to replay")
     for fitted in chosen:
         path = _part_path(out, fitted.participant)
         if path.exists():
@@ -576,7 +596,7 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
     finally:
         bar.close()
     ordered = [parts[f.participant] for f in chosen]
-    text = report(ordered, out, replicas, which, time.perf_counter() - started)
+    text = report(ordered, out, replicas, which, time.perf_counter() - started, skipped)
     return {"out": str(out), "participants": len(ordered), "computed": len(items),
             "seconds": time.perf_counter() - started, "report": text}
 

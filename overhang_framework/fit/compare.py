@@ -149,8 +149,10 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     result = bms(-bic.to_numpy() / 2, seed=seed) if len(models) > 1 else None
     held = heldout_winners(fits)
     if held is not None:
-        held_ll = df.pivot_table(index="participant", columns="model", values="heldout_loglik").reindex(
-            index=pids, columns=models).sum()
+        # summed over the participants every model has a held-out score for
+        scored = df.pivot_table(index="participant", columns="model", values="heldout_loglik").reindex(
+            index=pids, columns=models)
+        held_ll = scored.dropna().sum()
         held_counts = held["model"].value_counts().reindex(models, fill_value=0)
     for j, m in enumerate(models):
         row = {"model": m, "summed_bic": float(summed[m]), "delta_summed_bic": float(summed[m] - summed.min()),
@@ -210,9 +212,11 @@ def heldout_winners(fits: pd.DataFrame) -> Optional[pd.DataFrame]:
     """Each participant's best model by held-out log-likelihood (its row of fits.csv); None without one."""
     if "heldout_loglik" not in fits.columns:
         return None
-    df = per_participant(fits).dropna(subset=["heldout_loglik"])
-    if not len(df):
+    df = per_participant(fits)
+    if not df["heldout_loglik"].notna().any():
         return None
+    complete = df.groupby("participant")["heldout_loglik"].transform(lambda s: bool(s.notna().all()))
+    df = df[complete.astype(bool)]
     return df.loc[df.groupby("participant")["heldout_loglik"].idxmax()].reset_index(drop=True)
 
 

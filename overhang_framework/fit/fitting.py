@@ -206,15 +206,19 @@ def _best(variants: Sequence[ScoreTables], decisions: Sequence[Decisions]) -> tu
 
 def heldout_loglik(variants: Sequence[ScoreTables], mapped: Mapped, folds: int, seed: int = 0) -> float:
     """The log-likelihood of each fold's placements under the model index fitted (grid point, ``beta``,
-    ``lapse``) to the other folds, summed over the folds. A fold without placements adds nothing, nor does one
-    that holds every placement (nothing is left to fit on)."""
+    ``lapse``) to the other folds, summed over the folds. NaN when some placement cannot be scored so (all of
+    them in one fold: a participant with one trial), or when there is none."""
     fold = fold_of(mapped.trials, folds, seed)
     every = [_decisions(t, mapped) for t in variants]
+    if not fold.size:
+        return float("nan")
     total = 0.0
     for k in range(folds):
         test, train = np.flatnonzero(fold == k), np.flatnonzero(fold != k)
-        if not test.size or not train.size:
+        if not test.size:
             continue
+        if not train.size:
+            return float("nan")
         fit, which = _best(variants, [_subset(d, train) for d in every])
         total += log_likelihood(_subset(every[which], test), fit.beta, fit.lapse)
     return total

@@ -109,13 +109,14 @@ class Predictors:
 
     Models that differ only in depth share one predictor; a hybrid whose early or late part has the
     settings of a predictor of the space (or of another hybrid's part) is given that predictor as its part.
-    Every predictor that can remember its answers does (the CNN by tower, the IPE by tower and draws), so
-    the hybrids of every switch point, and a hybrid and the model of its part's settings where their draws
-    agree (the CNN's always do), ask once: the same numbers, computed once.
+    A hybrid's parts remember their answers (the CNN by tower, always; the IPE by tower, actions and draws,
+    turned on here), so the hybrids of every switch point, and a hybrid and the model of its part's
+    settings where their draws agree (the CNN's always do), ask once: the same numbers, computed once.
     """
 
-    #: Answers each predictor remembers (see :meth:`IPEPredictor.remember`).
-    MEMORY = 100_000
+    #: Answers a hybrid's IPE part remembers (see :meth:`IPEPredictor.remember`): the switch points' tables
+    #: of a worker's item of states ask each question within a few hundred calls of each other.
+    MEMORY = 10_000
 
     def __init__(self, registry, world):
         self.registry, self.world = registry, world
@@ -130,7 +131,6 @@ class Predictors:
         key = self.key(config)
         if key not in self.built:
             predictor = self.registry.create("predictor", dict(config), world=self.world)
-            self._remember(predictor)
             self.built[key] = predictor
             for other in list(self.built.values()):
                 self._share(other)
@@ -160,10 +160,10 @@ class Predictors:
             if key is None:
                 continue
             if key not in self.built:  # the first hybrid's part serves every later one
-                self._remember(getattr(predictor, part))
                 self.built[key] = getattr(predictor, part)
             elif getattr(predictor, part, None) is not self.built[key]:
                 setattr(predictor, part, self.built[key])
+            self._remember(self.built[key])
 
 
 def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs: int,

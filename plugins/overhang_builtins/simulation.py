@@ -432,23 +432,29 @@ class IPEPredictor(Predictor):
         if not self.memory_size:
             scenes = [self.scenes(state, actions, rng) for (state, actions), rng in zip(requests, rngs)]
             return [verdicts.mean(axis=1) for verdicts in self.run(scenes)]
+        # each request in turn, as a simulation would take them: its key is the generator's state just
+        # before its own draws, and the state after them is what a remembered answer puts back
         out: list = [None] * len(requests)
-        todo, keys = [], []
+        todo, scenes, keys, after = [], [], [], []
         for i, ((state, actions), rng) in enumerate(zip(requests, rngs)):
-            key = (state.geometry.blocks, state.remaining, tuple(actions), _rng_state(rng))
+            key = (state.geometry.blocks, state.remaining, tuple(actions),
+                   None if self.noise.zero else _rng_state(rng))
             hit = self._memory.get(key)
             if hit is not None:
                 self._memory.move_to_end(key)
-                out[i], rng.bit_generator.state = hit[0].copy(), hit[1]
+                out[i] = hit[0].copy()
+                if hit[1] is not None:
+                    rng.bit_generator.state = hit[1]
                 self.counts["remembered"] += 1
-            else:
-                todo.append(i)
-                keys.append(key)
+                continue
+            todo.append(i)
+            scenes.append(self.scenes(state, actions, rng))
+            keys.append(key)
+            after.append(None if self.noise.zero else rng.bit_generator.state)
         if todo:
-            scenes = [self.scenes(requests[i][0], requests[i][1], rngs[i]) for i in todo]
-            for i, key, verdicts in zip(todo, keys, self.run(scenes)):
+            for i, key, state_after, verdicts in zip(todo, keys, after, self.run(scenes)):
                 out[i] = verdicts.mean(axis=1)
-                self._memory[key] = (out[i].copy(), rngs[i].bit_generator.state)
+                self._memory[key] = (out[i].copy(), state_after)
             while len(self._memory) > self.memory_size:
                 self._memory.popitem(last=False)
         return out
