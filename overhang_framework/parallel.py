@@ -107,7 +107,9 @@ def _episode_play(state: tuple[dict, list], job: tuple) -> tuple[dict, dict]:
     index, repeat, seed, time_limit, call_limit = job
     record = play_run_episode(models, tasks[index], index, repeat, seed, time_limit, call_limit,
                               on_step=lambda step: tick())
-    counters = {"world": models["world"].stats(), "predictor": getattr(models["predictor"], "stats", dict)()}
+    models["episodes_played"] = models.get("episodes_played", 0) + 1
+    counters = {"world": models["world"].stats(), "predictor": getattr(models["predictor"], "stats", dict)(),
+                "episodes_played": models["episodes_played"]}
     return record, counters
 
 
@@ -120,8 +122,10 @@ def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], se
     :func:`merge_stats`)."""
     jobs = [(index, repeat, seed, time_limit, call_limit) for index, repeat in todo]
     for _, (record, latest), pid in pool_map(_episode_setup, (dict(config),), _episode_play, jobs, workers, on_step):
-        if counters is not None:
-            counters[pid] = latest
+        # a worker's counters only grow; results that finish together come in any order, so keep its latest
+        played = latest.pop("episodes_played")
+        if counters is not None and played >= counters.get(pid, {}).get("_played", 0):
+            counters[pid] = {**latest, "_played": played}
         yield record
 
 
