@@ -70,7 +70,7 @@ def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
     args = [sys.executable, "-m", "overhang_framework.study", study, "--out", str(out), "--scale", "0.05",
             "--tasks", "2", "--depths", "1", "--resamples", "5", "--replicas", "2", "--no-progress",
             "--world", "world.physics=static", "--fit", "models.ipe.sigma=[0.03]", "--fit", "models.ipe.K=10",
-            "--fit", "+models.hybrid.early_params={K: 10}"]
+            "--fit", "+models.hybrid.early_params={K: 10}", "--fit", "models.hybrid.switch=[3,5]"]
     args += ["--participants", "+predictor.early_params.K=10"] if study == "dual_transition" else \
         ["--participants", "predictor.K=10"]
     proc = subprocess.run(args, capture_output=True, text=True, timeout=900)
