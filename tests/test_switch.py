@@ -203,3 +203,15 @@ def test_a_cohort_draws_whole_switch_points_only_and_writes_them_only_when_drawn
     bad = {**base, "parameters": {"switch": {"dist": "uniform", "low": 2, "high": 6}}}
     with pytest.raises(ConfigError, match="switch must give whole numbers"):
         cohort_from_config(bad, conditions)
+
+
+def test_the_models_of_a_process_share_its_search_memory(world, value):
+    from overhang_framework.fit.scores import MEMO_NODES, share_memory
+
+    space = model_space({"hybrid": {**HYBRID, "switch": "all"}}, [1, 2], blocks=6)
+    shared = Predictors(Registry(), world)
+    tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT) for i in space for m in i.variants]
+    share_memory(tables)
+    assert len(tables) == 12 and {t.memo_limit for t in tables} == {MEMO_NODES // 12}
+    share_memory(tables, nodes=1_000)
+    assert {t.memo_limit for t in tables} == {2_000}

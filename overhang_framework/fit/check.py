@@ -280,10 +280,13 @@ def _setup(context: Mapping[str, Any], cache: Optional[str]) -> dict:
 def _tables(env: dict, model):
     from overhang_framework.fit.scores import ScoreTables
 
+    from overhang_framework.fit.scores import share_memory
+
     key = model.key(env["context"])
     if key not in env["tables"]:
         env["tables"][key] = ScoreTables(env["world"], env["value"], env["predictors"](dict(model.predictor)), model,
                                          env["context"], env["cache"])
+        share_memory(list(env["tables"].values()))
     return env["tables"][key]
 
 

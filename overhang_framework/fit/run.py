@@ -22,7 +22,7 @@ import pandas as pd
 
 from overhang_framework.errors import OverhangError
 from overhang_framework.fit.fitting import ModelFit, Placement, fit_index, log_placements, map_placements
-from overhang_framework.fit.scores import ScoreCache, ScoreTables, TableStats
+from overhang_framework.fit.scores import ScoreCache, ScoreTables, TableStats, share_memory
 from overhang_framework.interfaces import State
 from overhang_framework.search import state_key
 from overhang_framework.fit.space import ModelIndex
@@ -83,6 +83,7 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
     mapped = {u.name: map_placements(world, u.placements, states) for u in units}
     tables = [[ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
               for index in space]
+    share_memory([t for variants in tables for t in variants])
     if jobs > 1:
         fill_tables([t for variants in tables for t in variants], [s for m in mapped.values() for s in m.states],
                     jobs, on_table, on_total)
@@ -213,8 +214,10 @@ def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, fa
     world = registry.create("world", dict(context["world"]))
     value = registry.create("value", dict(context["value"]), world=world)
     built = Predictors(registry, world)
-    return [ScoreTables(world, value, built(config), Model(config, depth, family), context, None)
-            for config, depth, family in zip(predictors, depths, families)]
+    tables = [ScoreTables(world, value, built(config), Model(config, depth, family), context, None)
+              for config, depth, family in zip(predictors, depths, families)]
+    share_memory(tables)
+    return tables
 
 
 def _tables_work(tables: list, item: list) -> list[tuple[list, TableStats]]:

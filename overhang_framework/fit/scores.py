@@ -40,7 +40,7 @@ import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -184,6 +184,19 @@ class TableStats:
     cached: int = 0
     predictor_calls: int = 0
     seconds: float = 0.0
+
+
+#: Search nodes a process keeps in memory over all its models' expanders (about 12 KB a node: an IPE D = 2
+#: node with its children's states), shared out by :func:`share_memory`.
+MEMO_NODES = 200_000
+
+
+def share_memory(tables: Sequence["ScoreTables"], nodes: int = MEMO_NODES) -> None:
+    """Give the expanders of ``tables`` (one process's) an equal share of ``nodes``, at least 2,000 each: the
+    states a worker's item holds are searched close together, so a model needs its recent nodes only."""
+    each = max(2_000, nodes // max(len(tables), 1))
+    for t in tables:
+        t.memo_limit = each
 
 
 @dataclass
