@@ -21,15 +21,7 @@ from overhang_framework.plugins import Registry
 
 CONTEXT = {"world": {"name": "overhang", "physics": "static"}, "value": {"name": "overhang"}}
 
-
-@pytest.fixture(scope="module")
-def world():
-    return Registry().create("world", CONTEXT["world"])
-
-
-@pytest.fixture(scope="module")
-def value(world):
-    return Registry().create("value", CONTEXT["value"], world=world)
+from search_fixtures import value, world  # noqa: E402,F401  (shared fixtures: the static world of CONTEXT)
 
 
 def tables(world, value, predictor: dict, depth: int, cache=None) -> ScoreTables:

@@ -19,15 +19,7 @@ from overhang_framework.search import node_rng
 CONTEXT = {"world": {"name": "overhang", "physics": "static"}, "value": {"name": "overhang"}}
 HYBRID = {"predictor": "hybrid", "late": "veridical", "early_params": {"K": 10}}
 
-
-@pytest.fixture(scope="module")
-def world():
-    return Registry().create("world", CONTEXT["world"])
-
-
-@pytest.fixture(scope="module")
-def value(world):
-    return Registry().create("value", CONTEXT["value"], world=world)
+from search_fixtures import value, world  # noqa: E402,F401  (shared fixtures: the static world of CONTEXT)
 
 
 def _state(blocks, remaining) -> State:

@@ -190,12 +190,12 @@ def fold_of(trials: Sequence[tuple[str, int]], folds: int, seed: int = 0) -> np.
     return np.array([assigned[(str(p), int(t))] for p, t in trials], dtype=int)
 
 
-def _decisions(tables: ScoreTables, mapped: Mapped, rows: Optional[np.ndarray] = None) -> Decisions:
-    idx = range(len(mapped.states)) if rows is None else rows
-    return Decisions.of([tables.table(mapped.states[i]) for i in idx], [mapped.chosen[i] for i in idx])
+def _decisions(tables: ScoreTables, mapped: Mapped) -> Decisions:
+    return Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
 
 
-def _best(variants: Sequence[ScoreTables], decisions: Sequence[Decisions]) -> tuple[SoftmaxFit, int]:
+def _best(decisions: Sequence[Decisions]) -> tuple[SoftmaxFit, int]:
+    """The softmax fit of highest likelihood over the grid points' ``decisions``, and its index."""
     best, which = None, 0
     for k, d in enumerate(decisions):
         fit = fit_softmax(d)
@@ -208,8 +208,12 @@ def heldout_loglik(variants: Sequence[ScoreTables], mapped: Mapped, folds: int, 
     """The log-likelihood of each fold's placements under the model index fitted (grid point, ``beta``,
     ``lapse``) to the other folds, summed over the folds. NaN when some placement cannot be scored so (all of
     them in one fold: a participant with one trial), or when there is none."""
-    fold = fold_of(mapped.trials, folds, seed)
-    every = [_decisions(t, mapped) for t in variants]
+    return _heldout([_decisions(t, mapped) for t in variants], mapped.trials, folds, seed)
+
+
+def _heldout(every: Sequence[Decisions], trials: Sequence[tuple[str, int]], folds: int, seed: int) -> float:
+    """:func:`heldout_loglik` from each grid point's decisions of the placements of ``trials``."""
+    fold = fold_of(trials, folds, seed)
     if not fold.size:
         return float("nan")
     total = 0.0
@@ -219,7 +223,7 @@ def heldout_loglik(variants: Sequence[ScoreTables], mapped: Mapped, folds: int, 
             continue
         if not train.size:
             return float("nan")
-        fit, which = _best(variants, [_subset(d, train) for d in every])
+        fit, which = _best([_subset(d, train) for d in every])
         total += log_likelihood(_subset(every[which], test), fit.beta, fit.lapse)
     return total
 
@@ -233,10 +237,11 @@ def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables],
     """Fit one model index, whose ``variants`` are its score tables on the sigma and switch grids (one when
     neither is fitted). With ``folds >= 2`` the fit also reports its held-out log-likelihood
     (:func:`heldout_loglik`)."""
-    best, which = _best(variants, [_decisions(t, mapped) for t in variants])
+    every = [_decisions(t, mapped) for t in variants]
+    best, which = _best(every)
     model = variants[which].model
     grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch")]
-    heldout = heldout_loglik(variants, mapped, folds, seed) if folds >= 2 else None
+    heldout = _heldout(every, mapped.trials, folds, seed) if folds >= 2 else None
     return ModelFit(participant, condition, model.label, model.family, model.depth, model.sigma, best.beta,
                     best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch,
                     heldout, folds if folds >= 2 else None)

@@ -151,7 +151,7 @@ class Predictors:
         for part in ("early", "late"):
             if part not in names:
                 continue
-            asked = (str(names[part]), repr(sorted(dict(params.get(part) or {}).items())))
+            asked = (str(names[part]), self.key(dict(params.get(part) or {})))
             if asked not in self._parts:  # composing a config costs a Hydra compose: once per part's settings
                 try:
                     self._parts[asked] = self.key(_predictor_config(asked[0], dict(params.get(part) or {})))
