@@ -162,6 +162,10 @@ class World(abc.ABC):
 class Predictor(abc.ABC):
     """Estimates the probability that the tower stands after each candidate action."""
 
+    #: True when the answers never depend on ``rng`` (the same state and actions give the same numbers for any
+    #: generator): searches with different draw seeds then get the same answers, and fits share their tables.
+    deterministic: bool = False
+
     @abc.abstractmethod
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
         """Probabilities in [0, 1], one per action, from one batched call."""

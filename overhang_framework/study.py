@@ -14,9 +14,10 @@ analyse people's, fits the models, checks the fits, and reports the paper's find
 The steps, each continued where it stopped when the command is run again with the same settings:
 ``sim/`` (:mod:`overhang_framework.participants`), ``analysis/`` (Table 1, Γ, Fig. 4 of
 :mod:`overhang_framework.analyze`), ``fit/`` (:mod:`overhang_framework.fit`, the default model space with
-the hybrid's switch point fitted, score tables in ``scores.sqlite``), ``fit/check/``
-(:mod:`overhang_framework.fit.check`), then ``study.md``, ``findings.csv``, ``power.csv`` and
-``participants.csv`` (one row per participant: every quantity a finding tests).
+the hybrid's switch point fitted, score tables in ``scores.sqlite``), then ``study.md``, ``findings.csv``,
+``power.csv`` and ``participants.csv`` (one row per participant: every quantity a finding tests), and last
+``fit/check/`` (:mod:`overhang_framework.fit.check`, the study's own participants, not the pool's others),
+whose first finding ``study.md`` then adds.
 
 The findings (:data:`FINDINGS`), each a test across participants at ``alpha = .05``:
 
@@ -367,25 +368,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         fit_run(cfg)
         steps.finish("fit", digest, time.perf_counter() - t0)
 
-    # 4. the predictive check
-    if replicas:
-        from overhang_framework.fit import check
-
-        digest = _digest(out / "fit" / "fits.csv", extra={"replicas": replicas, "seed": seed})
-        if not steps.current("check", digest):
-            import shutil
-
-            made = out / "fit" / "check" / "check.json"
-            if made.exists() and json.loads(made.read_text()).get("fits") != \
-                    hashlib.sha256((out / "fit" / "fits.csv").read_bytes()).hexdigest():
-                shutil.rmtree(out / "fit" / "check")  # a check of earlier fits: started afresh
-            t0 = time.perf_counter()
-            say(f"checking the fits ({replicas} replicas per participant)")
-            check.run(out / "fit", out / "fit" / "check", replicas, None, str(out / "scores.sqlite"), jobs, seed,
-                      progress)
-            steps.finish("check", digest, time.perf_counter() - t0)
-
-    # 5. the findings, and their power by resampling participants
+    # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
     df = participant_table(out)
     atomic_write_text(out / "participants.csv", df.to_csv(index=False))
@@ -428,10 +411,43 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
                                                          "sizes": json.dumps(sizes)} for k, v in rates.items()])
                       .to_csv(index=False))
     steps.finish("findings", "", time.perf_counter() - t0)
+    atomic_write_text(out / "study.md", report(study, table, steps, sizes, simulated, n_tasks, resamples, planted,
+                                               depths, time.perf_counter() - started, replaced(pool_people, sizes)))
+
+    # 5. the predictive check of the study's own participants (the findings do not wait for it)
+    check_line = None
+    if replicas:
+        from overhang_framework.fit import check
+
+        own = sorted(people["participant"].astype(str))
+        digest = _digest(out / "fit" / "fits.csv", extra={"replicas": replicas, "seed": seed, "participants": own})
+        made = out / "fit" / "check" / "check.json"
+        if not steps.current("check", digest):
+            import shutil
+
+            if made.exists():  # a check of earlier fits or other participants: started afresh
+                previous = json.loads(made.read_text())
+                if previous.get("fits") != hashlib.sha256((out / "fit" / "fits.csv").read_bytes()).hexdigest() \
+                        or previous.get("participants") != own:
+                    shutil.rmtree(out / "fit" / "check")
+            t0 = time.perf_counter()
+            say(f"checking the fits of the study's {len(own)} participants ({replicas} replicas each)")
+            check.run(out / "fit", out / "fit" / "check", replicas, None, str(out / "scores.sqlite"), jobs, seed,
+                      progress, own)
+            steps.finish("check", digest, time.perf_counter() - t0)
+        check_line = _check_line(out / "fit" / "check" / "check.md")
     text = report(study, table, steps, sizes, simulated, n_tasks, resamples, planted, depths,
-                  time.perf_counter() - started, replaced(pool_people, sizes))
+                  time.perf_counter() - started, replaced(pool_people, sizes), check_line)
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": table, "report": text}
+
+
+def _check_line(path: Path) -> Optional[str]:
+    """The predictive check's first finding (check.md's first bullet), or None."""
+    if not path.exists():
+        return None
+    bullets = [line[2:].strip() for line in path.read_text().splitlines() if line.startswith("- ")]
+    return bullets[0] if bullets else None
 
 
 def _size(multiple: Any, sizes: dict[str, int]) -> str:
@@ -445,7 +461,7 @@ def _size(multiple: Any, sizes: dict[str, int]) -> str:
 
 def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int], simulated: dict[str, int],
            n_tasks: Optional[int], resamples: int, planted: bool, depths: Sequence[int], seconds: float,
-           bootstrap: bool = False) -> str:
+           bootstrap: bool = False, check_line: Optional[str] = None) -> str:
     from overhang_framework.behaviour.analysis import fmt_p, markdown_table
 
     n = sum(sizes.values())
@@ -478,6 +494,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
                     f"{r.finding} ({r.rate:.0%} at {n}; {r.size_for_power or 'not redrawn'} participants reach 0.8)"
                     for r in low.itertuples()) + ". Studies larger than the simulated cohort are drawn with "
                     "replacement, so those sizes are optimistic.")
+    if check_line:
+        lines.append(f"- **Predictive check** (`fit/check/check.md`, the study's own participants): {check_line}")
     lines += ["", "## Findings", ""]
     body = []
     for r in table.itertuples():

@@ -409,6 +409,9 @@ def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monk
         def known(self, s):
             return states.index(s) in known[self.k]
 
+        def owner(self, s):
+            return self
+
     tables = [Tables(k=k, context=CONTEXT, model=Model({"name": "ipe"}, 1)) for k in (0, 1)]
     seen = {}
     monkeypatch.setattr(parallel, "pool_map", lambda setup, args, work, items, jobs, tick: seen.setdefault("items", items) and [])

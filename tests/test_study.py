@@ -86,9 +86,14 @@ def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
     assert ("(planted)" in text) == (study == "dual_transition") and "**Found:**" in text
     assert ("**Power**" if study == "dual_transition" else "**False-positive rate**") in text
     assert (out / "fit" / "check" / "check.md").exists() and (out / "analysis" / "report.md").exists()
+    # the check replays the study's own participants, not the rest of the pool, and study.md says what it found
+    own = set(people.sort_values("participant").groupby("condition").head(2)["participant"].astype(str))
+    checked = pd.read_csv(out / "fit" / "check" / "participants.csv")
+    assert set(checked["participant"].astype(str)) == own and "**Predictive check**" in text
     # run again: every step is current, nothing is computed twice
     again = subprocess.run(args, capture_output=True, text=True, timeout=900)
     assert again.returncode == 0 and "fitting the models" not in again.stderr, again.stderr[-2000:]
+    assert "checking the fits" not in again.stderr
 
 
 def test_an_unknown_study_or_a_bad_size_is_refused_in_one_line(tmp_path):

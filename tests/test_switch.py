@@ -9,7 +9,7 @@ import pytest
 from overhang_framework.errors import ConfigError
 from overhang_framework.fit.fitting import fit_index, map_placements
 from overhang_framework.fit.run import Predictors
-from overhang_framework.fit.scores import Model, ScoreTables
+from overhang_framework.fit.scores import Model, ScoreTables, share_tables
 from overhang_framework.fit.space import model_space
 from overhang_framework.geometry import Block, Geometry
 from overhang_framework.interfaces import State
@@ -207,3 +207,40 @@ def test_the_models_of_a_process_share_its_search_memory(world, value):
     assert len(tables) == 12 and {t.memo_limit for t in tables} == {MEMO_NODES // 12}
     share_memory(tables, nodes=1_000)
     assert {t.memo_limit for t in tables} == {2_000}
+
+
+def test_switch_points_that_give_the_same_numbers_in_a_state_share_one_table(world, value, monkeypatch):
+    from overhang_framework import parallel
+    from overhang_framework.fit import run
+
+    space = model_space({"hybrid": {**HYBRID, "switch": "all"}, "veridical": {"predictor": "veridical"}}, [1, 2],
+                        blocks=4)
+    registry = Registry()
+    shared = Predictors(registry, world)
+    tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT) for i in space for m in i.variants]
+    share_tables(tables)
+    grid = {t.model.switch for t in tables} - {None}
+    assert grid == {2, 3, 4, 5}
+    # what the fit hands its workers: per state and depth, the veridical model's table (every tower to the late
+    # part) and one per switch point from n + 2 to n + D + 1 (of the grid); not one per switch point
+    want = sum(1 + len({n + 2 + k for k in range(d)} & grid) for s in STATES for d in (1, 2)
+               for n in [len(s.geometry)])
+    seen, totals = {}, []
+    monkeypatch.setattr(parallel, "pool_map", lambda setup, args, work, items, jobs, tick: seen.setdefault("i", items) and [])
+    run.fill_tables(tables, STATES, jobs=2, on_total=totals.append)
+    assert totals == [want] and want < len(tables) * len(STATES)
+    together = [[t.table(s) for s in STATES] for t in tables]
+    assert sum(t.stats.computed for t in tables) == want
+    for t, scores in zip(tables, together):
+        alone = ScoreTables(world, value, registry.create("predictor", dict(t.model.predictor), world=world),
+                            t.model, CONTEXT)
+        for s, got in zip(STATES, scores):
+            np.testing.assert_array_equal(got, alone.table(s))
+    # a late part whose answers use the draws is no model's table: then each stage computes its own
+    noisy = model_space({"hybrid": {"predictor": "hybrid", "late": "ipe", "late_params": {"K": 5},
+                                    "early": "veridical", "switch": "all"}}, [1], blocks=4)
+    tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT) for m in noisy[0].variants]
+    share_tables(tables)
+    for s in STATES:
+        n = len(s.geometry)
+        assert {id(t.owner(s)) for t in tables} == {id(t) for t in tables if t.model.switch in {n + 1, n + 2}}

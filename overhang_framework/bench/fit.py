@@ -15,6 +15,12 @@ It then projects the cold-cache cost of fitting the log in one process (tables x
 distinct decision states as the fit builds them by default, ``states=logged``, one
 table per sigma of a grid) from the measured seconds per table.
 
+With ``--space``, it also times the fit's default model space (``conf/fit.yaml``: the IPE's sigma grid, the
+CNN, the hybrid at every switch point; myopic and D=2) on whole trials, as one fit process computes them
+(predictors shared, one expander per model), with the tables that are the same numbers shared
+(:func:`~overhang_framework.fit.scores.share_tables`: the hybrid's switch points) and without, alternating
+trial by trial, and prints tables computed, seconds and the largest difference between the two.
+
 With ``--compare``, each model whose family has a reference setting (:data:`REFERENCES`:
 the way it was computed before the engine's speed-ups, e.g. the CNN unfused and asked
 state by state) is also timed that way on the same states, alternating state by state,
@@ -95,6 +101,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--compare", action="store_true",
                     help="also time each family's reference setting (the code before) on the same states")
+    ap.add_argument("--space", action="store_true",
+                    help="also time the fit's default model space on --trials trials, tables shared and not")
     ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = ap.parse_args(argv)
     from overhang_framework.preflight import overrides_problem
@@ -214,11 +222,64 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               f"tables): one expander {t_shared:.1f} s / {c_shared} calls; a fresh one per table "
               f"{t_fresh:.1f} s / {c_fresh} calls (saves {1 - t_shared / max(t_fresh, 1e-9):.0%} of the time)",
               flush=True)
+    if args.space and long:
+        figures["space"] = _space(world, value, context, placements, args, rng)
     figures["seconds"] = time.perf_counter() - started
     print(f"\nbenchmark took {figures['seconds']:.0f} s", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(figures, indent=2))
     return 0
+
+
+def _space(world, value, context, placements, args, rng) -> dict:
+    """The fit's default model space on whole logged trials, its tables shared (share_tables) and not."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.fit.fitting import map_placements
+    from overhang_framework.fit.run import Predictors
+    from overhang_framework.fit.scores import ScoreTables, share_memory, share_tables
+    from overhang_framework.fit.space import model_space
+    from overhang_framework.plugins import Registry
+
+    conf = compose_config([], config_name="fit")
+    blocks = max(len(p.state.remaining) for p in placements)
+    space = model_space(OmegaConf.to_container(conf.models, resolve=True), list(conf.depths), blocks)
+    by_trial: dict[tuple, list] = {}
+    for p in placements:
+        by_trial.setdefault((p.participant, p.trial), []).append(p)
+    trials = [map_placements(world, ps, "logged").states for ps in by_trial.values()]
+    trials = [trials[i] for i in rng.choice(len(trials), min(args.trials, len(trials)), replace=False)]
+    built = Predictors(Registry(), world)
+    models = [m for index in space for m in index.variants]
+    arms = {"shared": {"seconds": 0.0, "computed": 0}, "each": {"seconds": 0.0, "computed": 0}}
+    difference = 0.0
+    print(f"\nthe fit's default model space ({len(models)} models) on {len(trials)} logged trials "
+          f"({sum(len(t) for t in trials)} states), the same tables shared and not:", flush=True)
+    for n, trial in enumerate(trials):
+        results = {}
+        for arm in (("shared", "each") if n % 2 == 0 else ("each", "shared")):
+            for predictor in list(built.built.values()):
+                clear = getattr(predictor, "clear_cache", None)
+                if callable(clear):
+                    clear()
+            tables = [ScoreTables(world, value, built(dict(m.predictor)), m, context, None) for m in models]
+            share_memory(tables)
+            if arm == "shared":
+                share_tables(tables)
+            t0 = time.perf_counter()
+            results[arm] = [[t.table(s) for s in trial] for t in tables]
+            arms[arm]["seconds"] += time.perf_counter() - t0
+            arms[arm]["computed"] += sum(t.stats.computed for t in tables)
+        for a, b in zip(results["shared"], results["each"]):
+            for x, y in zip(a, b):
+                difference = max(difference, float(np.max(np.abs(x - y), initial=0.0)))
+    ratio = arms["each"]["seconds"] / max(arms["shared"]["seconds"], 1e-9)
+    print(f"  each model's own tables: {arms['each']['computed']} tables, {arms['each']['seconds']:.1f} s", flush=True)
+    print(f"  tables shared:           {arms['shared']['computed']} tables, {arms['shared']['seconds']:.1f} s "
+          f"({ratio:.2f}x faster); the tables differ by at most {difference:.1e}", flush=True)
+    return {"models": len(models), "trials": len(trials), **{f"{k}_{m}": v for k, a in arms.items() for m, v in a.items()},
+            "speedup": ratio, "max_difference": difference}
 
 
 def _grid_trials(world, placements) -> list[list]:

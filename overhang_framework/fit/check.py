@@ -280,13 +280,14 @@ def _setup(context: Mapping[str, Any], cache: Optional[str]) -> dict:
 def _tables(env: dict, model):
     from overhang_framework.fit.scores import ScoreTables
 
-    from overhang_framework.fit.scores import share_memory
+    from overhang_framework.fit.scores import share_memory, share_tables
 
     key = model.key(env["context"])
     if key not in env["tables"]:
         env["tables"][key] = ScoreTables(env["world"], env["value"], env["predictors"](dict(model.predictor)), model,
                                          env["context"], env["cache"])
         share_memory(list(env["tables"].values()))
+        share_tables(list(env["tables"].values()))
     return env["tables"][key]
 
 
@@ -522,8 +523,10 @@ def _part_path(out: Path, participant: str) -> Path:
 
 
 def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, model: Optional[str] = None,
-        cache: Optional[str] = DEFAULT_CACHE, jobs: int = 1, seed: int = 0, progress: bool = True) -> dict:
-    """Check every participant of the fit in ``fitdir``; write the report into ``out`` (``fitdir/check``)."""
+        cache: Optional[str] = DEFAULT_CACHE, jobs: int = 1, seed: int = 0, progress: bool = True,
+        participants: Optional[Sequence[str]] = None) -> dict:
+    """Check every participant of the fit in ``fitdir`` (or those of ``participants``); write the report into
+    ``out`` (``fitdir/check``)."""
     from overhang_framework.behaviour.log import read_log, records_of
     from overhang_framework.parallel import pool_map
     from overhang_framework.progress import progress_bar
@@ -539,6 +542,14 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
     chosen = fitted_models(spec, fits, model)
     if not chosen:
         raise CheckError(f"{fitdir / 'fits.csv'} holds no participant (only pooled conditions)")
+    if participants is not None:
+        wanted = sorted({str(p) for p in participants})
+        missing = sorted(set(wanted) - {f.participant for f in chosen})
+        if missing or not wanted:
+            raise CheckError(f"--participant {missing[0] if missing else '(none)'} is not a participant of "
+                             f"{fitdir / 'fits.csv'}; it has {', '.join(f.participant for f in chosen[:5])}"
+                             f"{' and more' if len(chosen) > 5 else ''}")
+        chosen = [f for f in chosen if f.participant in set(wanted)]
     try:
         df = read_log(spec["logs"])
     except OSError as err:
@@ -548,11 +559,12 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
 
     fitted_digest = hashlib.sha256((fitdir / "fits.csv").read_bytes()).hexdigest()
     settings = {"fit": str(fitdir.resolve()), "fits": fitted_digest, "replicas": replicas, "model": model,
-                "seed": seed}
+                "seed": seed, "participants": None if participants is None else sorted({str(p) for p in participants})}
     (out / PARTS).mkdir(parents=True, exist_ok=True)
     settings_path = out / "check.json"
     if settings_path.exists():
         previous = json.loads(settings_path.read_text())
+        previous.setdefault("participants", None)  # checks written before the setting existed checked everyone
         if previous.get("fits") != settings["fits"] and {k: v for k, v in previous.items() if k != "fits"} == \
                 {k: v for k, v in settings.items() if k != "fits"}:
             raise CheckError(f"{out} holds a check of an earlier fits.csv; remove {out} (or use another --out) to "
@@ -611,6 +623,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--replicas", type=int, default=REPLICAS,
                     help=f"replicas per participant (default {REPLICAS}: their range is a 95%% interval)")
     ap.add_argument("--model", help="check this model of fits.csv (e.g. ipe/D2) for everyone, not each one's best")
+    ap.add_argument("--participant", action="append", default=None, metavar="ID",
+                    help="check only this participant (repeatable; default: every participant of fits.csv)")
     ap.add_argument("--cache", default=DEFAULT_CACHE, help=f"the score cache (default {DEFAULT_CACHE}; 'none': none)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     ap.add_argument("--seed", type=int, default=0)
@@ -618,7 +632,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = ap.parse_args(argv)
     try:
         summary = run(Path(args.fitdir), None if args.out is None else Path(args.out), args.replicas, args.model,
-                      None if args.cache == "none" else args.cache, args.jobs, args.seed, not args.no_progress)
+                      None if args.cache == "none" else args.cache, args.jobs, args.seed, not args.no_progress,
+                      args.participant)
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -22,7 +22,7 @@ import pandas as pd
 
 from overhang_framework.errors import OverhangError
 from overhang_framework.fit.fitting import ModelFit, Placement, fit_index, log_placements, map_placements
-from overhang_framework.fit.scores import ScoreCache, ScoreTables, TableStats, share_memory
+from overhang_framework.fit.scores import ScoreCache, ScoreTables, TableStats, share_memory, share_tables
 from overhang_framework.interfaces import State
 from overhang_framework.search import state_key
 from overhang_framework.fit.space import ModelIndex
@@ -84,6 +84,7 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
     tables = [[ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
               for index in space]
     share_memory([t for variants in tables for t in variants])
+    share_tables([t for variants in tables for t in variants])
     if jobs > 1:
         fill_tables([t for variants in tables for t in variants], [s for m in mapped.values() for s in m.states],
                     jobs, on_table, on_total)
@@ -180,12 +181,15 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
     from overhang_framework.parallel import pool_map
 
     rows, seen = [], set()  # (state, the models that need its table), in the states' order
+    present = {id(t) for t in all_tables}
     for state in states:
         key = state_key(state)
         if key in seen:
             continue
         seen.add(key)
-        ks = [k for k, tables in enumerate(all_tables) if not tables.known(state)]
+        # a table that another of all_tables computes in this state (share_tables) is not asked for
+        ks = [k for k, tables in enumerate(all_tables) if not tables.known(state)
+              and (tables.owner(state) is tables or id(tables.owner(state)) not in present)]
         if ks:
             rows.append((state, ks))
     # chunks of CHUNK states, fewer when there are few states, so that every worker has items
@@ -217,6 +221,7 @@ def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, fa
     tables = [ScoreTables(world, value, built(config), Model(config, depth, family), context, None)
               for config, depth, family in zip(predictors, depths, families)]
     share_memory(tables)
+    share_tables(tables)
     return tables
 
 

@@ -34,13 +34,14 @@ as the search reaches them: expanding every grandchild ahead (the search's
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -216,6 +217,8 @@ class ScoreTables:
     cache: Optional[ScoreCache] = None
     memo_limit: int = 200_000
     stats: TableStats = field(default_factory=TableStats)
+    #: The tables this model's table equals in a given state, or None (set by :func:`share_tables`).
+    same_as: Optional[Callable[[State], Optional["ScoreTables"]]] = None
 
     def __post_init__(self):
         self.key = self.model.key(self.context)
@@ -225,10 +228,24 @@ class ScoreTables:
     def _new_expander(self) -> Expander:
         return Expander(self.world, self.predictor, Budget(), seed=self.model.draw_seed(self.context))
 
+    def owner(self, state: State) -> "ScoreTables":
+        """The tables that compute this model's table of ``state``: these, or others whose table there is the
+        same numbers (:func:`share_tables`)."""
+        tables = self
+        for _ in range(8):
+            other = tables.same_as(state) if tables.same_as is not None else None
+            if other is None or other is tables:
+                break
+            tables = other
+        return tables
+
     def known(self, state: State) -> bool:
         """Whether the table of ``state`` is in memory or in the cache (computing nothing)."""
         if state_key(state) in self._tables:
             return True
+        owner = self.owner(state)
+        if owner is not self:
+            return owner.known(state)
         if self.cache is None:
             return False
         scores = self.cache.get(ScoreCache.entry(self.key, state))
@@ -255,10 +272,18 @@ class ScoreTables:
     def table(self, state: State) -> np.ndarray:
         """The model's score of every action of ``world.legal_actions(state)``, in that order."""
         self.stats.asked += 1
+        return self._table(state)
+
+    def _table(self, state: State) -> np.ndarray:
         skey = state_key(state)
         known = self._tables.get(skey)
         if known is not None:
             return known
+        owner = self.owner(state)
+        if owner is not self:
+            scores = owner._table(state)
+            self._tables[skey] = scores
+            return scores
         entry = ScoreCache.entry(self.key, state)
         scores = self.cache.get(entry) if self.cache is not None else None
         if scores is not None:
@@ -279,3 +304,44 @@ class ScoreTables:
                 self.cache.put(entry, scores)
         self._tables[skey] = scores
         return scores
+
+
+def _switch_stage(members: Mapping[int, ScoreTables], late: Optional[ScoreTables], switch: int, depth: int,
+                  state: State) -> Optional[ScoreTables]:
+    """The tables equal to a hybrid's of switch point ``switch`` at horizon ``depth`` in ``state``."""
+    n = len(state.geometry)
+    stage = min(max(switch, n + 1), n + depth + 1)
+    if stage == n + 1 and late is not None:
+        return late
+    return members.get(stage)
+
+
+def share_tables(tables: Sequence[ScoreTables]) -> None:
+    """Let the tables of ``tables`` that are the same numbers in a state be computed once.
+
+    A stage-switch hybrid (a predictor with ``early``, ``late`` and ``route``, as
+    ``predictor=hybrid``) at horizon ``D`` judges, from a state of ``n`` blocks, only towers of
+    ``n + 1`` to ``n + D`` blocks. Every switch point up to ``n + 1`` sends them all to ``late`` and every
+    one from ``n + D + 1`` all to ``early``, so its switch points give at most ``D + 1`` different tables
+    there: each hybrid's table is that of the switch point clamped to ``[n + 1, n + D + 1]``, when the
+    hybrids of ``tables`` (same settings otherwise, same depth) include it. Where all towers go to ``late``
+    and ``late`` is a deterministic predictor (its answers never use the draws) whose own model at the same
+    depth is in ``tables`` with that very predictor object, the table is that model's.
+    """
+    groups: dict[str, dict[int, ScoreTables]] = {}
+    for t in tables:
+        p = t.predictor
+        if t.model.switch is None or not isinstance(getattr(p, "names", None), dict) or not callable(
+                getattr(p, "route", None)):
+            continue
+        key = _digest({"predictor": _strip(dict(t.model.predictor), ("switch",) + ENGINE_KEYS),
+                       "depth": t.model.depth, "family": t.model.family, "context": t.context})
+        groups.setdefault(key, {})[t.model.switch] = t
+    for members in groups.values():
+        for t in members.values():
+            part = getattr(t.predictor, "late", None)
+            late = None
+            if getattr(part, "deterministic", False):
+                late = next((u for u in tables if u.predictor is part and u.model.depth == t.model.depth
+                             and u.context == t.context), None)
+            t.same_as = functools.partial(_switch_stage, members, late, t.model.switch, t.model.depth)

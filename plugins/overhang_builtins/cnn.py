@@ -40,6 +40,8 @@ class CNNPredictor(Predictor):
     and benchmarks). The predictor is deterministic: ``rng`` is not used.
     """
 
+    deterministic = True
+
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
                  threads: Optional[int] = 1, batch_size: int = 64, cache_size: int = 200_000,
                  mirror="auto", fused: bool = True, runtime: str = "onnxruntime"):

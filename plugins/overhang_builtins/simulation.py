@@ -280,6 +280,11 @@ class IPEPredictor(Predictor):
             checked(self.backend_name, **params)  # refuse unknown or bad parameters now, not mid-run
 
     @property
+    def deterministic(self) -> bool:
+        """True when every sigma is 0: the successors themselves are simulated, and ``rng`` is not used."""
+        return self.noise.zero
+
+    @property
     def backend(self):
         """The physics backend the simulations run on (built on first use)."""
         if self._backend is None:
