@@ -425,10 +425,11 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         if not steps.current("check", digest):
             import shutil
 
-            if made.exists():  # a check of earlier fits or other participants: started afresh
+            if made.exists():  # a check of earlier fits, other participants or settings: started afresh
                 previous = json.loads(made.read_text())
-                if previous.get("fits") != hashlib.sha256((out / "fit" / "fits.csv").read_bytes()).hexdigest() \
-                        or previous.get("participants") != own:
+                now = {"fits": hashlib.sha256((out / "fit" / "fits.csv").read_bytes()).hexdigest(),
+                       "participants": own, "replicas": replicas, "seed": seed, "model": None}
+                if any(previous.get(k) != v for k, v in now.items()):
                     shutil.rmtree(out / "fit" / "check")
             t0 = time.perf_counter()
             say(f"checking the fits of the study's {len(own)} participants ({replicas} replicas each)")
@@ -446,8 +447,10 @@ def _check_line(path: Path) -> Optional[str]:
     """The predictive check's first finding (check.md's first bullet), or None."""
     if not path.exists():
         return None
+    import re
+
     bullets = [line[2:].strip() for line in path.read_text().splitlines() if line.startswith("- ")]
-    return bullets[0] if bullets else None
+    return re.sub(r"^\*\*[^*]+:\*\*\s*", "", bullets[0]) if bullets else None
 
 
 def _size(multiple: Any, sizes: dict[str, int]) -> str:
@@ -509,8 +512,9 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
                                  "power" if planted else "false-positive rate", "size for 0.8", "paper"], body))
     lines += ["", "## Steps", ""]
     lines.append(markdown_table(["step", "seconds"], [[k, f"{v['seconds']:.0f}"] for k, v in steps.done.items()]))
+    checked = "`fit/check/check.md`, " if check_line else ""
     lines += ["", f"Total this run: {seconds:.0f} s. Files: `sim/`, `analysis/report.md`, `fit/comparison.md`, "
-                  "`fit/check/check.md`, `participants.csv`, `findings.csv`, `power.csv`."]
+                  f"{checked}`participants.csv`, `findings.csv`, `power.csv`."]
     return "\n".join(lines) + "\n"
 
 

@@ -381,6 +381,19 @@ def test_a_hybrid_shares_the_model_spaces_cnn_and_its_tables_stay_the_same(world
     assert cnn.counts["cache_hits"] > hits  # the hybrid's late towers came from what the CNN model asked
     assert np.array_equal(shared, ScoreTables(world, value, alone, Model(hybrid_config, 2), CONTEXT).table(FIRST))
     assert not np.array_equal(shared, cnn_table)
+    # switch point 2 sends every tower to the CNN (deterministic): its table is the CNN model's, computed once
+    from overhang_framework.fit.scores import share_tables
+
+    early_config = _predictor_config("hybrid", {"switch": 2})
+    cnn_tables = ScoreTables(world, value, cnn, Model(cnn_config, 2), CONTEXT)
+    early = ScoreTables(world, value, pool(early_config), Model(early_config, 2), CONTEXT)
+    share_tables([cnn_tables, early])
+    assert early.owner(FIRST) is cnn_tables and cnn.deterministic
+    got = early.table(FIRST)
+    assert early.stats.computed == 0 and cnn_tables.stats.computed == 1
+    by_itself = Registry().create("predictor", dict(early_config), world=world)
+    np.testing.assert_allclose(got, ScoreTables(world, value, by_itself, Model(early_config, 2), CONTEXT).table(FIRST),
+                               rtol=0, atol=1e-6)
 
 
 def test_engine_settings_leave_a_tables_key_and_draws_alone():

@@ -101,7 +101,7 @@ def test_a_stopped_check_continues_from_its_parts_and_other_settings_are_refused
 @pytest.mark.parametrize("args, message", [
     (["--model", "cnn/D2"], "not a model of this fit; models: ipe/myopic, veridical/myopic"),
     (["--replicas", "0"], "--replicas must be a whole number >= 1"),
-    (["--participant", "nobody"], "--participant nobody is not a participant of"),
+    (["--participant", "nobody"], "participant nobody is not in"),
 ])
 def test_bad_input_is_refused_in_one_line(fitted, args, message):
     proc = _check(fitted, *args, "--out", str(fitted / "bad"))

@@ -88,8 +88,9 @@ def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
     assert (out / "fit" / "check" / "check.md").exists() and (out / "analysis" / "report.md").exists()
     # the check replays the study's own participants, not the rest of the pool, and study.md says what it found
     own = set(people.sort_values("participant").groupby("condition").head(2)["participant"].astype(str))
-    checked = pd.read_csv(out / "fit" / "check" / "participants.csv")
-    assert set(checked["participant"].astype(str)) == own and "**Predictive check**" in text
+    checked = set(pd.read_csv(out / "fit" / "check" / "participants.csv")["participant"].astype(str))
+    assert checked and checked <= own and "**Predictive check**" in text  # (a participant whose trials all timed
+    assert not checked & (set(people["participant"].astype(str)) - own)  # out is left out of the check)
     # run again: every step is current, nothing is computed twice
     again = subprocess.run(args, capture_output=True, text=True, timeout=900)
     assert again.returncode == 0 and "fitting the models" not in again.stderr, again.stderr[-2000:]

@@ -244,3 +244,47 @@ def test_switch_points_that_give_the_same_numbers_in_a_state_share_one_table(wor
     for s in STATES:
         n = len(s.geometry)
         assert {id(t.owner(s)) for t in tables} == {id(t) for t in tables if t.model.switch in {n + 1, n + 2}}
+
+
+def test_a_table_computed_for_another_switch_point_is_kept_under_every_models_key(world, value, tmp_path):
+    from overhang_framework.fit.scores import ScoreCache
+
+    space = model_space({"hybrid": {**HYBRID, "switch": "all"}, "veridical": {"predictor": "veridical"}}, [1],
+                        blocks=4)
+    cache = ScoreCache(tmp_path / "scores.sqlite")
+    shared = Predictors(Registry(), world)
+    tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT, cache) for i in space for m in i.variants]
+    share_tables(tables)
+    for t in tables:
+        for s in STATES:
+            t.table(s)
+    assert sum(t.stats.computed for t in tables) < len(tables) * len(STATES)
+    # a later run with one switch point alone (a check, a smaller grid) finds every table in the cache
+    for model in space[0].variants:
+        alone = ScoreTables(world, value, Registry().create("predictor", dict(model.predictor), world=world), model,
+                            CONTEXT, cache)
+        assert all(alone.known(s) for s in STATES)
+        for s in STATES:
+            alone.table(s)
+        assert alone.stats.computed == 0
+
+
+def test_only_hybrids_of_the_same_settings_share_and_a_cycle_is_refused(world, value):
+    from overhang_framework.errors import OverhangError
+
+    config = model_space({"hybrid": {**HYBRID, "switch": [2, 3]}}, [1])[0].variants
+    shared = Predictors(Registry(), world)
+    # the same switch points, settings that differ below the top level: no table is shared between them
+    a = [ScoreTables(world, value, shared(m.predictor), Model({**m.predictor, "extra": {"switch": 1}}, 1), CONTEXT)
+         for m in config]
+    b = [ScoreTables(world, value, shared(m.predictor), Model({**m.predictor, "extra": {"switch": 2}}, 1), CONTEXT)
+         for m in config]
+    share_tables(a + b)
+    for s in STATES:
+        assert {id(t.owner(s)) for t in a} <= {id(t) for t in a}
+        assert {id(t.owner(s)) for t in b} <= {id(t) for t in b}
+    first, second = a
+    first.same_as = lambda state: second
+    second.same_as = lambda state: first
+    with pytest.raises(OverhangError, match="point to each other in a cycle"):
+        first.owner(STATES[0])

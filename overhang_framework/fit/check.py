@@ -265,7 +265,19 @@ def observed_agreement(tables, world, placements, states: str, fitted: Fitted) -
     return probs, firsts
 
 
-def _setup(context: Mapping[str, Any], cache: Optional[str]) -> dict:
+def spec_models(spec: Mapping[str, Any]) -> list:
+    """Every model of the fit's space (fit.json's ``models``: label and predictor config)."""
+    from overhang_framework.fit.scores import Model
+
+    out = []
+    for label, config in spec.get("models", []):
+        family, _, planner = str(label).rpartition("/")
+        depth = 1 if planner == "myopic" else int(planner.lstrip("D"))
+        out.append(Model(dict(config), depth, family))
+    return out
+
+
+def _setup(context: Mapping[str, Any], cache: Optional[str], models: Sequence = ()) -> dict:
     from overhang_framework.fit.run import Predictors
     from overhang_framework.fit.scores import ScoreCache
     from overhang_framework.plugins import Registry
@@ -274,7 +286,7 @@ def _setup(context: Mapping[str, Any], cache: Optional[str]) -> dict:
     world = registry.create("world", dict(context["world"]))
     value = registry.create("value", dict(context["value"]), world=world)
     return {"world": world, "value": value, "context": dict(context), "predictors": Predictors(registry, world),
-            "cache": ScoreCache(cache), "tables": {}}
+            "cache": ScoreCache(cache), "tables": {}, "models": list(models)}
 
 
 def _tables(env: dict, model):
@@ -284,8 +296,19 @@ def _tables(env: dict, model):
 
     key = model.key(env["context"])
     if key not in env["tables"]:
-        env["tables"][key] = ScoreTables(env["world"], env["value"], env["predictors"](dict(model.predictor)), model,
-                                         env["context"], env["cache"])
+        predictors = env["predictors"]
+        wanted = [model]
+        if model.switch is not None:  # the fit kept a hybrid's table under the switch point that computed it
+            built = predictors(dict(model.predictor))
+            late = getattr(built, "late", None)
+            wanted += [m for m in env.get("models", []) if m.depth == model.depth and (
+                (m.family == model.family and m.switch is not None)
+                or (late is not None and predictors.built.get(predictors.key(dict(m.predictor))) is late))]
+        for m in wanted:
+            k = m.key(env["context"])
+            if k not in env["tables"]:
+                env["tables"][k] = ScoreTables(env["world"], env["value"], predictors(dict(m.predictor)), m,
+                                               env["context"], env["cache"])
         share_memory(list(env["tables"].values()))
         share_tables(list(env["tables"].values()))
     return env["tables"][key]
@@ -540,15 +563,17 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
     spec, fits = read_fit(fitdir)
     out = fitdir / CHECK if out is None else Path(out)
     chosen = fitted_models(spec, fits, model)
+    models = spec_models(spec)
     if not chosen:
         raise CheckError(f"{fitdir / 'fits.csv'} holds no participant (only pooled conditions)")
     if participants is not None:
         wanted = sorted({str(p) for p in participants})
         missing = sorted(set(wanted) - {f.participant for f in chosen})
-        if missing or not wanted:
-            raise CheckError(f"--participant {missing[0] if missing else '(none)'} is not a participant of "
-                             f"{fitdir / 'fits.csv'}; it has {', '.join(f.participant for f in chosen[:5])}"
-                             f"{' and more' if len(chosen) > 5 else ''}")
+        if not wanted:
+            raise CheckError("no participant to check: the list of participants is empty")
+        if missing:
+            raise CheckError(f"participant {missing[0]} is not in {fitdir / 'fits.csv'}; it has "
+                             f"{', '.join(f.participant for f in chosen[:5])}{' and more' if len(chosen) > 5 else ''}")
         chosen = [f for f in chosen if f.participant in set(wanted)]
     try:
         df = read_log(spec["logs"])
@@ -598,10 +623,10 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
                        miniters=1, mininterval=0.5, dynamic_ncols=True)
     try:
         if jobs > 1 and len(items) > 1:
-            results = (result for _, result, _ in pool_map(_setup, (spec["context"], cache), check_participant, items,
+            results = (result for _, result, _ in pool_map(_setup, (spec["context"], cache, models), check_participant, items,
                                                            min(jobs, len(items)), lambda: bar.update(1)))
         else:
-            env = _setup(spec["context"], cache)
+            env = _setup(spec["context"], cache, models)
             env["on_replica"] = lambda: bar.update(1)
             results = (check_participant(env, item) for item in items)
         for result in results:

@@ -24,6 +24,10 @@ the same task share, are searched once. Across processes and runs, the tables
 themselves are kept in a :class:`ScoreCache` (an SQLite file) keyed by the
 model's key and the state's canonical key.
 
+**Shared tables.** The hybrids of a switch-point grid give the same table in a state for most switch
+points, and where every tower goes to a deterministic late part, the late part's model's table:
+:func:`share_tables` lets each such table be computed once, and kept in the cache under every model's key.
+
 **Batches.** A predictor whose ``batched`` attribute is true (the CNN, and a
 hybrid with one) is asked for all the root's children in one call at depth 2
 and more: the exact table expands each child that may stand anyway, so the work
@@ -45,6 +49,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
+from overhang_framework.errors import OverhangError
 from overhang_framework.interfaces import Budget, State, World
 from overhang_framework.search import Expander, root_scores, state_key
 
@@ -235,25 +240,23 @@ class ScoreTables:
         for _ in range(8):
             other = tables.same_as(state) if tables.same_as is not None else None
             if other is None or other is tables:
-                break
+                return tables
             tables = other
-        return tables
+        raise OverhangError(f"the score tables of {self.model.label} point to each other in a cycle in a state of "
+                            f"{len(state.geometry)} blocks; a predictor's equivalent_switch must return a switch "
+                            "point whose own is itself")
 
     def known(self, state: State) -> bool:
         """Whether the table of ``state`` is in memory or in the cache (computing nothing)."""
         if state_key(state) in self._tables:
             return True
+        scores = self.cache.get(ScoreCache.entry(self.key, state)) if self.cache is not None else None
+        if scores is not None:
+            self._tables[state_key(state)] = scores
+            self.stats.cached += 1
+            return True
         owner = self.owner(state)
-        if owner is not self:
-            return owner.known(state)
-        if self.cache is None:
-            return False
-        scores = self.cache.get(ScoreCache.entry(self.key, state))
-        if scores is None:
-            return False
-        self._tables[state_key(state)] = scores
-        self.stats.cached += 1
-        return True
+        return owner is not self and owner.known(state)
 
     def receive(self, states, scores, stats: "TableStats") -> None:
         """Tables of ``states`` computed elsewhere (a worker process), with what they cost there."""
@@ -279,15 +282,15 @@ class ScoreTables:
         known = self._tables.get(skey)
         if known is not None:
             return known
-        owner = self.owner(state)
-        if owner is not self:
-            scores = owner._table(state)
-            self._tables[skey] = scores
-            return scores
         entry = ScoreCache.entry(self.key, state)
         scores = self.cache.get(entry) if self.cache is not None else None
+        owner = self.owner(state) if scores is None else self
         if scores is not None:
             self.stats.cached += 1
+        elif owner is not self:  # the same numbers as owner's: computed there, kept under this model's key too
+            scores = owner._table(state)
+            if self.cache is not None:
+                self.cache.put(entry, scores)
         else:
             started = time.perf_counter()
             if len(self._expander._memo) > self.memo_limit:
@@ -306,12 +309,12 @@ class ScoreTables:
         return scores
 
 
-def _switch_stage(members: Mapping[int, ScoreTables], late: Optional[ScoreTables], switch: int, depth: int,
+def _switch_stage(members: Mapping[int, ScoreTables], late: Optional[ScoreTables], predictor: Any, depth: int,
                   state: State) -> Optional[ScoreTables]:
-    """The tables equal to a hybrid's of switch point ``switch`` at horizon ``depth`` in ``state``."""
+    """The tables equal to those of hybrid ``predictor`` at horizon ``depth`` in ``state``."""
     n = len(state.geometry)
-    stage = min(max(switch, n + 1), n + depth + 1)
-    if stage == n + 1 and late is not None:
+    stage = int(predictor.equivalent_switch(n, depth))
+    if stage <= n + 1 and late is not None:
         return late
     return members.get(stage)
 
@@ -319,29 +322,36 @@ def _switch_stage(members: Mapping[int, ScoreTables], late: Optional[ScoreTables
 def share_tables(tables: Sequence[ScoreTables]) -> None:
     """Let the tables of ``tables`` that are the same numbers in a state be computed once.
 
-    A stage-switch hybrid (a predictor with ``early``, ``late`` and ``route``, as
-    ``predictor=hybrid``) at horizon ``D`` judges, from a state of ``n`` blocks, only towers of
-    ``n + 1`` to ``n + D`` blocks. Every switch point up to ``n + 1`` sends them all to ``late`` and every
-    one from ``n + D + 1`` all to ``early``, so its switch points give at most ``D + 1`` different tables
-    there: each hybrid's table is that of the switch point clamped to ``[n + 1, n + D + 1]``, when the
-    hybrids of ``tables`` (same settings otherwise, same depth) include it. Where all towers go to ``late``
-    and ``late`` is a deterministic predictor (its answers never use the draws) whose own model at the same
-    depth is in ``tables`` with that very predictor object, the table is that model's.
+    A stage-switch hybrid (a predictor with ``switch``, ``late`` and ``equivalent_switch``, as
+    ``predictor=hybrid``) at horizon ``D`` judges, from a state of ``n`` blocks, only towers of ``n + 1`` to
+    ``n + D`` blocks, so its switch points give at most ``D + 1`` different tables there: each hybrid's table
+    is that of its ``equivalent_switch(n, D)``, when the hybrids of ``tables`` (the same settings otherwise,
+    the same depth) include it. Where that sends every tower to ``late`` and ``late`` is deterministic (its
+    answers never use the draws) and is the very predictor of a model of ``tables`` at the same depth, the
+    table is that model's. A table computed elsewhere is also kept under its own model's key in the cache, so
+    a later fit or check with other models finds it.
     """
     groups: dict[str, dict[int, ScoreTables]] = {}
+    collided: set[str] = set()
     for t in tables:
         p = t.predictor
-        if t.model.switch is None or not isinstance(getattr(p, "names", None), dict) or not callable(
-                getattr(p, "route", None)):
+        if t.model.switch is None or not callable(getattr(p, "equivalent_switch", None)) \
+                or getattr(p, "switch", None) != t.model.switch:
             continue
-        key = _digest({"predictor": _strip(dict(t.model.predictor), ("switch",) + ENGINE_KEYS),
-                       "depth": t.model.depth, "family": t.model.family, "context": t.context})
-        groups.setdefault(key, {})[t.model.switch] = t
-    for members in groups.values():
+        top = {k: v for k, v in dict(t.model.predictor).items() if k != "switch"}
+        key = _digest({"predictor": _strip(top, ENGINE_KEYS), "depth": t.model.depth, "family": t.model.family,
+                       "context": t.context})
+        group = groups.setdefault(key, {})
+        if t.model.switch in group and group[t.model.switch] is not t:
+            collided.add(key)
+        group[t.model.switch] = t
+    for key, members in groups.items():
+        if key in collided:
+            continue
         for t in members.values():
             part = getattr(t.predictor, "late", None)
             late = None
             if getattr(part, "deterministic", False):
                 late = next((u for u in tables if u.predictor is part and u.model.depth == t.model.depth
                              and u.context == t.context), None)
-            t.same_as = functools.partial(_switch_stage, members, late, t.model.switch, t.model.depth)
+            t.same_as = functools.partial(_switch_stage, members, late, t.predictor, t.model.depth)

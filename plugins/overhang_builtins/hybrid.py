@@ -63,6 +63,15 @@ class HybridPredictor(Predictor):
         """``early`` or ``late``: who judges the towers one block larger than ``state``'s."""
         return "late" if len(state.geometry) + 1 >= self.switch else "early"
 
+    def equivalent_switch(self, blocks: int, depth: int) -> int:
+        """The switch point whose hybrid answers every question of a depth-``depth`` search from a state of
+        ``blocks`` blocks as this one does. Such a search judges towers of ``blocks + 1`` to ``blocks + depth``
+        blocks, so every switch point up to ``blocks + 1`` sends them all to ``late`` and every one from
+        ``blocks + depth + 1`` all to ``early``: the switch point clamped to that range. A fit computes the
+        tables of equivalent switch points once (:func:`overhang_framework.fit.scores.share_tables`); a subclass
+        that routes otherwise overrides this too."""
+        return min(max(self.switch, blocks + 1), blocks + depth + 1)
+
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
         return self.predict_many([(state, actions)], [rng])[0]
 
