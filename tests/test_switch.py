@@ -288,3 +288,29 @@ def test_only_hybrids_of_the_same_settings_share_and_a_cycle_is_refused(world, v
     second.same_as = lambda state: first
     with pytest.raises(OverhangError, match="point to each other in a cycle"):
         first.owner(STATES[0])
+
+
+def test_the_check_finds_a_fitted_hybrids_tables_under_the_switch_point_that_computed_them(world, value, tmp_path):
+    from overhang_framework.fit import check
+    from overhang_framework.fit.scores import ScoreCache
+
+    space = model_space({"hybrid": {**HYBRID, "switch": "all"}, "veridical": {"predictor": "veridical"}}, [1],
+                        blocks=4)
+    cache = ScoreCache(tmp_path / "scores.sqlite")
+    shared = Predictors(Registry(), world)
+    tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT, cache) for i in space for m in i.variants]
+    share_tables(tables)
+    for s in STATES:  # only the tables that computed something are in the cache (as a fit's workers leave it)
+        for t in tables:
+            if t.owner(s) is t:
+                t.table(s)
+    cache.close()
+    spec = {"models": [[i.label, dict(m.predictor)] for i in space for m in i.variants]}
+    assert [m.label for m in check.spec_models(spec)] == [i.label for i in space for _ in i.variants]
+    fitted = space[0].variants[-1]  # switch point 5: the IPE judges every tower of these states
+    env = check._setup(CONTEXT, str(tmp_path / "scores.sqlite"), check.spec_models(spec))
+    mine = check._tables(env, fitted)
+    assert mine.model == fitted and len(env["tables"]) == len(tables)  # its sibling switch points and the late model
+    assert all(mine.known(s) for s in STATES)
+    alone = ScoreTables(world, value, shared(fitted.predictor), fitted, CONTEXT, ScoreCache(tmp_path / "scores.sqlite"))
+    assert not all(alone.known(s) for s in STATES)  # by its own key alone, some are not found
