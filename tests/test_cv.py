@@ -36,15 +36,10 @@ def test_folds_are_disjoint_cover_every_trial_keep_trials_whole_and_ignore_order
 
 @pytest.fixture(scope="module")
 def small_log(tmp_path_factory):
-    from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from search_fixtures import simulated_log
 
-    out = tmp_path_factory.mktemp("cv")
-    run(compose_config(["tasks=custom", "tasks.sequences=[[1.2,0.6,1.2],[0.6,1.2,0.6,0.6],[1.8,0.6,0.6],[1.2,1.2,0.6]]",
-                        "world.physics=static", "predictor.K=10", "progress=false",
-                        "cohort.participants.time_limited=2", "cohort.participants.unconstrained=2",
-                        "cohort.n_tasks=null"], config_name=CONFIG_NAME), out)
-    return out / "log.jsonl"
+    return simulated_log(tmp_path_factory.mktemp("cv"),
+                         "[[1.2,0.6,1.2],[0.6,1.2,0.6,0.6],[1.8,0.6,0.6],[1.2,1.2,0.6]]")
 
 
 def test_a_cross_validated_fit_scores_every_fold_with_parameters_fitted_on_the_others(tmp_path, small_log):

@@ -137,15 +137,9 @@ def test_a_malformed_or_unusable_log_fails_with_one_line(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_log(tmp_path_factory):
     """A simulated log: 2 + 2 participants, three short tasks, static physics."""
-    from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from search_fixtures import simulated_log
 
-    out = tmp_path_factory.mktemp("sim")
-    run(compose_config(["tasks=custom", "tasks.sequences=[[1.2,0.6,1.2],[0.6,1.2,0.6,0.6],[1.8,0.6,0.6]]",
-                        "world.physics=static", "predictor.K=10", "progress=false",
-                        "cohort.participants.time_limited=2", "cohort.participants.unconstrained=2",
-                        "cohort.n_tasks=null"], config_name=CONFIG_NAME), out)
-    return out / "log.jsonl"
+    return simulated_log(tmp_path_factory.mktemp("sim"), "[[1.2,0.6,1.2],[0.6,1.2,0.6,0.6],[1.8,0.6,0.6]]")
 
 
 FIT = ["world.physics=static", "~models.cnn", "~models.hybrid", "models.ipe.K=10", "models.ipe.sigma=[0.02,0.06]",
