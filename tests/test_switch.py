@@ -246,15 +246,22 @@ def test_switch_points_that_give_the_same_numbers_in_a_state_share_one_table(wor
         assert {id(t.owner(s)) for t in tables} == {id(t) for t in tables if t.model.switch in {n + 1, n + 2}}
 
 
-def test_a_table_computed_for_another_switch_point_is_kept_under_every_models_key(world, value, tmp_path):
+def _shared_myopic_tables(world, value, path):
+    """The myopic hybrid at every switch point of 4-block tasks and the veridical model (its late part), tables
+    shared and cached in ``path``: (space, cache, predictors, tables)."""
     from overhang_framework.fit.scores import ScoreCache
 
     space = model_space({"hybrid": {**HYBRID, "switch": "all"}, "veridical": {"predictor": "veridical"}}, [1],
                         blocks=4)
-    cache = ScoreCache(tmp_path / "scores.sqlite")
+    cache = ScoreCache(path)
     shared = Predictors(Registry(), world)
     tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT, cache) for i in space for m in i.variants]
     share_tables(tables)
+    return space, cache, shared, tables
+
+
+def test_a_table_computed_for_another_switch_point_is_kept_under_every_models_key(world, value, tmp_path):
+    space, cache, shared, tables = _shared_myopic_tables(world, value, tmp_path / "scores.sqlite")
     for t in tables:
         for s in STATES:
             t.table(s)
@@ -294,12 +301,7 @@ def test_the_check_finds_a_fitted_hybrids_tables_under_the_switch_point_that_com
     from overhang_framework.fit import check
     from overhang_framework.fit.scores import ScoreCache
 
-    space = model_space({"hybrid": {**HYBRID, "switch": "all"}, "veridical": {"predictor": "veridical"}}, [1],
-                        blocks=4)
-    cache = ScoreCache(tmp_path / "scores.sqlite")
-    shared = Predictors(Registry(), world)
-    tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT, cache) for i in space for m in i.variants]
-    share_tables(tables)
+    space, cache, shared, tables = _shared_myopic_tables(world, value, tmp_path / "scores.sqlite")
     for s in STATES:  # only the tables that computed something are in the cache (as a fit's workers leave it)
         for t in tables:
             if t.owner(s) is t:

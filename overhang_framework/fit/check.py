@@ -566,8 +566,8 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
     models = spec_models(spec)
     if not chosen:
         raise CheckError(f"{fitdir / 'fits.csv'} holds no participant (only pooled conditions)")
-    if participants is not None:
-        wanted = sorted({str(p) for p in participants})
+    wanted = None if participants is None else sorted({str(p) for p in participants})
+    if wanted is not None:
         missing = sorted(set(wanted) - {f.participant for f in chosen})
         if not wanted:
             raise CheckError("no participant to check: the list of participants is empty")
@@ -584,7 +584,7 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
 
     fitted_digest = hashlib.sha256((fitdir / "fits.csv").read_bytes()).hexdigest()
     settings = {"fit": str(fitdir.resolve()), "fits": fitted_digest, "replicas": replicas, "model": model,
-                "seed": seed, "participants": None if participants is None else sorted({str(p) for p in participants})}
+                "seed": seed, "participants": wanted}
     (out / PARTS).mkdir(parents=True, exist_ok=True)
     settings_path = out / "check.json"
     if settings_path.exists():

@@ -189,7 +189,7 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
         seen.add(key)
         # a table that another of all_tables computes in this state (share_tables) is not asked for
         ks = [k for k, tables in enumerate(all_tables) if not tables.known(state)
-              and (tables.owner(state) is tables or id(tables.owner(state)) not in present)]
+              and ((owner := tables.owner(state)) is tables or id(owner) not in present)]
         if ks:
             rows.append((state, ks))
     # chunks of CHUNK states, fewer when there are few states, so that every worker has items
