@@ -211,23 +211,31 @@ def _earlier_session(metrics_file: Path) -> dict:
     return kept
 
 
-class Terminated(Exception):
-    """The process was asked to stop (SIGTERM, as a cluster scheduler does at a time limit)."""
+class Terminated(BaseException):
+    """The process was asked to stop (SIGTERM, as a cluster scheduler does at a time limit).
+
+    Like :class:`KeyboardInterrupt`, it is not an :class:`Exception`, so that code which handles
+    errors broadly does not take it for one and carry on."""
 
 
 @contextlib.contextmanager
-def _sigterm_stops_the_run() -> Iterator[None]:
-    """Turn SIGTERM into :class:`Terminated` for the duration (main thread only)."""
+def _sigterm_stops_the_run() -> Iterator[list]:
+    """Turn SIGTERM into :class:`Terminated` for the duration (main thread only).
+
+    Yields a list that holds the signal once it came. A handler's exception raised while Python runs a
+    finaliser is printed and dropped, so the caller also checks the list between episodes."""
+    received: list = []
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield received
         return
 
     def stop(signum, frame):
+        received.append(signum)
         raise Terminated()
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:
-        yield
+        yield received
     finally:
         signal.signal(signal.SIGTERM, previous)
 
@@ -326,7 +334,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
     else:
         records = serial()
     try:
-        with _sigterm_stops_the_run(), EpisodeLog(rundir.episodes, append=True) as episode_log:
+        with _sigterm_stops_the_run() as sigterm, EpisodeLog(rundir.episodes, append=True) as episode_log:
             for record in records:
                 key = (record["task_index"], record["repeat"])
                 bar.update(length[key] - len(record["steps"]))  # placements a collapse cut short
@@ -335,6 +343,8 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
                 log.info("episode %s repeat %d: reward %.3f, %d placements, %s", record["task_id"], key[1],
                          record["reward"], len(record["steps"]),
                          "stood throughout" if record["stable_throughout"] else "collapsed")
+                if sigterm:
+                    raise Terminated()
     except (KeyboardInterrupt, Terminated) as stop:
         bar.close()
         summary_of(complete=False)

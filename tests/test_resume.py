@@ -1,6 +1,7 @@
 """A run never loses finished work: interrupt, resume, refusal of another config's directory."""
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -181,7 +182,9 @@ def test_sigterm_ends_the_run_like_an_interrupt(tmp_path):
     proc = start(*SLOW, f"hydra.run.dir={out}")
     partial = out / "episodes.jsonl.partial"
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not (partial.exists() and partial.read_text().count("\n") >= 1):
+    while time.monotonic() < deadline and proc.poll() is None:
+        if partial.exists() and partial.read_text().count("\n") >= 1:
+            break
         time.sleep(0.05)
     proc.terminate()
     _, err = proc.communicate(timeout=60)
@@ -208,3 +211,20 @@ def test_ctrl_c_while_starting_is_one_line(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and len([line for line in err.splitlines() if line.startswith(("interrupted", "error"))]) == 1
+
+
+def test_a_sigterm_that_a_finaliser_swallows_is_still_seen_between_episodes():
+    from overhang_framework import app
+
+    assert not issubclass(app.Terminated, Exception), "code that handles errors broadly must not take it"
+
+    class Finalised:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.2)  # the handler runs here, and Python drops its exception
+
+    before = signal.getsignal(signal.SIGTERM)
+    with app._sigterm_stops_the_run() as received:
+        Finalised()  # collected at once
+    assert received == [signal.SIGTERM]
+    assert signal.getsignal(signal.SIGTERM) is before
