@@ -61,7 +61,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 import pandas as pd
@@ -221,6 +221,29 @@ def evaluate(df: pd.DataFrame, permutations: int = 10_000, seed: int = 0) -> dic
         out["switch"] = {"statistic": "no planted switch point" if "true_switch" not in df.columns
                          else "no participant's best model is a hybrid", "p": float("nan"), "holds": False,
                          "effect": float("nan")}
+    return out
+
+
+def diagnostics(df: pd.DataFrame) -> dict[str, str]:
+    """What the simulated cohort says about a finding's mechanism, where its truth columns can say it:
+
+    * ``gamma``: each condition's mean Γ by planted depth (the paper's effect needs Γ to fall with the
+      truncated depth);
+    * ``hybrid``: how often the hybrid is the best family, by planted switch point (a switch point that leaves
+      the IPE few decisions makes a hybrid that the fit cannot tell from the CNN).
+    """
+    out = {}
+    if "true_depth" in df.columns and df["true_depth"].notna().any():
+        parts = []
+        for depth, at in df[df["true_depth"].notna()].groupby("true_depth"):
+            means = [f"{at[at['condition'] == c]['gamma'].mean():.3f} ({c}, n = {int((at['condition'] == c).sum())})"
+                     for c in (TL, UN) if (at["condition"] == c).any()]
+            parts.append(f"depth {int(depth)}: " + ", ".join(means))
+        out["gamma"] = "mean Γ by planted depth, " + "; ".join(parts)
+    if "true_switch" in df.columns and df["true_switch"].notna().any() and "best_family" in df.columns:
+        parts = [f"{int((at['best_family'] == 'hybrid').sum())} of {len(at)} planted with switch point {int(switch)}"
+                 for switch, at in df[df["true_switch"].notna()].groupby("true_switch")]
+        out["hybrid"] = "the hybrid is the best family for " + ", ".join(parts)
     return out
 
 
@@ -411,8 +434,10 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
                                                          "sizes": json.dumps(sizes)} for k, v in rates.items()])
                       .to_csv(index=False))
     steps.finish("findings", "", time.perf_counter() - t0)
+    why = diagnostics(pool_people)
     atomic_write_text(out / "study.md", report(study, table, steps, sizes, simulated, n_tasks, resamples, planted,
-                                               depths, time.perf_counter() - started, replaced(pool_people, sizes)))
+                                               depths, time.perf_counter() - started, replaced(pool_people, sizes),
+                                               why=why))
 
     # 5. the predictive check of the study's own participants (the findings do not wait for it)
     check_line = None
@@ -438,7 +463,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
             steps.finish("check", digest, time.perf_counter() - t0)
         check_line = _check_line(out / "fit" / "check" / "check.md")
     text = report(study, table, steps, sizes, simulated, n_tasks, resamples, planted, depths,
-                  time.perf_counter() - started, replaced(pool_people, sizes), check_line)
+                  time.perf_counter() - started, replaced(pool_people, sizes), check_line, why)
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": table, "report": text}
 
@@ -464,8 +489,9 @@ def _size(multiple: Any, sizes: dict[str, int]) -> str:
 
 def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int], simulated: dict[str, int],
            n_tasks: Optional[int], resamples: int, planted: bool, depths: Sequence[int], seconds: float,
-           bootstrap: bool = False, check_line: Optional[str] = None) -> str:
-    from overhang_framework.behaviour.analysis import fmt_p, markdown_table
+           bootstrap: bool = False, check_line: Optional[str] = None,
+           why: Optional[Mapping[str, str]] = None) -> str:
+    from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is
 
     n = sum(sizes.values())
     shown = table[table["finding"] != "switch"] if not planted else table
@@ -481,6 +507,15 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
     lines.append(f"- **Found:** {len(holds)} of {effects} effects at α = .05 ({names}); the stable proportion "
                  f"{'does not differ' if bool(table.set_index('finding').loc['stable', 'holds']) else 'differs'} "
                  "between the conditions.")
+    missed = shown[~shown["holds"] & (shown["finding"] != "stable")]
+    if planted and len(missed):
+        lines.append("- **Not found:** " + "; ".join(
+            f"{r.finding} ({r.text}: {r.statistic}" + (f", {p_is(r.p)}" if np.isfinite(r.p) else "")
+            + ")" for r in missed.itertuples()) + ".")
+    elif not planted:
+        lines.append(f"- **As a null study should:** {'yes' if not len(holds) else 'no'}; "
+                     + (f"{len(holds)} of {effects} effects appear by chance at α = .05." if len(holds)
+                        else "no effect appears at α = .05."))
     if resamples:
         word = "power" if planted else "false-positive rate"
         rates = "; ".join(f"{r.finding} {r.rate:.0%}" for r in shown.itertuples() if r.rate is not None
@@ -494,7 +529,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
             low = shown[(shown["rate"] < TARGET_POWER) & (shown["finding"] != "stable")]
             if len(low):
                 lines.append("- **Below 0.8:** " + "; ".join(
-                    f"{r.finding} ({r.rate:.0%} at {n}; {r.size_for_power or 'not redrawn'} participants reach 0.8)"
+                    f"{r.finding} ({r.rate:.0%} at {n}; {r.size_for_power or 'not redrawn'} participants reach 0.8"
+                    + (f"; {(why or {})[r.finding]}" if r.finding in (why or {}) else "") + ")"
                     for r in low.itertuples()) + ". Studies larger than the simulated cohort are drawn with "
                     "replacement, so those sizes are optimistic.")
     if check_line:

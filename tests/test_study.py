@@ -46,6 +46,39 @@ def test_every_finding_holds_where_it_was_built_in_and_none_where_it_was_not():
     assert planted["hybrid"]["top"] == "hybrid" and null["hybrid"]["top"] != "hybrid"
 
 
+def test_the_report_names_what_was_not_found_and_what_the_cohort_says_about_it():
+    from pathlib import Path
+
+    from overhang_framework.study import Steps, diagnostics, report
+
+    people = _people(True, n=20)
+    people["true_depth"] = np.where(np.arange(len(people)) % 2, 1, 2)
+    people.loc[people["condition"] == "time_limited", "gamma"] = 0.5  # the Γ effect turned round
+    people["true_switch"] = np.where(np.arange(len(people)) % 4 == 0, 3, 4)
+    people.loc[people["true_switch"] == 3, "best_family"] = "cnn"
+    why = diagnostics(people)
+    tl1 = people[(people["condition"] == "time_limited") & (people["true_depth"] == 1)]
+    assert f"depth 1: {tl1['gamma'].mean():.3f} (time_limited, n = {len(tl1)})" in why["gamma"]
+    assert why["hybrid"] == ("the hybrid is the best family for 0 of 10 planted with switch point 3, "
+                             "30 of 30 planted with switch point 4")
+    found = evaluate(people, permutations=500)
+    assert not found["gamma"]["holds"]
+    table = pd.DataFrame([{"finding": f.name, "text": f.text, **{k: found[f.name][k] for k in ("statistic", "p", "holds")},
+                           "expected": True, "rate": 0.5 if f.name in ("gamma", "hybrid") else 1.0,
+                           "size_for_power": "", "paper": f.paper} for f in FINDINGS])
+    sizes = {"time_limited": 20, "unconstrained": 20}
+    text = report("dual_transition", table, Steps(Path("/nonexistent")), sizes, sizes, None, 10, True, [1, 2], 1.0,
+                  why=why)
+    not_found = next(line for line in text.splitlines() if line.startswith("- **Not found:**"))
+    assert not_found.startswith("- **Not found:** gamma (Γ lower under time pressure: ") and "p " in not_found
+    below = next(line for line in text.splitlines() if line.startswith("- **Below 0.8:**"))
+    assert why["gamma"] in below and why["hybrid"] in below
+    null = report("null", table.assign(holds=False), Steps(Path("/nonexistent")), sizes, sizes, None, 10, False,
+                  [1, 2], 1.0)
+    assert "- **As a null study should:** yes; no effect appears at α = .05." in null
+    assert "Not found" not in null
+
+
 def test_power_redraws_studies_of_the_given_size_from_the_participants():
     from overhang_framework.study import replaced
 
