@@ -380,7 +380,8 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     # 3. the fit
     from overhang_framework.fit.__main__ import run as fit_run
 
-    digest = _digest(log, extra=fit_words)
+    # how the fit runs (its processes, its progress bar) does not change what it finds
+    digest = _digest(log, extra=[w for w in fit_words if not w.startswith(("jobs=", "progress="))])
     if not steps.current("fit", digest):
         t0 = time.perf_counter()
         say("fitting the models")

@@ -124,8 +124,8 @@ def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
     checked = set(pd.read_csv(out / "fit" / "check" / "participants.csv")["participant"].astype(str))
     assert checked and checked <= own and "**Predictive check**" in text  # (a participant whose trials all timed
     assert not checked & (set(people["participant"].astype(str)) - own)  # out is left out of the check)
-    # run again: every step is current, nothing is computed twice
-    again = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    # run again, in more processes: every step is current, nothing is computed twice
+    again = subprocess.run([*args, "--jobs", "2"], capture_output=True, text=True, timeout=900)
     assert again.returncode == 0 and "fitting the models" not in again.stderr, again.stderr[-2000:]
     assert "checking the fits" not in again.stderr
 
