@@ -213,6 +213,7 @@ def test_ctrl_c_while_starting_is_one_line(tmp_path):
     assert "Traceback" not in err and len([line for line in err.splitlines() if line.startswith(("interrupted", "error"))]) == 1
 
 
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the dropped exception, as intended
 def test_a_sigterm_that_a_finaliser_swallows_is_still_seen_between_episodes():
     from overhang_framework import app
 
