@@ -236,8 +236,8 @@ def diagnostics(df: pd.DataFrame) -> dict[str, str]:
     if "true_depth" in df.columns and df["true_depth"].notna().any():
         parts = []
         for depth, at in df[df["true_depth"].notna()].groupby("true_depth"):
-            means = [f"{at[at['condition'] == c]['gamma'].mean():.3f} ({c}, n = {int((at['condition'] == c).sum())})"
-                     for c in (TL, UN) if (at["condition"] == c).any()]
+            by = at.groupby("condition")["gamma"].agg(["mean", "size"])
+            means = [f"{by.at[c, 'mean']:.3f} ({c}, n = {int(by.at[c, 'size'])})" for c in (TL, UN) if c in by.index]
             parts.append(f"depth {int(depth)}: " + ", ".join(means))
         out["gamma"] = "mean Γ by planted depth, " + "; ".join(parts)
     if "true_switch" in df.columns and df["true_switch"].notna().any() and "best_family" in df.columns:
@@ -494,6 +494,7 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
            why: Optional[Mapping[str, str]] = None) -> str:
     from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is
 
+    why = why or {}
     n = sum(sizes.values())
     shown = table[table["finding"] != "switch"] if not planted else table
     holds = shown[shown["holds"] & (shown["finding"] != "stable")]
@@ -531,7 +532,7 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
             if len(low):
                 lines.append("- **Below 0.8:** " + "; ".join(
                     f"{r.finding} ({r.rate:.0%} at {n}; {r.size_for_power or 'not redrawn'} participants reach 0.8"
-                    + (f"; {(why or {})[r.finding]}" if r.finding in (why or {}) else "") + ")"
+                    + (f"; {why[r.finding]}" if r.finding in why else "") + ")"
                     for r in low.itertuples()) + ". Studies larger than the simulated cohort are drawn with "
                     "replacement, so those sizes are optimistic.")
     if check_line:
