@@ -209,9 +209,18 @@ class Expander:
 
     @property
     def settle_batch(self) -> int:
-        """How many unknown children a search settles together: the world's physics workers."""
-        return max(1, int(getattr(self.world, "workers", 1) or 1))
+        """How many unknown children a search settles together: the world's physics workers, or more where
+        the predictor asks for it (a network's forward pass costs less per tower in a batch)."""
+        return max(1, int(getattr(self.world, "workers", 1) or 1), int(getattr(self.predictor, "settle_batch", 1) or 1))
 
+
+    @property
+    def settle_inner(self) -> bool:
+        """Whether a search settles the children of an inner node together, before ordering them (a
+        predictor whose answers cost about the same in any batch, as a network's or the IPE's, says so with
+        ``settle_inner``): their known answers order and prune the search as well as eager answers would,
+        and only the leaves' answers are left to settle as needed."""
+        return bool(getattr(self.predictor, "settle_inner", False))
 
     def expand_many(self, states: Sequence[State]) -> None:
         """Expand every state of ``states`` not expanded yet, with one :meth:`Predictor.predict_many` call.
@@ -220,13 +229,16 @@ class Expander:
         expanded alone; a budget that cannot pay for all of them expands none
         (the search then expands them one by one until it runs out).
         """
+        lazy = getattr(self.predictor, "predict_lazy", None) is not None and self.lazy
+        lazy_for = getattr(self.predictor, "lazy_for", None)
         todo, seen = [], set()
         for state in states:
             key = state_key(state)
-            if key not in self._memo and key not in seen and not state.done:
+            if key not in self._memo and key not in seen and not state.done \
+                    and not (lazy and (lazy_for is None or lazy_for(state))):
                 seen.add(key)
                 todo.append((key, state))
-        if len(todo) < 2 or (self.lazy and getattr(self.predictor, "predict_lazy", None) is not None):
+        if len(todo) < 2:
             return
         if self.budget.predictor_calls is not None and \
                 self.budget.calls_used + len(todo) > self.budget.predictor_calls:
@@ -368,7 +380,11 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     else:
         upper = expansion.upper
         bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
-        expansion.look([i for i in range(len(upper)) if upper[i] > 0 and not _below(upper[i] * bounds[i], threshold)])
+        wanted = [i for i in range(len(upper)) if upper[i] > 0 and not _below(upper[i] * bounds[i], threshold)]
+        if expander.settle_inner:
+            expansion.settle(wanted)
+        else:
+            expansion.look(wanted)
         upper = expansion.upper
         order = np.argsort(-_products(upper, bounds), kind="stable")[:beam]
         if depth == 2 and prefetch:
@@ -440,8 +456,8 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
     if depth <= 1 or len(state.remaining) <= 1:
         return settled_scores(expansion, _leaf_values(value, expansion), exact_all=exact_all,
                               batch=expander.settle_batch)
-    if exact_all:
-        expansion.p  # every root score must be exact: settle them all at once
+    if exact_all or expander.settle_inner:
+        expansion.p  # every root score must be exact, or the predictor settles a node's children at once
     expansion.look(range(n))
     upper = expansion.upper
     bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)

@@ -61,3 +61,17 @@ def test_benchmarks_refuse_a_wrong_override_in_one_line(module):
     assert proc.stderr.strip().splitlines() == [
         "error: unknown config key 'world.resoluton' (did you mean 'world.resolution'?); keys of world 'overhang': "
         "cache, name, physics, pybullet, resolution, static, tiered, verdict_file, workers"]
+
+
+def test_the_lazy_benchmark_prints_each_way_and_the_same_scores(tmp_path, capsys):
+    from overhang_framework.bench import lazy
+
+    out = tmp_path / "lazy.json"
+    assert lazy.main(["--states", "1", "--depths", "2", "--families", "cnn", "--json", str(out)]) == 0
+    figures = json.loads(out.read_text())
+    (row,) = figures["rows"]
+    assert row["model"] == "cnn/D2" and row["max_score_difference"] < 1e-9
+    assert row["towers"]["lazy"] <= row["towers"]["eager"] and row["towers"]["eager"] > 0
+    assert "cnn/D2" in capsys.readouterr().out
+    assert lazy.main(["--families", "mlp"]) == 2
+    assert capsys.readouterr().err.strip() == "error: unknown family 'mlp'; allowed: cnn, hybrid, ipe"

@@ -44,12 +44,21 @@ class CNNPredictor(Predictor):
 
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
                  threads: Optional[int] = 1, batch_size: int = 64, cache_size: int = 200_000,
-                 mirror="auto", fused: bool = True, runtime: str = "onnxruntime"):
+                 mirror="auto", fused: bool = True, runtime: str = "onnxruntime", lazy: bool = False,
+                 settle_batch: int = 16):
         from overhang_framework.cnn.model import StabilityModel
 
         if isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0:
             raise ValueError(f"cache_size must be a whole number >= 0, got {cache_size!r}")
+        if not isinstance(lazy, bool):
+            raise ValueError(f"lazy must be true or false, got {lazy!r}")
+        if isinstance(settle_batch, bool) or not isinstance(settle_batch, int) or settle_batch < 1:
+            raise ValueError(f"settle_batch must be a whole number >= 1, got {settle_batch!r}")
         self.world = world
+        self.lazy = lazy
+        self.settle_batch = settle_batch
+        #: a search settles an inner node's children together (a batch costs about the same per answer)
+        self.settle_inner = True
         self.model = StabilityModel(checkpoint, device=device, threads=threads, batch_size=batch_size,
                                     mirror=mirror, fused=fused, runtime=runtime)
         #: One large :meth:`predict_many` costs much less than many small ones (see ``fit.scores``).
@@ -89,6 +98,31 @@ class CNNPredictor(Predictor):
         if not len(actions):
             return np.zeros(0)
         return self.probabilities([self.world.successor(state, a).geometry for a in actions])
+
+    @property
+    def predict_lazy(self):
+        """With ``lazy``, :meth:`_predict_lazy`; else ``None`` (searches then call :meth:`predict`)."""
+        return self._predict_lazy if self.lazy else None
+
+    def _predict_lazy(self, state: State, actions: Sequence[Action], rng: np.random.Generator):
+        """Every answer unknown for now, with the functions that give given actions' answers: ``classify`` the
+        remembered ones (-1 for the others) and ``settle`` the network's, in one pass; a search asks only
+        for the towers whose answer can change its result (:class:`~overhang_framework.search.Expansion`)."""
+        geometries = [self.world.successor(state, a).geometry for a in actions]
+
+        def classify(indices):
+            out = np.full(len(indices), -1.0)
+            if self.cache_size:
+                for n, i in enumerate(indices):
+                    hit = self._cache.get(geometries[i].key)
+                    if hit is not None:
+                        out[n] = hit
+            return out
+
+        def settle(indices):
+            return self.probabilities([geometries[i] for i in indices])
+
+        return np.full(len(actions), np.nan), settle, classify
 
     def predict_many(self, requests: Sequence[tuple[State, Sequence[Action]]],
                      rngs: Sequence[np.random.Generator]) -> list[np.ndarray]:

@@ -72,6 +72,39 @@ class HybridPredictor(Predictor):
         that routes otherwise overrides this too."""
         return min(max(self.switch, blocks + 1), blocks + depth + 1)
 
+    @property
+    def settle_batch(self) -> int:
+        """How many unknown answers a search settles together: the larger of the parts' wishes."""
+        return max(int(getattr(p, "settle_batch", 1) or 1) for p in (self.early, self.late))
+
+    @property
+    def settle_inner(self) -> bool:
+        """Whether a search settles an inner node's children together: when both parts say so."""
+        return all(getattr(p, "settle_inner", False) or getattr(p, "predict_lazy", None) is None
+                   for p in (self.early, self.late))
+
+    @property
+    def predict_lazy(self):
+        """:meth:`_predict_lazy` when either part answers lazily; else ``None``."""
+        if any(getattr(p, "predict_lazy", None) is not None for p in (self.early, self.late)):
+            return self._predict_lazy
+        return None
+
+    def lazy_for(self, state: State) -> bool:
+        """Whether the part that judges ``state``'s children answers lazily."""
+        return getattr(getattr(self, self.route(state)), "predict_lazy", None) is not None
+
+    def _predict_lazy(self, state: State, actions: Sequence[Action], rng: np.random.Generator):
+        """The routed part's lazy answer, or its whole answer when it has none (nothing left to settle)."""
+        which = self.route(state)
+        part = getattr(self, which)
+        self.counts[f"{which}_calls"] += 1
+        self.counts[f"{which}_actions"] += len(actions)
+        lazy = getattr(part, "predict_lazy", None)
+        if lazy is not None:
+            return lazy(state, actions, rng)
+        return np.asarray(part.predict_many([(state, actions)], [rng])[0], dtype=float), None, None
+
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:
         return self.predict_many([(state, actions)], [rng])[0]
 

@@ -244,7 +244,8 @@ class IPEPredictor(Predictor):
     def __init__(self, world: World, K: int = 50, sigma: float = 0.03,
                  sigma_position: Optional[float] = None, sigma_gravity: Optional[float] = None,
                  sigma_friction: Optional[float] = None, backend: Union[str, PhysicsBackend] = "static",
-                 backend_params: Optional[Mapping[str, Any]] = None, scenes: str = "arrays"):
+                 backend_params: Optional[Mapping[str, Any]] = None, scenes: str = "arrays",
+                 lazy: bool = False, settle_batch: int = 16):
         if isinstance(K, bool) or not isinstance(K, (int, float)) or int(K) != K or K < 1:
             raise ValueError(f"K must be a whole number >= 1, got {K!r}")
         for name, value in (("sigma", sigma), ("sigma_position", sigma_position),
@@ -256,7 +257,15 @@ class IPEPredictor(Predictor):
             raise ValueError(f"unknown IPE backend {backend!r}; allowed: {', '.join(BACKENDS)}")
         if scenes not in SCENE_PATHS:
             raise ValueError(f"unknown IPE scenes {scenes!r}; allowed: {', '.join(SCENE_PATHS)}")
+        if not isinstance(lazy, bool):
+            raise ValueError(f"lazy must be true or false, got {lazy!r}")
+        if isinstance(settle_batch, bool) or not isinstance(settle_batch, int) or settle_batch < 1:
+            raise ValueError(f"settle_batch must be a whole number >= 1, got {settle_batch!r}")
         self.scene_path = scenes
+        self.lazy = lazy
+        self.settle_batch = settle_batch
+        #: a search settles an inner node's children together (a batch costs about the same per answer)
+        self.settle_inner = True
         self.world = world
         self.K = int(K)
         self.memory_size = 0
@@ -320,13 +329,69 @@ class IPEPredictor(Predictor):
         """The scenes to simulate for ``actions``: ``len(actions) * K`` perturbed ones, or the
         ``len(actions)`` successors themselves when every sigma is 0 (then ``rng`` is not used)."""
         geometries = self.successors(state, actions)
+        return self._scenes(geometries, self.draws(rng, geometries))
+
+    def draws(self, rng: np.random.Generator, geometries: Sequence[Geometry]) -> Optional[Draws]:
+        """The one set of draws every candidate of a call shares (``None`` when nothing is drawn)."""
+        if not geometries or self.noise.zero:
+            return None
+        return Draws.sample(rng, self.K, len(geometries[0]))
+
+    def _scenes(self, geometries: Sequence[Geometry], draws: Optional[Draws]) -> "Scenes":
         if not geometries:
             return Scenes.of([], None, None, 0, self.K, repeat=True)
-        if self.noise.zero:
+        if draws is None:
             return Scenes.of(geometries, None, None, len(geometries), self.K, repeat=True)
-        draws = Draws.sample(rng, self.K, len(geometries[0]))
         (widths, xs, layers), gravity, friction = self.perturb_arrays(geometries, draws)
         return Scenes(widths, xs, layers, gravity, friction, len(geometries), self.K, repeat=False)
+
+    @property
+    def predict_lazy(self):
+        """With ``lazy``, :meth:`_predict_lazy`; else ``None`` (searches then call :meth:`predict`)."""
+        return self._predict_lazy if self.lazy else None
+
+    def _predict_lazy(self, state: State, actions: Sequence[Action], rng: np.random.Generator):
+        """Every answer unknown for now, with the functions that give given actions' answers: the call's
+        draws are made now, as :meth:`predict` makes them, and ``settle`` simulates only the candidates it is
+        asked about under them, so each answer is the one :meth:`predict` gives. ``classify`` gives the
+        remembered answers (:meth:`remember`), -1 for the others. A search asks only for the candidates whose
+        answer can change its result (:class:`~overhang_framework.search.Expansion`)."""
+        self.counts["calls"] += 1
+        geometries = self.successors(state, actions)
+        memo = None
+        if self.memory_size:
+            key = ("lazy", state.geometry.blocks, state.remaining, tuple(actions),
+                   None if self.noise.zero else _rng_state(rng))
+            hit = self._memory.get(key)
+            if hit is not None:
+                self._memory.move_to_end(key)
+                if hit[1] is not None:
+                    rng.bit_generator.state = hit[1]
+                self.counts["remembered"] += 1
+                draws, memo = hit[2], hit[0]
+            else:
+                draws = self.draws(rng, geometries)
+                memo = np.full(len(actions), np.nan)
+                self._memory[key] = (memo, None if self.noise.zero else rng.bit_generator.state, draws)
+                while len(self._memory) > self.memory_size:
+                    self._memory.popitem(last=False)
+        else:
+            draws = self.draws(rng, geometries)
+
+        def classify(indices):
+            if memo is None:
+                return np.full(len(indices), -1.0)
+            known = memo[np.asarray(indices, dtype=int)]
+            return np.where(np.isnan(known), -1.0, known)
+
+        def settle(indices):
+            verdicts = self.run([self._scenes([geometries[i] for i in indices], draws)])[0]
+            p = verdicts.mean(axis=1)
+            if memo is not None:
+                memo[np.asarray(indices, dtype=int)] = p
+            return p
+
+        return np.full(len(actions), np.nan), settle, classify
 
     def run(self, scenes: Sequence["Scenes"]) -> list[np.ndarray]:
         """Simulate several :class:`Scenes` in one backend call; one ``(candidates, K)`` boolean array each.
@@ -475,6 +540,8 @@ class VeridicalPredictor(IPEPredictor):
     def __init__(self, world: World, backend: Union[str, PhysicsBackend] = "world",
                  backend_params: Optional[Mapping[str, Any]] = None):
         super().__init__(world, K=1, sigma=0.0, backend=backend, backend_params=backend_params)
+        self.settle_batch = 1  # the world's own settling batches by its physics workers
+        self.settle_inner = False  # a reference verdict is dear: settled one by one as the search needs it
 
     @property
     def world_verdicts(self) -> bool:

@@ -1,0 +1,136 @@
+"""Lazy answers of the IPE, the CNN and the hybrid (``lazy: true``): the same scores as eager answers, from
+fewer towers in deep searches."""
+
+import numpy as np
+import pytest
+
+from overhang_framework.fit.scores import Model
+from overhang_framework.interfaces import Budget, Task
+from overhang_framework.plugins import Registry
+from overhang_framework.search import Expander, root_scores
+
+REG = Registry()
+
+
+@pytest.fixture(scope="module")
+def world():
+    return REG.create("world", {"name": "overhang", "physics": "static"})
+
+
+@pytest.fixture(scope="module")
+def value(world):
+    return REG.create("value", {"name": "overhang"}, world=world)
+
+
+def walk(world, widths, placed, seed):
+    """A state of ``placed`` blocks put down at random among the placements the static physics keeps standing."""
+    rng = np.random.default_rng(seed)
+    state = world.initial_state(Task("t", widths))
+    for _ in range(placed):
+        actions = world.legal_actions(state)
+        standing = [a for a in actions if world.is_stable(world.successor(state, a).geometry)]
+        state = world.step(state, standing[rng.integers(len(standing))])
+    return state
+
+
+STATES = [((1.2, 1.8, 0.6, 1.2, 0.6, 1.8), 1, 0), ((0.6, 1.2, 1.2, 0.6, 1.8, 0.6), 2, 1),
+          ((1.8, 0.6, 0.6, 1.2, 1.2, 0.6), 3, 2), ((1.2, 1.2, 0.6, 0.6, 1.8, 1.2), 2, 3)]
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.03, 0.08])
+def test_the_ipe_settles_any_subset_of_candidates_as_predict_scores_them(world, sigma):
+    eager = REG.create("predictor", {"name": "ipe", "K": 20, "sigma": sigma}, world=world)
+    lazy = REG.create("predictor", {"name": "ipe", "K": 20, "sigma": sigma, "lazy": True}, world=world)
+    pick = np.random.default_rng(7)
+    checked = 0
+    for n, (widths, placed, seed) in enumerate(STATES):
+        state = walk(world, widths, placed, seed)
+        actions = world.legal_actions(state)
+        want = eager.predict(state, actions, np.random.default_rng(n))
+        p, settle, classify = lazy.predict_lazy(state, actions, np.random.default_rng(n))
+        assert np.isnan(p).all() and (np.asarray(classify(range(len(actions)))) == -1).all()
+        # subsets in a random order, as a search settles them, then the rest
+        order = pick.permutation(len(actions))
+        for part in np.array_split(order, 3):
+            np.testing.assert_array_equal(settle(list(part)), want[part])
+            checked += len(part)
+        # near-critical candidates (strictly between falling and standing in every draw) are among them
+    assert checked > 60
+
+
+def test_the_ipe_remembers_lazy_answers_and_gives_them_back_without_simulating(world):
+    lazy = REG.create("predictor", {"name": "ipe", "K": 10, "lazy": True}, world=world)
+    lazy.remember(100)
+    state = walk(world, (1.2, 1.8, 0.6, 1.2), 1, 0)
+    actions = world.legal_actions(state)
+    _, settle, _ = lazy.predict_lazy(state, actions, np.random.default_rng(3))
+    first = settle([0, 2])
+    _, settle_again, classify = lazy.predict_lazy(state, actions, np.random.default_rng(3))
+    known = np.asarray(classify([0, 1, 2]))
+    np.testing.assert_array_equal(known[[0, 2]], first)
+    assert known[1] == -1
+    assert lazy.stats()["remembered"] == 1
+
+
+@pytest.fixture(scope="module")
+def networks(world):
+    return {lazy: REG.create("predictor", {"name": "cnn", "lazy": lazy}, world=world) for lazy in (False, True)}
+
+
+@pytest.mark.parametrize("family", ["ipe", "cnn", "hybrid"])
+@pytest.mark.parametrize("depth", [2, 3])
+def test_a_lazy_search_gives_the_eager_search_scores(world, value, family, depth, networks):
+    """Every root score of the planner's exact (softmax) search, lazy against eager, on states of 2 to 4 blocks."""
+    def make(lazy):
+        if family == "cnn":
+            return networks[lazy]
+        if family == "ipe":
+            return REG.create("predictor", {"name": "ipe", "K": 10, "lazy": lazy}, world=world)
+        return REG.create("predictor", {"name": "hybrid", "switch": 4, "early_params": {"K": 10, "lazy": lazy},
+                                        "late_params": {"lazy": lazy}}, world=world)
+
+    eager, lazy = make(False), make(True)
+    for n, (widths, placed, seed) in enumerate(STATES[:1] if depth == 3 else STATES):
+        state = walk(world, widths[: placed + 1 + depth], placed, seed)
+        scores, towers = {}, {}
+        for label, predictor in (("eager", eager), ("lazy", lazy)):
+            getattr(predictor, "clear_cache", lambda: None)()
+            before = predictor.stats().get("towers", 0)
+            expander = Expander(world, predictor, Budget(), seed=n)
+            scores[label] = root_scores(expander, value, state, depth, True, prefetch=True)
+            towers[label] = predictor.stats().get("towers", 0) - before
+        np.testing.assert_allclose(scores["lazy"], scores["eager"], rtol=0, atol=1e-9)
+        assert np.argmax(scores["lazy"]) == np.argmax(scores["eager"])
+        if family == "cnn" and depth == 3:  # the leaves it need not score: fewer towers through the network
+            assert towers["lazy"] < 0.7 * towers["eager"], towers
+
+
+def test_only_cheap_lazy_predictors_settle_a_node_at_once(world):
+    veridical = REG.create("predictor", {"name": "veridical"}, world=world)
+    assert Expander(world, veridical, Budget(), seed=0).settle_batch == 1
+    assert not Expander(world, veridical, Budget(), seed=0).settle_inner
+    ipe = REG.create("predictor", {"name": "ipe", "K": 5, "lazy": True, "settle_batch": 8}, world=world)
+    assert Expander(world, ipe, Budget(), seed=0).settle_batch == 8
+    hybrid = REG.create("predictor", {"name": "hybrid", "early_params": {"lazy": True}}, world=world)
+    assert hybrid.predict_lazy is not None and hybrid.settle_inner
+    assert REG.create("predictor", {"name": "hybrid"}, world=world).predict_lazy is None
+
+
+@pytest.mark.parametrize("name,params,words", [
+    ("ipe", {"lazy": "yes"}, "lazy must be true or false"),
+    ("ipe", {"settle_batch": 0}, "settle_batch must be a whole number >= 1"),
+    ("cnn", {"lazy": 1}, "lazy must be true or false"),
+    ("cnn", {"settle_batch": 2.5}, "settle_batch must be a whole number >= 1"),
+])
+def test_bad_lazy_settings_are_refused(world, name, params, words):
+    with pytest.raises(Exception, match=words):
+        REG.create("predictor", {"name": name, **params}, world=world)
+
+
+def test_how_answers_are_asked_for_leaves_a_models_tables_where_they_were():
+    context = {"world": {}, "value": {"name": "overhang"}}
+    plain = Model({"name": "hybrid", "early_params": {"K": 50}, "late_params": {}}, 2)
+    lazy = Model({"name": "hybrid", "early_params": {"K": 50, "lazy": True, "settle_batch": 4},
+                  "late_params": {"lazy": True}}, 2)
+    assert plain.key(context) == lazy.key(context)
+    assert plain.draw_seed(context) == lazy.draw_seed(context)
