@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from overhang_framework.geometry import Block, Geometry, overhang
-from overhang_framework.interfaces import Budget, State, Task
+from overhang_framework.interfaces import Budget, Predictor, State, Task
 from overhang_framework.plugins import Registry
 from overhang_framework.search import ChoiceRule, Expander, lookahead_value, root_scores
 from overhang_framework.tasks import generate_sequences
@@ -204,3 +204,41 @@ def test_the_rollout_value_sees_past_the_horizon(world, veridical):
     d = planner(world, depth=1).plan(state, veridical, rollout, Budget(), np.random.default_rng(0))
     greedy = planner(world, "myopic").plan(state, veridical, rollout, Budget(), np.random.default_rng(0))
     assert d.action != greedy.action, "with a rollout leaf value, depth 1 already looks beyond the next block"
+
+
+class _Network(Predictor):
+    """A batched predictor that costs per tower (as a network does), counting the towers it scores."""
+
+    batched = True
+    deterministic = True
+
+    def __init__(self):
+        self.towers = 0
+
+    def predict(self, state, actions, rng):
+        return self.predict_many([(state, actions)], [rng])[0]
+
+    def predict_many(self, requests, rngs):
+        out = []
+        for state, actions in requests:
+            self.towers += len(actions)
+            n = len(state.geometry)
+            out.append(np.array([np.clip(1.2 - abs(a.x) / (1 + 0.3 * n), 0, 1) for a in actions]))
+        return out
+
+
+def test_a_networks_deep_unbudgeted_search_expands_nodes_as_it_reaches_them(world, value):
+    planner = REG.create("planner", {"name": "lookahead", "depth": 3, "choice": "softmax"}, world=world)
+    state = world.initial_state(Task("t", (1.2, 1.8, 0.6, 1.2, 0.6)))
+    found = {}
+    for prefetch in (True, False):
+        network = _Network()
+        planner.prefetches = (lambda p, b: True) if prefetch else type(planner).prefetches.__get__(planner)
+        d = planner.plan(state, network, value, Budget(), np.random.default_rng(0))
+        found[prefetch] = (d.action, d.choice_probability, network.towers)
+    assert found[False][:2] == found[True][:2]
+    assert found[False][2] < found[True][2]
+    default = type(planner).prefetches
+    assert not default(planner, _Network(), Budget())
+    assert default(planner, _Network(), Budget(predictor_calls=4))  # a budget's charges stay as they were
+    assert default(planner, REG.create("predictor", {"name": "veridical"}, world=world), Budget())

@@ -6,8 +6,10 @@ mid-episode states, three ways, side by side on the same states in one run, the 
 state:
 
 * ``eager``: the predictor scores every child of a state when the state is expanded, and the children of
-  a node one level above the leaves are expanded together (the planner's ``prefetch``): the default;
-* ``eager, no prefetch``: the same, each state expanded when the search reaches it;
+  a node one level above the leaves are expanded together (the planner's ``prefetch``, which it keeps
+  under a call budget);
+* ``eager, no prefetch``: the same, each state expanded when the search reaches it (the planner's way for
+  a network from depth 3 without a budget);
 * ``lazy``: the predictor's ``lazy: true``. An inner node's children are scored together when it is
   expanded, the leaves best bound first, a ``settle_batch`` at a time, and only while they can still
   change the result.
