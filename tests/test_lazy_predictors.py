@@ -114,6 +114,10 @@ def test_only_cheap_lazy_predictors_settle_a_node_at_once(world):
     hybrid = REG.create("predictor", {"name": "hybrid", "early_params": {"lazy": True}}, world=world)
     assert hybrid.predict_lazy is not None and hybrid.settle_inner
     assert REG.create("predictor", {"name": "hybrid"}, world=world).predict_lazy is None
+    tiered = REG.create("world", {"name": "overhang"})
+    dear = REG.create("predictor", {"name": "hybrid", "early": "veridical", "late_params": {"lazy": True}}, world=tiered)
+    assert dear.early.predict_lazy is not None, "the tiered world's veridical verdicts are lazy"
+    assert dear.settle_batch == 1 and not dear.settle_inner
 
 
 @pytest.mark.parametrize("name,params,words", [

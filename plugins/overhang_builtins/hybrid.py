@@ -74,8 +74,12 @@ class HybridPredictor(Predictor):
 
     @property
     def settle_batch(self) -> int:
-        """How many unknown answers a search settles together: the larger of the parts' wishes."""
-        return max(int(getattr(p, "settle_batch", 1) or 1) for p in (self.early, self.late))
+        """How many unknown answers a search settles together: the larger of the parts' wishes, or 1 when a
+        part's lazy answers are dear (the world's reference verdicts), which are settled one by one."""
+        parts = (self.early, self.late)
+        if any(getattr(p, "predict_lazy", None) is not None and not getattr(p, "settle_inner", False) for p in parts):
+            return 1
+        return max(int(getattr(p, "settle_batch", 1) or 1) for p in parts)
 
     @property
     def settle_inner(self) -> bool:
