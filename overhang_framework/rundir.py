@@ -60,9 +60,15 @@ def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix[:-1]: data}
 
 
+#: Settings added to the configs after runs were made, by their last key, with the value that does what those
+#: runs did: a run directory written without one is the same config as one with that value.
+ADDED_LATER = {"lazy": False, "settle_batch": 16}
+
+
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
     """``key: old -> new`` for every leaf that differs (added and removed keys included), the
-    most telling first: model names and top-level settings, then by depth."""
+    most telling first: model names and top-level settings, then by depth. A setting of
+    :data:`ADDED_LATER` that ``old`` lacks and ``new`` has at its former behaviour's value is no difference."""
     a, b = flatten(old), flatten(new)
     missing = object()
     diffs = []
@@ -70,6 +76,9 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     order = sorted(set(a) | set(b), key=lambda k: (not k.endswith(".name") and "." in k, k.count("."), k))
     for key in order:
         va, vb = a.get(key, missing), b.get(key, missing)
+        leaf = key.rsplit(".", 1)[-1]
+        if va is missing and leaf in ADDED_LATER and vb == ADDED_LATER[leaf] and type(vb) is type(ADDED_LATER[leaf]):
+            continue
         if va != vb:
             show = lambda v: "(unset)" if v is missing else json.dumps(v)  # noqa: E731
             diffs.append(f"{key}: {show(va)} -> {show(vb)}")

@@ -210,6 +210,7 @@ class _Network(Predictor):
     """A batched predictor that costs per tower (as a network does), counting the towers it scores."""
 
     batched = True
+    batch_invariant = True
     deterministic = True
 
     def __init__(self):
@@ -242,3 +243,6 @@ def test_a_networks_deep_unbudgeted_search_expands_nodes_as_it_reaches_them(worl
     assert not default(planner, _Network(), Budget())
     assert default(planner, _Network(), Budget(predictor_calls=4))  # a budget's charges stay as they were
     assert default(planner, REG.create("predictor", {"name": "veridical"}, world=world), Budget())
+    varying = _Network()
+    varying.batch_invariant = False  # answers that differ with the batch: prefetched as before, the same numbers
+    assert default(planner, varying, Budget())

@@ -30,6 +30,9 @@ class Workload:
 class _Recording:
     """A predictor that records the successors it is asked about and answers through ``inner``."""
 
+    #: every answer goes through :meth:`predict`, so that every successor asked about is recorded
+    predict_lazy = None
+
     def __init__(self, inner, world, workload: Workload):
         self.inner, self.world, self.workload = inner, world, workload
 

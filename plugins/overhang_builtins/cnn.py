@@ -37,7 +37,10 @@ class CNNPredictor(Predictor):
     only, and marks the predictor :attr:`batched`: score tables then ask for
     the towers of many states in one call; ``false`` is the network as
     trained, run by torch and asked state by state (the reference for tests
-    and benchmarks). The predictor is deterministic: ``rng`` is not used.
+    and benchmarks). ``lazy`` lets a search ask only for the towers whose answer can change its result,
+    ``settle_batch`` at a time (docs/planners.md, "Lazy answers"); the scores are the same, and it needs
+    ONNX Runtime, whose answer for a tower does not depend on the batch. The predictor is deterministic:
+    ``rng`` is not used.
     """
 
     deterministic = True
@@ -63,6 +66,12 @@ class CNNPredictor(Predictor):
                                     mirror=mirror, fused=fused, runtime=runtime)
         #: One large :meth:`predict_many` costs much less than many small ones (see ``fit.scores``).
         self.batched = fused
+        #: Whether a tower's answer is the same in any batch: ONNX Runtime's on the CPU is, to the bit;
+        #: torch's differs by float rounding (about 1e-6) with the batch's size.
+        self.batch_invariant = self.model.runtime == "onnxruntime"
+        if lazy and not self.batch_invariant:
+            raise ValueError("lazy needs a tower's answer to be the same in any batch, which only "
+                             "runtime=onnxruntime on the CPU gives (with fused=true); this network runs in torch")
         self.cache_size = cache_size
         self._cache: OrderedDict = OrderedDict()
         self.counts = {"towers": 0, "cache_hits": 0, "images": 0}

@@ -58,6 +58,9 @@ class HybridPredictor(Predictor):
         self.counts = {"early_calls": 0, "late_calls": 0, "early_actions": 0, "late_actions": 0}
         #: Whether either predictor prefers one large :meth:`predict_many` to many small ones.
         self.batched = bool(getattr(self.early, "batched", False) or getattr(self.late, "batched", False))
+        #: Whether both predictors answer the same in any batch.
+        self.batch_invariant = bool(getattr(self.early, "batch_invariant", False)
+                                    and getattr(self.late, "batch_invariant", False))
 
     def route(self, state: State) -> str:
         """``early`` or ``late``: who judges the towers one block larger than ``state``'s."""
@@ -72,41 +75,39 @@ class HybridPredictor(Predictor):
         that routes otherwise overrides this too."""
         return min(max(self.switch, blocks + 1), blocks + depth + 1)
 
+    @staticmethod
+    def _opted(part) -> bool:
+        """Whether ``part`` was asked to answer lazily (``lazy: true``); a part that is lazy of itself (the
+        veridical predictor in a world with deferred verdicts) answers eagerly inside a hybrid, as it always has."""
+        return getattr(part, "lazy", False) is True and getattr(part, "predict_lazy", None) is not None
+
     @property
     def settle_batch(self) -> int:
-        """How many unknown answers a search settles together: the larger of the parts' wishes, or 1 when a
-        part's lazy answers are dear (the world's reference verdicts), which are settled one by one."""
-        parts = (self.early, self.late)
-        if any(getattr(p, "predict_lazy", None) is not None and not getattr(p, "settle_inner", False) for p in parts):
-            return 1
-        return max(int(getattr(p, "settle_batch", 1) or 1) for p in parts)
+        """How many unknown answers a search settles together: the larger of the lazy parts' wishes."""
+        return max([1] + [int(getattr(p, "settle_batch", 1) or 1) for p in (self.early, self.late) if self._opted(p)])
 
     @property
     def settle_inner(self) -> bool:
-        """Whether a search settles an inner node's children together: when both parts say so."""
-        return all(getattr(p, "settle_inner", False) or getattr(p, "predict_lazy", None) is None
-                   for p in (self.early, self.late))
+        """Whether a search settles an inner node's children together: when every lazy part says so."""
+        return all(getattr(p, "settle_inner", False) for p in (self.early, self.late) if self._opted(p))
 
     @property
     def predict_lazy(self):
-        """:meth:`_predict_lazy` when either part answers lazily; else ``None``."""
-        if any(getattr(p, "predict_lazy", None) is not None for p in (self.early, self.late)):
-            return self._predict_lazy
-        return None
+        """:meth:`_predict_lazy` when either part was asked to answer lazily; else ``None``."""
+        return self._predict_lazy if any(self._opted(p) for p in (self.early, self.late)) else None
 
     def lazy_for(self, state: State) -> bool:
         """Whether the part that judges ``state``'s children answers lazily."""
-        return getattr(getattr(self, self.route(state)), "predict_lazy", None) is not None
+        return self._opted(getattr(self, self.route(state)))
 
     def _predict_lazy(self, state: State, actions: Sequence[Action], rng: np.random.Generator):
-        """The routed part's lazy answer, or its whole answer when it has none (nothing left to settle)."""
+        """The routed part's lazy answer, or its whole answer when it answers eagerly (nothing left to settle)."""
         which = self.route(state)
         part = getattr(self, which)
         self.counts[f"{which}_calls"] += 1
         self.counts[f"{which}_actions"] += len(actions)
-        lazy = getattr(part, "predict_lazy", None)
-        if lazy is not None:
-            return lazy(state, actions, rng)
+        if self._opted(part):
+            return part.predict_lazy(state, actions, rng)
         return np.asarray(part.predict_many([(state, actions)], [rng])[0], dtype=float), None, None
 
     def predict(self, state: State, actions: Sequence[Action], rng: np.random.Generator) -> np.ndarray:

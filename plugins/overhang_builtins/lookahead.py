@@ -74,10 +74,12 @@ class LookaheadPlanner(Planner):
         That pays for physics, where one large call costs much less than many small ones. A network
         (a ``batched`` predictor) costs about the same per tower in any batch, and from depth 3 the
         towers the bounds would skip outnumber the rest, so its searches expand each node as they reach
-        it, unless a budget counts the calls: the calls charged decide how deep a budgeted search gets,
-        and they stay as they were. Either way the scores are the same.
+        it, unless a budget counts the calls (the calls charged decide how deep a budgeted search gets,
+        and they stay as they were) or the network's answers depend on the batch (``batch_invariant``
+        false: torch), so that the scores are the same either way, to the bit.
         """
-        return budget.limited or self.depth < 3 or not getattr(predictor, "batched", False)
+        network = getattr(predictor, "batched", False) and getattr(predictor, "batch_invariant", False)
+        return budget.limited or self.depth < 3 or not network
 
 
 class _Unbounded(Value):

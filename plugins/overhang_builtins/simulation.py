@@ -238,7 +238,9 @@ class IPEPredictor(Predictor):
     world's parameters for that backend (``world.backend_params``), updated by
     ``backend_params``. ``scenes`` is how the scenes reach a backend that takes arrays (the static one):
     ``arrays`` (no Python object per scene) or ``objects`` (a :class:`Geometry` each, the reference path;
-    the same verdicts). The module docstring defines each perturbation.
+    the same verdicts). ``lazy`` lets a search ask only for the candidates whose answer can change its
+    result, ``settle_batch`` at a time, under the draws of the call (docs/planners.md, "Lazy answers"); the
+    answers are the same. The module docstring defines each perturbation.
     """
 
     def __init__(self, world: World, K: int = 50, sigma: float = 0.03,
@@ -266,6 +268,9 @@ class IPEPredictor(Predictor):
         self.settle_batch = settle_batch
         #: a search settles an inner node's children together (a batch costs about the same per answer)
         self.settle_inner = True
+        #: a scene's verdict does not depend on the scenes simulated with it (the static backend decides each
+        #: alone; only the rare scene that NNLS leaves to HiGHS is solved in a stacked LP, none of 87,050)
+        self.batch_invariant = True
         self.world = world
         self.K = int(K)
         self.memory_size = 0
