@@ -75,8 +75,22 @@ def test_the_report_names_what_was_not_found_and_what_the_cohort_says_about_it()
     assert why["gamma"] in below and why["hybrid"] in below
     null = report("null", table.assign(holds=False), Steps(Path("/nonexistent")), sizes, sizes, None, 10, False,
                   [1, 2], 1.0)
-    assert "- **As a null study should:** yes; no effect appears at α = .05." in null
+    assert "- **As a null study should:** yes; none of the 5 effects the null cohort lacks appears at α = .05." in null
+    assert "- **Kept by the null cohort** (its participants judge with a noisy IPE): both approximate" in null
     assert "Not found" not in null
+    # the null cohort keeps approximate physics: the baseline appearing is not a false positive, a crossover is
+    kept = table.assign(holds=table["finding"].isin(["stable", "baseline", "crossover"]))
+    people["true_beta"] = np.linspace(2, 30, len(people))
+    people["cnn_lead"] = -people["true_beta"] / 100 + np.random.default_rng(0).normal(0, 0.01, len(people))
+    why = diagnostics(people)
+    assert why["crossover"].startswith("each participant's late-minus-early CNN lead goes with the planted "
+                                       "β (Spearman ρ = -") and why["crossover"].endswith(", p < .001)")
+    null = report("null", kept, Steps(Path("/nonexistent")), sizes, sizes, None, 10, False, [1, 2], 1.0, why=why)
+    assert "- **As a null study should:** no; 1 of 5 effects the null cohort lacks appear at α = .05 (crossover)." in null
+    above = next(line for line in null.splitlines() if line.startswith("- **Above α = .05:**"))
+    assert "gamma (50%" in above and why["crossover"] in above and "baseline" not in above
+    rates = next(line for line in null.splitlines() if line.startswith("- **False-positive rate**"))
+    assert "baseline" not in rates and "crossover 100%" in rates
 
 
 def test_power_redraws_studies_of_the_given_size_from_the_participants():
