@@ -530,7 +530,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
     shown = table[table["finding"] != "switch"] if not planted else table
     holds = shown[shown["holds"] & (shown["finding"] != "stable")]
     kind = "planted" if planted else "null"
-    expected = "each finding" if planted else "none of them (beyond chance)"
+    expected = "each finding" if planted else \
+        "none of the effects of a dual transition (beyond chance), and the approximate physics its cohort keeps"
     lines = [f"# Study: {study} ({kind})", "",
              f"{n} participants ({', '.join(f'{v} {k}' for k, v in sizes.items())}), "
              f"{'all' if n_tasks is None else n_tasks} tasks each, fitted depths {', '.join(map(str, depths))}; "
