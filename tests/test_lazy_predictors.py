@@ -9,17 +9,9 @@ from overhang_framework.interfaces import Budget, Task
 from overhang_framework.plugins import Registry
 from overhang_framework.search import Expander, root_scores
 
+from search_fixtures import value, world  # noqa: F401  (the shared static world and its value)
+
 REG = Registry()
-
-
-@pytest.fixture(scope="module")
-def world():
-    return REG.create("world", {"name": "overhang", "physics": "static"})
-
-
-@pytest.fixture(scope="module")
-def value(world):
-    return REG.create("value", {"name": "overhang"}, world=world)
 
 
 def walk(world, widths, placed, seed):
