@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 KEYS = {"towers", "agreement_early_stop", "agreement_static", "agreement_static_critical",
@@ -75,3 +76,30 @@ def test_the_lazy_benchmark_prints_each_way_and_the_same_scores(tmp_path, capsys
     assert "cnn/D2" in capsys.readouterr().out
     assert lazy.main(["--families", "mlp"]) == 2
     assert capsys.readouterr().err.strip() == "error: unknown family 'mlp'; allowed: cnn, hybrid, ipe"
+
+
+def test_the_sigma_benchmark_counts_verdict_changes_along_each_draw():
+    from overhang_framework.bench.sigma import _changes
+
+    verdicts = np.array([[1, 1, 1, 1],    # stands at every sigma
+                         [1, 1, 0, 0],    # one critical sigma
+                         [0, 1, 1, 0],    # stands on an interval: two changes
+                         [1, 0, 0, 1],    # stands, falls, stands again
+                         [0, 0, 0, 0]], dtype=bool)
+    flips, gaps = _changes(verdicts)
+    assert flips.tolist() == [0, 1, 2, 2, 0]
+    assert gaps.tolist() == [False, False, False, True, False]
+
+
+def test_the_sigma_benchmark_prints_identical_verdicts_and_the_shares(tmp_path, capsys):
+    from overhang_framework.bench import sigma
+
+    out = tmp_path / "sigma.json"
+    assert sigma.main(["--states", "1", "--placed", "1", "--K", "5", "--repeats", "1", "--step", "0.03",
+                       "--json", str(out)]) == 0
+    figures = json.loads(out.read_text())
+    assert figures["identical"] is True and figures["candidates"] > 0
+    assert figures["draws"] == figures["candidates"] * 5
+    assert sum(figures["changes"].values()) == pytest.approx(1.0)
+    assert "one call is" in capsys.readouterr().out
+    assert sigma.main(["--placed", "one"]) == 2
