@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from overhang_framework.fit.check import interval, interval_rank, past_edge
+from overhang_framework.fit.check import coverage, interval, interval_rank, past_edge
 
 
 @pytest.fixture(scope="module")
@@ -58,6 +58,7 @@ def test_the_generating_model_passes_the_check_and_a_wrong_model_fails_it(fitted
     right = people["flagged"].mean()
     conditions = pd.read_csv(fitted / "fit" / "check" / "conditions.csv")
     assert right <= 0.15 and not conditions["flagged"].any(), people[people["flagged"]]
+    assert "the median and 95% interval of the same mean" in (fitted / "fit" / "check" / "check.md").read_text()
     # the noisy IPE forced on everyone: it cannot build as stably as these participants did
     proc = _check(fitted, "--model", "ipe/myopic", "--out", str(fitted / "wrong"))
     assert proc.returncode == 0, proc.stderr
@@ -78,6 +79,10 @@ def test_a_stopped_check_continues_from_its_parts_and_other_settings_are_refused
     assert proc.returncode == 0, proc.stderr
     parts = sorted((out / "parts").glob("*.json"))
     assert len(parts) == 4
+    # three replicas' range holds one more replica with probability 2 / 4: every sentence says 50%, not 95%
+    text = (out / "check.md").read_text()
+    assert "50% interval of 3 replicas" in text and "the median and 50% interval of the same mean" in text
+    assert "95%" not in text
     before = (out / "participants.csv").read_text()
     parts[0].unlink()  # as if stopped before its last participant
     kept = {p: p.stat().st_mtime_ns for p in parts[1:]}
@@ -118,6 +123,8 @@ def test_the_interval_of_39_replicas_is_their_range_and_leaves_5_percent_out():
     values = list(np.arange(39.0))
     assert interval_rank(39) == 1 and interval(values) == (0.0, 38.0)
     assert interval_rank(79) == 2 and interval(list(np.arange(79.0))) == (1.0, 77.0)
+    assert coverage(39) == pytest.approx(0.95) and coverage(19) == pytest.approx(0.90)
+    assert coverage(79) == pytest.approx(0.95) and coverage(3) == pytest.approx(0.5)
     assert interval([1.0, float("nan"), 3.0]) == (1.0, 3.0) and np.isnan(interval([float("nan")])[0])
     # an exchangeable draw falls outside the range of 39 others with probability 2 / 40
     rng = np.random.default_rng(0)

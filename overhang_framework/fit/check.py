@@ -77,8 +77,13 @@ def interval_rank(replicas: int) -> int:
     return max(1, int(math.floor(0.025 * (replicas + 1))))
 
 
+def coverage(replicas: int) -> float:
+    """The level of the replicas' interval: were the data one more replica, the chance it falls inside."""
+    return 1 - 2 * interval_rank(replicas) / (replicas + 1)
+
+
 def interval(values: Sequence[float]) -> tuple[float, float]:
-    """The replicas' 95% interval of :func:`interval_rank` (NaN values left out; NaN when none is left)."""
+    """The replicas' interval of :func:`interval_rank` (its level: :func:`coverage`); NaN values are left out, NaN when none is left."""
     x = np.sort(np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=float))
     if not x.size:
         return float("nan"), float("nan")
@@ -395,8 +400,7 @@ class _quiet:
 
 def findings(people: pd.DataFrame, conditions: pd.DataFrame, replicas: int, which: str) -> list[str]:
     """What the check found, one bullet per finding."""
-    k = interval_rank(replicas)
-    expected = 2 * k / (replicas + 1)
+    expected = 1 - coverage(replicas)
     checked = people[(people["replicas"] > 0) & people["observed"].notna()]
     flagged = checked[checked["flagged"]]
     n = len(checked)
@@ -437,7 +441,8 @@ def findings(people: pd.DataFrame, conditions: pd.DataFrame, replicas: int, whic
     return out
 
 
-def figure(people: pd.DataFrame, conditions: pd.DataFrame, out: Path) -> None:
+def figure(people: pd.DataFrame, conditions: pd.DataFrame, out: Path, level: float = 0.95) -> None:
+    """``check.png``: observed against simulated; ``level`` is the replicas' interval (:func:`coverage`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -471,7 +476,7 @@ def figure(people: pd.DataFrame, conditions: pd.DataFrame, out: Path) -> None:
             pad = 0.05 * (hi - lo or 1.0)
             ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], color="#999999", lw=0.8, zorder=0)
         ax.set_title(label, fontsize=9)
-        ax.set_xlabel("simulated (median, 95% interval)", fontsize=8)
+        ax.set_xlabel(f"simulated (median, {level:.0%} interval)", fontsize=8)
         ax.set_ylabel("observed", fontsize=8)
         ax.tick_params(labelsize=7)
     for ax in axes.ravel()[len(STATISTICS):]:
@@ -500,7 +505,7 @@ def report(parts: Sequence[Mapping[str, Any]], out: Path, replicas: int, which: 
     conditions = condition_table(parts)
     atomic_write_text(out / "participants.csv", people.to_csv(index=False))
     atomic_write_text(out / "conditions.csv", conditions.to_csv(index=False))
-    figure(people, conditions, out)
+    figure(people, conditions, out, coverage(replicas))
     fmt = {name: f for name, _, f in STATISTICS}
     lines = ["# Posterior predictive check", "",
              f"{len(parts)} participants, {which}, {replicas} replicas each ({seconds:.0f} s).", ""]
@@ -509,8 +514,8 @@ def report(parts: Sequence[Mapping[str, Any]], out: Path, replicas: int, which: 
         lines.append(f"- **Left out:** {', '.join(skipped)}: every trial ended on a timeout, and the model has no "
                      "decision time to replay that.")
     lines += ["", "## Conditions", "",
-              "The mean over each condition's participants, observed, and the median and 95% interval of the same "
-              "mean over the replicas. ✗: outside the interval.", ""]
+              "The mean over each condition's participants, observed, and the median and "
+              f"{coverage(replicas):.0%} interval of the same mean over the replicas. ✗: outside the interval.", ""]
     body = []
     for r in conditions.itertuples():
         label = dict((s[0], s[1]) for s in STATISTICS)[r.statistic]
