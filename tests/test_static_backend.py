@@ -160,3 +160,28 @@ def test_a_negative_margin_widens_the_contacts():
     assert not StaticBackend(margin=0.0).stable(tower)
     assert StaticBackend(margin=-0.02).stable(tower)
     assert StaticBackend(margin=-0.02).stable_batch([tower])[0]
+
+
+@pytest.mark.parametrize("blocks", [3, 6, 8, 9])  # 9 x 9 contact pairs do not fit one 64-bit word
+def test_the_closure_of_the_contacts_is_computed_once_per_structure_and_equals_the_direct_one(blocks):
+    from overhang_framework.physics.static_backend import _reach
+
+    rng = np.random.default_rng(blocks)
+    scenes = 400
+    layer = np.sort(rng.integers(0, 5, size=(scenes, blocks)), axis=1)
+    below = (layer[:, :, None] == layer[:, None, :] + 1) & (rng.random((scenes, blocks, blocks)) < 0.6)
+    below[scenes // 2:] = below[rng.integers(0, 5, size=scenes - scenes // 2)]  # structures shared, as in the IPE's
+    # the direct closure: k reaches i when a chain of supports leads from k down to i
+    direct = np.zeros((scenes, blocks, blocks))
+    for s in range(scenes):
+        for i in range(blocks):
+            seen, todo = {i}, [i]
+            while todo:
+                j = todo.pop()
+                for k in np.flatnonzero(below[s, :, j]):
+                    if k not in seen:
+                        seen.add(int(k))
+                        todo.append(int(k))
+            direct[s, i, sorted(seen)] = 1.0
+    assert np.array_equal(_reach(below), direct)
+    assert _reach(below[:1]).shape == (1, blocks, blocks) and _reach(below[:0]).shape == (0, blocks, blocks)

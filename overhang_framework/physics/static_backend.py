@@ -204,14 +204,7 @@ class _Batch:
         """The margin of the contacts under each block, ``(B, N)``, or the scalar ``margin``."""
         if params.height_margin == 0:
             return params.margin
-        B, N = self.below.shape[:2]
-        up = self.below.transpose(0, 2, 1).astype(float)  # up[b, i, k]: k rests on i
-        reach = np.broadcast_to(np.eye(N), (B, N, N)).copy()
-        for _ in range(N):
-            nxt = np.minimum(reach + reach @ up, 1.0)
-            if np.array_equal(nxt, reach):
-                break
-            reach = nxt
+        reach = _reach(self.below)
         mass = reach @ self.m[:, :, None]
         height = (reach @ (self.m * self.zc)[:, :, None]) / np.where(mass > 0, mass, 1.0)
         above = np.maximum(height[:, :, 0] - self.layer * BLOCK_HEIGHT, 0.0)
@@ -226,6 +219,30 @@ class _Batch:
             if isinstance(v, np.ndarray):
                 setattr(sub, k, v[rows])
         return sub
+
+
+def _reach(below: np.ndarray) -> np.ndarray:
+    """``reach[b, i, k]``: 1.0 where block ``k`` is block ``i`` or rests on it, directly or through others.
+
+    ``below[b, k, i]``: ``k`` rests on ``i``. The closure is computed once per distinct contact structure (the
+    perturbed scenes of one tower mostly share theirs) and given to every scene that has it.
+    """
+    B, N = below.shape[:2]
+    flat = below.reshape(B, N * N)
+    if B > 1 and N * N <= 64:  # each structure as one 64-bit word
+        words = flat.astype(np.uint64) @ (np.uint64(1) << np.arange(N * N, dtype=np.uint64))
+        _, first, inverse = np.unique(words, return_index=True, return_inverse=True)
+        patterns = flat[first]
+    else:
+        patterns, inverse = flat, np.arange(B)
+    up = patterns.reshape(-1, N, N).transpose(0, 2, 1).astype(float)  # up[s, i, k]: k rests on i
+    reach = np.broadcast_to(np.eye(N), up.shape).copy()
+    for _ in range(N):
+        nxt = np.minimum(reach + reach @ up, 1.0)
+        if np.array_equal(nxt, reach):
+            break
+        reach = nxt
+    return reach[inverse.reshape(-1)]
 
 
 def _choose_parent(bt: _Batch, score: np.ndarray) -> np.ndarray:
