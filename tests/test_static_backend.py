@@ -185,3 +185,25 @@ def test_the_closure_of_the_contacts_is_computed_once_per_structure_and_equals_t
             direct[s, i, sorted(seen)] = 1.0
     assert np.array_equal(_reach(below), direct)
     assert _reach(below[:1]).shape == (1, blocks, blocks) and _reach(below[:0]).shape == (0, blocks, blocks)
+
+
+def test_the_cut_check_of_a_batch_is_each_scenes_own_when_scenes_share_their_structure():
+    from overhang_framework.physics.static_backend import _Batch, _cuts_pass
+
+    params = StaticParams()
+    towers = random_towers(60, seed=11, min_blocks=3, max_blocks=7)
+    rng = np.random.default_rng(2)
+    # each tower with small offsets: most copies keep the tower's contacts, some lose or gain one
+    rows = [tw for tw in towers for _ in range(6)]
+    n = max(len(g) for g in rows)
+    arr = np.zeros((len(rows), n, 3))
+    arr[:, :, 2] = -1
+    for i, g in enumerate(rows):
+        arr[i, :len(g)] = g.as_array()
+    x = arr[:, :, 1] + np.where(arr[:, :, 0] > 0, rng.normal(0, 0.05, arr.shape[:2]), 0.0)
+    grav = np.c_[rng.normal(0, 0.5, len(rows)), np.full(len(rows), -9.81)]
+    bt = _Batch.from_arrays(arr[:, :, 0], x, arr[:, :, 2].astype(int), grav, None, params)
+    together = _cuts_pass(bt, params)
+    alone = np.array([_cuts_pass(bt.subset(np.array([i])), params)[0] for i in range(bt.B)])
+    assert np.array_equal(together, alone)
+    assert 0 < together.sum() < together.size  # both verdicts occur

@@ -221,6 +221,18 @@ class _Batch:
         return sub
 
 
+def _distinct(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)`` of the distinct rows of the boolean ``flags`` (rows x bits): ``flags[first]`` are
+    the distinct rows and ``flags[first][inverse]`` is ``flags``."""
+    B = flags.shape[0]
+    if B < 2:
+        return np.arange(B), np.arange(B)
+    packed = np.ascontiguousarray(np.packbits(flags, axis=1))
+    rows = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)
+
+
 def _reach(below: np.ndarray) -> np.ndarray:
     """``reach[b, i, k]``: 1.0 where block ``k`` is block ``i`` or rests on it, directly or through others.
 
@@ -228,14 +240,8 @@ def _reach(below: np.ndarray) -> np.ndarray:
     perturbed scenes of one tower mostly share theirs) and given to every scene that has it.
     """
     B, N = below.shape[:2]
-    flat = below.reshape(B, N * N)
-    if B > 1 and N * N <= 64:  # each structure as one 64-bit word
-        words = flat.astype(np.uint64) @ (np.uint64(1) << np.arange(N * N, dtype=np.uint64))
-        _, first, inverse = np.unique(words, return_index=True, return_inverse=True)
-        patterns = flat[first]
-    else:
-        patterns, inverse = flat, np.arange(B)
-    up = patterns.reshape(-1, N, N).transpose(0, 2, 1).astype(float)  # up[s, i, k]: k rests on i
+    first, inverse = _distinct(below.reshape(B, N * N))
+    up = below[first].transpose(0, 2, 1).astype(float)  # up[s, i, k]: k rests on i
     reach = np.broadcast_to(np.eye(N), up.shape).copy()
     for _ in range(N):
         nxt = np.minimum(reach + reach @ up, 1.0)
@@ -346,17 +352,21 @@ def _cuts_pass(bt: _Batch, params: StaticParams) -> np.ndarray:
     eye = np.eye(N, dtype=bool)[None]
     idx = np.arange(N, dtype=float)
     top = int(bt.layer[valid].max()) if valid.any() else -1
+    # the groups of every cut depend on the contacts and the layers alone: found once per distinct structure
+    levels = valid[:, None, :] & (bt.layer[:, None, :] >= np.arange(top + 1)[None, :, None])  # (B, cuts, N)
+    first, inverse = _distinct(np.concatenate([adj.reshape(B, N * N), levels.reshape(B, -1)], axis=1))
+    adj_s, levels_s = adj[first], levels[first]
     for L in range(0, top + 1):
-        members = valid & (bt.layer >= L)
-        inner = adj & members[:, :, None] & members[:, None, :] | (eye & members[:, :, None])
-        label = np.where(members, idx[None, :], np.inf)
+        members_s = levels_s[:, L]
+        inner = adj_s & members_s[:, :, None] & members_s[:, None, :] | (eye & members_s[:, :, None])
+        label = np.where(members_s, idx[None, :], np.inf)
         for _ in range(N):
             new = np.where(inner, label[:, None, :], np.inf).min(axis=2)
-            new = np.where(members, new, np.inf)
+            new = np.where(members_s, new, np.inf)
             if np.array_equal(new, label):
                 break
             label = new
-        onehot = (label[:, :, None] == idx[None, None, :]) & members[:, :, None]
+        onehot = ((label[:, :, None] == idx[None, None, :]) & members_s[:, :, None])[inverse]
         m = bt.m[:, :, None] * onehot
         M = m.sum(axis=1)
         X = (m * bt.x[:, :, None]).sum(axis=1) / np.where(M > 0, M, 1.0)
