@@ -187,8 +187,8 @@ def test_the_closure_of_the_contacts_is_computed_once_per_structure_and_equals_t
     assert _reach(below[:1]).shape == (1, blocks, blocks) and _reach(below[:0]).shape == (0, blocks, blocks)
 
 
-def test_the_cut_check_of_a_batch_is_each_scenes_own_when_scenes_share_their_structure():
-    from overhang_framework.physics.static_backend import _Batch, _cuts_pass
+def test_the_cut_and_tree_checks_of_a_batch_are_each_scenes_own_when_scenes_share_their_structure():
+    from overhang_framework.physics.static_backend import _Batch, _cuts_pass, _tree_verdicts
 
     params = StaticParams()
     towers = random_towers(60, seed=11, min_blocks=3, max_blocks=7)
@@ -207,3 +207,8 @@ def test_the_cut_check_of_a_batch_is_each_scenes_own_when_scenes_share_their_str
     alone = np.array([_cuts_pass(bt.subset(np.array([i])), params)[0] for i in range(bt.B)])
     assert np.array_equal(together, alone)
     assert 0 < together.sum() < together.size  # both verdicts occur
+    trees, stands = _tree_verdicts(bt, params)
+    for i in range(bt.B):
+        one = _tree_verdicts(bt.subset(np.array([i])), params)
+        assert (trees[i], stands[i]) == (one[0][0], one[1][0]), i
+    assert 0 < stands.sum() < stands.size and 0 < trees.sum() < trees.size

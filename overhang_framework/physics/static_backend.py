@@ -222,12 +222,12 @@ class _Batch:
 
 
 def _distinct(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(first, inverse)`` of the distinct rows of the boolean ``flags`` (rows x bits): ``flags[first]`` are
-    the distinct rows and ``flags[first][inverse]`` is ``flags``."""
+    """``(first, inverse)`` of the distinct rows of ``flags`` (rows x columns, boolean or integer):
+    ``flags[first]`` are the distinct rows and ``flags[first][inverse]`` is ``flags``."""
     B = flags.shape[0]
     if B < 2:
         return np.arange(B), np.arange(B)
-    packed = np.ascontiguousarray(np.packbits(flags, axis=1))
+    packed = np.ascontiguousarray(np.packbits(flags, axis=1) if flags.dtype == bool else flags)
     rows = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
     _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
     return first, inverse.reshape(-1)
@@ -264,19 +264,23 @@ def _tree_check(bt: _Batch, parent: np.ndarray, params: StaticParams) -> np.ndar
     for stability (unused contacts carry no force), failing proves nothing.
     """
     B, N = bt.B, bt.N
-    anc = np.zeros((B, N, N), dtype=bool)  # anc[b, i, j]: j is i or below i in the tree
-    idx = np.arange(N)
-    anc[:, idx, idx] = bt.valid
     safe_parent = np.maximum(parent, 0)
-    cur = parent
+    # the tree's ancestors depend on the tree alone: found once per distinct tree
+    first, inverse = _distinct(np.where(bt.valid, parent + 1, -1).astype(np.int8))
+    tree, valid = parent[first], bt.valid[first]
+    anc = np.zeros((first.size, N, N), dtype=bool)  # anc[s, i, j]: j is i or below i in the tree
+    idx = np.arange(N)
+    anc[:, idx, idx] = valid
+    cur = tree
     for _ in range(N):
         has = cur >= 0
         if not has.any():
             break
         bb, ii = np.nonzero(has)
         anc[bb, ii, cur[bb, ii]] = True
-        up = np.take_along_axis(parent, np.maximum(cur, 0), axis=1)
+        up = np.take_along_axis(tree, np.maximum(cur, 0), axis=1)
         cur = np.where(has, up, -1)
+    anc = anc[inverse]
     m = bt.m
     M = np.einsum("bi,bij->bj", m, anc)
     Msafe = np.where(M > 0, M, 1.0)
