@@ -93,16 +93,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for r in range(args.repeats):
         for n, (geometries, draws) in enumerate(asked):
             scenes = [_scenes(ipe, geometries, draws, s) for s in GRID]
-            ways = list(seconds)
+            ways, verdicts = list(seconds), {}
             for way in (ways if (n + r) % 2 == 0 else ways[::-1]):
                 t0 = time.perf_counter()
-                out = [ipe.run([sc])[0] for sc in scenes] if way == "one call per sigma" else ipe.run(scenes)
+                verdicts[way] = [ipe.run([sc])[0] for sc in scenes] if way == ways[0] else ipe.run(scenes)
                 seconds[way] += time.perf_counter() - t0
-                if way == "one call per sigma":
-                    apart = out
-                else:
-                    together = out
-            identical &= all(np.array_equal(a, b) for a, b in zip(apart, together))
+            identical &= all(np.array_equal(a, b) for a, b in zip(*verdicts.values()))
     gain = seconds["one call per sigma"] / max(seconds["one call for the grid"], 1e-12)
     print(f"judging the {len(GRID)} σ of the fit's grid ({', '.join(map(str, GRID))}), {args.repeats} repeats:")
     for way, s in seconds.items():

@@ -441,7 +441,7 @@ def findings(people: pd.DataFrame, conditions: pd.DataFrame, replicas: int, whic
     return out
 
 
-def figure(people: pd.DataFrame, conditions: pd.DataFrame, out: Path, level: float = 0.95) -> None:
+def figure(people: pd.DataFrame, conditions: pd.DataFrame, out: Path, level: float) -> None:
     """``check.png``: observed against simulated; ``level`` is the replicas' interval (:func:`coverage`)."""
     import matplotlib
 

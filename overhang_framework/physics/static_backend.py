@@ -248,7 +248,7 @@ def _reach(below: np.ndarray) -> np.ndarray:
         if np.array_equal(nxt, reach):
             break
         reach = nxt
-    return reach[inverse.reshape(-1)]
+    return reach[inverse]
 
 
 def _choose_parent(bt: _Batch, score: np.ndarray) -> np.ndarray:
