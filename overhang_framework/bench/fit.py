@@ -35,6 +35,7 @@ Measured on whatever else the machine is doing: the figures are of this run.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import tempfile
@@ -232,13 +233,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _space(world, value, context, placements, args, rng) -> dict:
-    """The fit's default model space on whole logged trials, its tables shared (share_tables) and not."""
+    """The fit's default model space on whole logged trials, as a fit process computes it (predictors shared,
+    tables that are the same numbers shared), against each model's own tables, and against the code before the
+    hybrid drew as its early part (its own draws: its all-IPE tables computed, not the IPE's)."""
+    from unittest import mock
+
     from omegaconf import OmegaConf
 
     from overhang_framework.config import compose_config
     from overhang_framework.fit.fitting import map_placements
     from overhang_framework.fit.run import Predictors
-    from overhang_framework.fit.scores import ScoreTables, share_memory, share_tables
+    from overhang_framework.fit.scores import Model, ScoreTables, share_memory, share_tables
     from overhang_framework.fit.space import model_space
     from overhang_framework.plugins import Registry
 
@@ -252,34 +257,42 @@ def _space(world, value, context, placements, args, rng) -> dict:
     trials = [trials[i] for i in rng.choice(len(trials), min(args.trials, len(trials)), replace=False)]
     built = Predictors(Registry(), world)
     models = [m for index in space for m in index.variants]
-    arms = {"shared": {"seconds": 0.0, "computed": 0}, "each": {"seconds": 0.0, "computed": 0}}
+    names = ("shared", "each", "before")
+    arms = {a: {"seconds": 0.0, "computed": 0} for a in names}
     difference = 0.0
     print(f"\nthe fit's default model space ({len(models)} models) on {len(trials)} logged trials "
-          f"({sum(len(t) for t in trials)} states), the same tables shared and not:", flush=True)
+          f"({sum(len(t) for t in trials)} states): as a fit computes it, each model's own tables, and "
+          "hybrids drawing their own (before):", flush=True)
+    own_draws = mock.patch.object(Model, "draw_settings", lambda self: self.predictor)
     for n, trial in enumerate(trials):
         results = {}
-        for arm in (("shared", "each") if n % 2 == 0 else ("each", "shared")):
+        for arm in names[n % 3:] + names[:n % 3]:  # rotate which goes first
             for predictor in list(built.built.values()):
                 clear = getattr(predictor, "clear_cache", None)
                 if callable(clear):
                     clear()
-            tables = [ScoreTables(world, value, built(dict(m.predictor)), m, context, None) for m in models]
-            share_memory(tables)
-            if arm == "shared":
-                share_tables(tables)
-            t0 = time.perf_counter()
-            results[arm] = [[t.table(s) for s in trial] for t in tables]
-            arms[arm]["seconds"] += time.perf_counter() - t0
+            with own_draws if arm == "before" else contextlib.nullcontext():
+                tables = [ScoreTables(world, value, built(dict(m.predictor)), m, context, None) for m in models]
+                share_memory(tables)
+                if arm != "each":
+                    share_tables(tables)
+                t0 = time.perf_counter()
+                results[arm] = [[t.table(s) for s in trial] for t in tables]
+                arms[arm]["seconds"] += time.perf_counter() - t0
             arms[arm]["computed"] += sum(t.stats.computed for t in tables)
         for a, b in zip(results["shared"], results["each"]):
             for x, y in zip(a, b):
                 difference = max(difference, float(np.max(np.abs(x - y), initial=0.0)))
-    ratio = arms["each"]["seconds"] / max(arms["shared"]["seconds"], 1e-9)
-    print(f"  each model's own tables: {arms['each']['computed']} tables, {arms['each']['seconds']:.1f} s", flush=True)
-    print(f"  tables shared:           {arms['shared']['computed']} tables, {arms['shared']['seconds']:.1f} s "
-          f"({ratio:.2f}x faster); the tables differ by at most {difference:.1e}", flush=True)
+    each = arms["each"]["seconds"] / max(arms["shared"]["seconds"], 1e-9)
+    before = arms["before"]["seconds"] / max(arms["shared"]["seconds"], 1e-9)
+    print(f"  before (hybrids' own draws): {arms['before']['computed']} tables, {arms['before']['seconds']:.1f} s "
+          f"({before:.2f}x the time now)", flush=True)
+    print(f"  each model's own tables:     {arms['each']['computed']} tables, {arms['each']['seconds']:.1f} s "
+          f"({each:.2f}x)", flush=True)
+    print(f"  now:                         {arms['shared']['computed']} tables, {arms['shared']['seconds']:.1f} s; "
+          f"the same as each model's own to {difference:.1e}", flush=True)
     return {"models": len(models), "trials": len(trials), **{f"{k}_{m}": v for k, a in arms.items() for m, v in a.items()},
-            "speedup": ratio, "max_difference": difference}
+            "speedup": each, "speedup_over_before": before, "max_difference": difference}
 
 
 def _grid_trials(world, placements) -> list[list]:

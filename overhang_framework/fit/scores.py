@@ -118,12 +118,53 @@ class Model:
         shared = [k for k in SHARED_DRAW_KEYS if k in self.predictor]
         if shared:  # these tables' draws leave those settings out (tables keyed before that are not reused)
             data["draws_without"] = shared
+        if _stage_switch(self.predictor):  # its draws are its early part's (tables keyed before are not reused)
+            data["draws_of"] = "early"
         return _digest(data)
 
+    def draw_settings(self) -> Mapping[str, Any]:
+        """The settings the model's draws follow: the predictor's, or a stage-switch hybrid's early part's (a
+        config with ``early``, ``late`` and ``early_params``, as ``predictor=hybrid``), as that predictor's own
+        config gives them. So a hybrid draws what its early part alone would, and where every tower goes to
+        the early part its table is that part's model's table, to the bit (:func:`share_tables`)."""
+        if _stage_switch(self.predictor):
+            return _part_config(str(self.predictor["early"]), self.predictor.get("early_params") or {})
+        return self.predictor
+
     def draw_seed(self, context: Mapping[str, Any]) -> int:
-        """The seed of the predictor's draws: the model's settings without its noise levels and switch point."""
-        digest = _digest({"predictor": _strip_noise(dict(self.predictor)), "context": _strip(dict(context), ENGINE_KEYS)})
+        """The seed of the predictor's draws: the settings of :meth:`draw_settings` without the noise levels
+        and the switch point."""
+        digest = _digest({"predictor": _strip_noise(dict(self.draw_settings())),
+                          "context": _strip(dict(context), ENGINE_KEYS)})
         return int(digest[:16], 16)
+
+
+def _stage_switch(config: Mapping[str, Any]) -> bool:
+    return all(k in config for k in ("early", "late", "early_params"))
+
+
+@functools.lru_cache(maxsize=64)
+def _composed_part(name: str, params: str) -> str:
+    from overhang_framework.fit.space import _predictor_config
+
+    return json.dumps(_predictor_config(name, json.loads(params)), sort_keys=True, default=str)
+
+
+def _part_config(name: str, params: Mapping[str, Any]) -> dict:
+    """The config of predictor ``name`` with ``params`` over its defaults (one compose per distinct part)."""
+    plain = json.loads(json.dumps(_plain(params), sort_keys=True, default=str))
+    try:
+        return json.loads(_composed_part(name, json.dumps(plain, sort_keys=True)))
+    except (OverhangError, ValueError):  # a part the registry refuses fails where the predictor is built
+        return {"name": name, **plain}
+
+
+def _plain(config: Any) -> Any:
+    if isinstance(config, Mapping):
+        return {str(k): _plain(v) for k, v in config.items()}
+    if isinstance(config, (list, tuple)):
+        return [_plain(v) for v in config]
+    return config
 
 
 class ScoreCache:
@@ -309,13 +350,15 @@ class ScoreTables:
         return scores
 
 
-def _switch_stage(members: Mapping[int, ScoreTables], late: Optional[ScoreTables], predictor: Any, depth: int,
-                  state: State) -> Optional[ScoreTables]:
+def _switch_stage(members: Mapping[int, ScoreTables], late: Optional[ScoreTables], early: Optional[ScoreTables],
+                  predictor: Any, depth: int, state: State) -> Optional[ScoreTables]:
     """The tables equal to those of hybrid ``predictor`` at horizon ``depth`` in ``state``."""
     n = len(state.geometry)
     stage = int(predictor.equivalent_switch(n, depth))
     if stage <= n + 1 and late is not None:
         return late
+    if stage >= n + depth + 1 and early is not None:
+        return early
     return members.get(stage)
 
 
@@ -328,7 +371,9 @@ def share_tables(tables: Sequence[ScoreTables]) -> None:
     is that of its ``equivalent_switch(n, D)``, when the hybrids of ``tables`` (the same settings otherwise,
     the same depth) include it. Where that sends every tower to ``late`` and ``late`` is deterministic (its
     answers never use the draws) and is the very predictor of a model of ``tables`` at the same depth, the
-    table is that model's. A table computed elsewhere is also kept under its own model's key in the cache, so
+    table is that model's; where it sends every tower to ``early`` and ``early`` is the very predictor of a
+    model of ``tables`` at the same depth with the same draws (a hybrid draws as its early part:
+    :meth:`Model.draw_settings`), the table is that model's. A table computed elsewhere is also kept under its own model's key in the cache, so
     a later fit or check with other models finds it.
     """
     groups: dict[str, dict[int, ScoreTables]] = {}
@@ -354,4 +399,7 @@ def share_tables(tables: Sequence[ScoreTables]) -> None:
             if getattr(part, "deterministic", False):
                 late = next((u for u in tables if u.predictor is part and u.model.depth == t.model.depth
                              and u.context == t.context), None)
-            t.same_as = functools.partial(_switch_stage, members, late, t.predictor, t.model.depth)
+            part, seed = getattr(t.predictor, "early", None), t.model.draw_seed(t.context)
+            early = next((u for u in tables if part is not None and u.predictor is part and u.model.depth == t.model.depth
+                          and u.context == t.context and u.model.draw_seed(u.context) == seed), None)
+            t.same_as = functools.partial(_switch_stage, members, late, early, t.predictor, t.model.depth)
