@@ -1,5 +1,6 @@
 """The fast static engine gives the reference path's verdicts: scenes as arrays against a Geometry per
-scene, and the NNLS-certified LP stage against HiGHS, on thousands of scenes including near-critical ones."""
+scene, the compiled cheap stages against the NumPy ones, and the NNLS-certified LP stage against HiGHS, on
+thousands of scenes including near-critical ones."""
 
 import numpy as np
 import pytest
@@ -43,6 +44,38 @@ def test_arrays_give_the_verdicts_of_a_geometry_per_scene(nnls):
     assert len(arrays) == 1800
     assert np.array_equal(arrays, objects)
     assert 0.1 < arrays.mean() < 0.9
+
+
+@pytest.mark.parametrize("params", [StaticParams(), StaticParams(margin=0.005, height_margin=0.0),
+                                    StaticParams(friction_scale=0.3), StaticParams(side_contacts=False),
+                                    StaticParams(friction_combine="min", margin=-0.002),
+                                    StaticParams(friction_combine="mean", side_gap=0.01)],
+                         ids=["default", "margin", "low-friction", "no-sides", "lenient-min", "mean-gap"])
+def test_the_compiled_stages_decide_as_the_numpy_stages(params):
+    towers = _lp_towers() + random_towers(150, seed=11, min_blocks=2)
+    critical = _near_critical(family_towers("indeterminate", 12, seed=8), params)
+    compiled, numpy_ = StaticBackend(params, compiled=True), StaticBackend(params, compiled=False)
+    for sigma in (0.01, 0.05):
+        W, X, L, grav, fric = _noisy(towers, copies=8, seed=2, sigma=sigma)
+        fast, slow = compiled.stable_arrays(W, X, L, grav, fric), numpy_.stable_arrays(W, X, L, grav, fric)
+        assert np.array_equal(fast, slow), f"{int((fast != slow).sum())} of {fast.size} verdicts differ"
+        assert 0.1 < fast.mean() < 0.9
+    fast, slow = compiled.stable_batch(critical), numpy_.stable_batch(critical)
+    assert len(critical) > 40 and 0 < fast.sum() < len(critical)
+    assert np.array_equal(fast, slow)
+    # the same scenes reach the LP either way
+    assert compiled.lp_solved == numpy_.lp_solved > 300
+
+
+def test_the_compiled_stages_decide_interpenetration_zero_gravity_and_missing_supports():
+    towers = [Geometry.from_tuples([(1.2, 0.0, 0), (0.6, 0.2, 0)]),  # two ground blocks overlapping
+              Geometry.from_tuples([(1.2, 0.0, 0), (0.6, 2.0, 1)]),  # a block on nothing
+              Geometry.from_tuples([(1.2, 0.0, 0), (1.8, 0.9, 1)]),  # tips to the right
+              Geometry.from_tuples([(1.2, 0.0, 0), (1.8, 0.5, 1)])]
+    gravity = np.array([[0.0, -9.81], [0.0, -9.81], [0.0, 0.0], [0.0, -9.81]])
+    for compiled in (True, False):
+        assert StaticBackend(compiled=compiled).stable_batch(towers, gravity).tolist() == [False, False, True, True]
+        assert StaticBackend(compiled=compiled).stable_batch(towers).tolist() == [False, False, False, True]
 
 
 def test_stable_arrays_refuses_arrays_of_different_shapes():

@@ -1,9 +1,10 @@
 """The static engine under the default physics: ``python -m overhang_framework.bench.engine``.
 
 The tiered world decides most towers with static checks and runs PyBullet only near a tipping point.
-This benchmark times, side by side in one run, the static engine's LP stage as it is now (non-negative
-least squares with checked certificates, HiGHS for what they leave; ``world.static.lp_nnls=true``)
-and as it was before (HiGHS for every LP scene; ``lp_nnls=false``), on:
+This benchmark times, side by side in one run, the static engine as it is now (the cheap stages compiled,
+the LP stage by non-negative least squares with checked certificates, HiGHS for what they leave;
+``world.static.compiled=true`` and ``world.static.lp_nnls=true``) and as it was before (the cheap stages
+in NumPy, HiGHS for every LP scene; both ``false``), on:
 
 * the **optimum search** of ``--tasks`` paper20 tasks (branch and bound over every placement, veridical
   predictor), each from a cold world;
@@ -31,7 +32,8 @@ def _world(overrides: Sequence[str], lp_nnls: str):
     from overhang_framework.app import build_models
     from overhang_framework.config import compose_config
 
-    cfg = compose_config([*overrides, "predictor=veridical", "planner=myopic", f"+world.static.lp_nnls={lp_nnls}"])
+    cfg = compose_config([*overrides, "predictor=veridical", "planner=myopic", f"+world.static.lp_nnls={lp_nnls}",
+                                f"+world.static.compiled={lp_nnls}"])
     return cfg, build_models(cfg)
 
 

@@ -66,6 +66,10 @@ geometries that no cheaper stage settles reach the LP:
    certificate settles: scenes within its tolerances of the edge. The verdicts
    are HiGHS's (tests/test_static_engine.py), at about a fifth of the cost.
 
+The first three stages run as one compiled loop over the scenes
+(:mod:`overhang_framework.physics.static_kernel`, ``compiled``, the default) or as the NumPy functions
+below (``compiled=False``); both give the same verdicts.
+
 Scenes can come as :class:`Geometry` objects (:meth:`StaticBackend.stable_batch`)
 or as arrays (:meth:`StaticBackend.stable_arrays`, the IPE's path: no Python
 object per scene).
@@ -79,7 +83,7 @@ docs/physics.md for how often that matters.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Optional, Sequence
 
 import numpy as np
@@ -108,6 +112,8 @@ class StaticParams:
     lp_tolerance: float = 1e-6
     lp_method: str = "highs"
     lp_nnls: bool = True
+    # how the cheap stages run, not what they decide: left out of the repr that keys verdict caches
+    compiled: bool = field(default=True, repr=False)
 
     def __post_init__(self):
         if self.friction_combine not in ("product", "min", "mean"):
@@ -116,6 +122,55 @@ class StaticParams:
             raise ValueError(f"StaticParams.margin must be a finite number, got {self.margin!r}")
         check_fields(self, non_negative=("friction", "height_margin", "friction_scale", "ground_friction", "gravity", "min_contact",
                                          "side_gap", "side_overlap", "lp_tolerance"))
+
+
+def _pack(geometries: Sequence[Geometry], friction, params: StaticParams):
+    """``(w, x, layer, valid, mu)``: the geometries as ``(B, N)`` arrays padded to the longest (a padding
+    entry has width and centre 0, layer -10 and is not valid)."""
+    B = len(geometries)
+    N = max(max((len(g) for g in geometries), default=0), 1)
+    w = np.zeros((B, N))
+    x = np.zeros((B, N))
+    layer = np.full((B, N), -10, dtype=np.int64)
+    mu = np.full((B, N), float(params.friction))
+    valid = np.zeros((B, N), dtype=bool)
+    for b, g in enumerate(geometries):
+        k = len(g)
+        if k:
+            arr = g.as_array()
+            w[b, :k], x[b, :k], layer[b, :k] = arr[:, 0], arr[:, 1], arr[:, 2]
+            valid[b, :k] = True
+            if friction is not None and friction[b] is not None:
+                mu[b, :k] = np.asarray(friction[b], dtype=float)[:k]
+    return w, x, layer, valid, mu
+
+
+def _unpack(w, x, layer, friction, params: StaticParams):
+    """:func:`_pack`'s arrays from ``(B, n)`` widths, centres and layers (a width of 0 pads a row)."""
+    w = np.asarray(w, dtype=float)
+    x = np.asarray(x, dtype=float)
+    layer = np.asarray(layer, dtype=np.int64)
+    if w.shape[1] == 0:
+        B = w.shape[0]
+        w, x, layer = np.zeros((B, 1)), np.zeros((B, 1)), np.full((B, 1), -10, dtype=np.int64)
+        friction = None
+    valid = w > 0
+    layer = np.where(valid, layer, -10)
+    mu = np.full(w.shape, float(params.friction))
+    if friction is not None:
+        mu = np.where(valid, np.asarray(friction, dtype=float).reshape(w.shape), mu)
+    return np.where(valid, w, 0.0), np.where(valid, x, 0.0), layer, valid, mu
+
+
+def _unit_gravity(gravity, B: int, params: StaticParams):
+    """``(g, zero_g)``: each scene's gravity as a unit vector ``(B, 2)``, and where it is zero."""
+    if gravity is None:
+        g = np.tile([0.0, -params.gravity], (B, 1))
+    else:
+        g = np.asarray(gravity, dtype=float).reshape(B, 2)
+    norm = np.hypot(g[:, 0], g[:, 1])
+    zero_g = norm < 1e-12
+    return g / np.where(zero_g, 1.0, norm)[:, None], zero_g
 
 
 def _combine(a: np.ndarray, b: np.ndarray, params: "StaticParams") -> np.ndarray:
@@ -133,54 +188,26 @@ class _Batch:
     """Padded arrays for a batch of geometries: ``(B, N)`` with a validity mask."""
 
     def __init__(self, geometries: Sequence[Geometry], gravity, friction, params: StaticParams):
-        B = len(geometries)
-        N = max(max((len(g) for g in geometries), default=0), 1)
-        w = np.zeros((B, N))
-        x = np.zeros((B, N))
-        layer = np.full((B, N), -10, dtype=np.int64)
-        mu = np.full((B, N), float(params.friction))
-        valid = np.zeros((B, N), dtype=bool)
-        for b, g in enumerate(geometries):
-            k = len(g)
-            if k:
-                arr = g.as_array()
-                w[b, :k], x[b, :k], layer[b, :k] = arr[:, 0], arr[:, 1], arr[:, 2]
-                valid[b, :k] = True
-                if friction is not None and friction[b] is not None:
-                    mu[b, :k] = np.asarray(friction[b], dtype=float)[:k]
-        self._setup(w, x, layer, valid, mu, gravity, params)
+        self._setup(*_pack(geometries, friction, params), gravity, params)
 
     @classmethod
     def from_arrays(cls, w: np.ndarray, x: np.ndarray, layer: np.ndarray, gravity, friction,
                     params: StaticParams) -> "_Batch":
         """A batch of ``(B, n)`` arrays of widths, centres and layers, without building a :class:`Geometry`
         per row; a width of 0 pads a row with fewer blocks. ``friction`` is ``(B, n)`` or ``None``."""
+        return cls.padded(*_unpack(w, x, layer, friction, params), gravity, params)
+
+    @classmethod
+    def padded(cls, w, x, layer, valid, mu, gravity, params: StaticParams) -> "_Batch":
+        """A batch of padded arrays as :func:`_pack` gives them."""
         bt = object.__new__(cls)
-        w = np.asarray(w, dtype=float)
-        x = np.asarray(x, dtype=float)
-        layer = np.asarray(layer, dtype=np.int64)
-        if w.shape[1] == 0:
-            B = w.shape[0]
-            w, x, layer = np.zeros((B, 1)), np.zeros((B, 1)), np.full((B, 1), -10, dtype=np.int64)
-            friction = None
-        valid = w > 0
-        layer = np.where(valid, layer, -10)
-        mu = np.full(w.shape, float(params.friction))
-        if friction is not None:
-            mu = np.where(valid, np.asarray(friction, dtype=float).reshape(w.shape), mu)
-        bt._setup(np.where(valid, w, 0.0), np.where(valid, x, 0.0), layer, valid, mu, gravity, params)
+        bt._setup(w, x, layer, valid, mu, gravity, params)
         return bt
 
     def _setup(self, w, x, layer, valid, mu, gravity, params: StaticParams) -> None:
         B, N = w.shape
         self.B, self.N = B, N
-        if gravity is None:
-            g = np.tile([0.0, -params.gravity], (B, 1))
-        else:
-            g = np.asarray(gravity, dtype=float).reshape(B, 2)
-        norm = np.hypot(g[:, 0], g[:, 1])
-        self.zero_g = norm < 1e-12
-        self.g = g / np.where(self.zero_g, 1.0, norm)[:, None]
+        self.g, self.zero_g = _unit_gravity(gravity, B, params)
         self.w, self.x, self.layer, self.mu, self.valid = w, x, layer, mu, valid
         self.m = np.where(valid, w, 0.0)
         self.left, self.right = x - w / 2, x + w / 2
@@ -760,7 +787,7 @@ class StaticBackend:
         geometries = list(geometries)
         if not geometries:
             return np.zeros(0, dtype=bool)
-        return self._decide(_Batch(geometries, gravity, friction, self.params))
+        return self._decide(*_pack(geometries, friction, self.params), gravity)
 
     def stable_arrays(self, widths: np.ndarray, xs: np.ndarray, layers: np.ndarray,
                       gravity: Optional[np.ndarray] = None, friction: Optional[np.ndarray] = None) -> np.ndarray:
@@ -773,9 +800,39 @@ class StaticBackend:
                              f"xs {np.shape(xs)} and layers {np.shape(layers)}")
         if widths.shape[0] == 0:
             return np.zeros(0, dtype=bool)
-        return self._decide(_Batch.from_arrays(widths, xs, layers, gravity, friction, self.params))
+        return self._decide(*_unpack(widths, xs, layers, friction, self.params), gravity)
 
-    def _decide(self, bt: _Batch) -> np.ndarray:
+    def _decide(self, w, x, layer, valid, mu, gravity) -> np.ndarray:
+        """Verdicts of padded scenes (:func:`_pack`): the cheap stages, compiled (``compiled``) or in NumPy,
+        then the LP for what they leave."""
+        B = w.shape[0]
+        if not self.params.compiled:
+            return self._decide_batch(_Batch.padded(w, x, layer, valid, mu, gravity, self.params))
+        p = self.params
+        g, zero_g = _unit_gravity(gravity, B, p)
+        code = _kernel().decide(w, x, layer, valid, mu, g, zero_g, BLOCK_HEIGHT, float(p.margin),
+                                float(p.height_margin), float(p.min_contact), bool(p.side_contacts),
+                                float(p.side_gap), float(p.side_overlap), float(p.ground_friction),
+                                _kernel().COMBINE[p.friction_combine], float(p.friction_scale))
+        stable = code == 1
+        rows = np.flatnonzero(code < 0)
+        if rows.size:
+            grav = None if gravity is None else np.asarray(gravity, dtype=float).reshape(B, 2)[rows]
+            sub = _Batch.padded(w[rows], x[rows], layer[rows], valid[rows], mu[rows], grav, p)
+            stable[rows] = self._lp(sub, np.arange(rows.size))
+        self.checked += B
+        self.lp_solved += int(rows.size)
+        return stable
+
+    def _lp(self, bt: _Batch, rows: np.ndarray) -> np.ndarray:
+        if self.params.lp_nnls:
+            counts: dict = {}
+            out = _lp_nnls(bt, rows, self.params, counts)
+            self.lp_certified += counts["certified"]
+            return out
+        return _lp_verdicts(bt, rows, self.params)
+
+    def _decide_batch(self, bt: _Batch) -> np.ndarray:
         is_tree, stable = _tree_verdicts(bt, self.params)
         has_side = bt.side.any(axis=(1, 2))
         supported = ((bt.below.sum(axis=2) + bt.ground >= 1) | ~bt.valid).all(axis=1)
@@ -786,13 +843,15 @@ class StaticBackend:
         need_lp &= ~bt.clash
         rows = np.flatnonzero(need_lp)
         if rows.size:
-            if self.params.lp_nnls:
-                counts: dict = {}
-                stable[rows] = _lp_nnls(bt, rows, self.params, counts)
-                self.lp_certified += counts["certified"]
-            else:
-                stable[rows] = _lp_verdicts(bt, rows, self.params)
+            stable[rows] = self._lp(bt, rows)
         stable &= ~bt.clash
         self.checked += bt.B
         self.lp_solved += int(rows.size)
         return stable
+
+
+def _kernel():
+    """The compiled stages (:mod:`overhang_framework.physics.static_kernel`), imported when first used."""
+    from overhang_framework.physics import static_kernel
+
+    return static_kernel
