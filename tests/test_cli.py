@@ -80,7 +80,7 @@ def test_example_plugin_runs_through_the_cli(example_plugin, tmp_path, capsys):
     ("world.resolution=-1", "world 'overhang': resolution must be a positive number of metres, got -1"),
     ("world.physics=nope", "unknown physics 'nope'; allowed: pybullet, static"),
     ("+world.bogus=1", "world 'overhang' has no parameter bogus; its parameters: cache, physics,"),
-    ("+world.static.bogus=1", "unknown parameter(s) bogus for physics backend 'static'; allowed: friction,"),
+    ("+world.static.bogus=1", "unknown parameter(s) bogus for physics backend 'static'; allowed: compiled, friction,"),
     ("world.pybullet.time_step=0", "PyBulletParams.time_step must be a number > 0, got 0"),
     ("world.static.friction=-1", "StaticParams.friction must be a number >= 0, got -1"),
     ("world.workers=0", "workers must be a whole number >= 1, got 0"),
