@@ -189,6 +189,42 @@ def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tm
     assert proc.returncode == 2 and "holds fits of another" in proc.stderr, proc.stderr
 
 
+
+def test_a_fit_killed_part_way_continues_from_its_journal_with_the_same_fits(tmp_path, tiny_log):
+    import os
+    import signal
+    import time
+
+    whole = tmp_path / "whole"
+    proc = _cli(str(tiny_log), "--out", str(whole), *FIT, f"cache={tmp_path / 'a.sqlite'}")
+    assert proc.returncode == 0, proc.stderr
+    assert not list((whole / "parts").glob("*.jsonl"))  # the journal goes once the part is written
+    # the same fit on a cold cache of its own, killed (SIGKILL: no clean-up) after its first fits
+    out = tmp_path / "stopped"
+    args = [sys.executable, "-m", "overhang_framework.fit", str(tiny_log), "--out", str(out), *FIT,
+            f"cache={tmp_path / 'b.sqlite'}"]
+    job = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    journal = out / "parts" / "shard-0-of-1.fits.jsonl"
+    deadline = time.monotonic() + 300
+    while job.poll() is None and time.monotonic() < deadline:
+        if journal.exists() and journal.read_text().count("\n") >= 3:
+            break
+        time.sleep(0.02)
+    assert job.poll() is None, "the fit ended before it could be stopped"
+    os.kill(job.pid, signal.SIGKILL)
+    job.wait()
+    assert not (out / "fits.csv").exists()
+    finished = journal.read_text().count("\n")
+    assert 3 <= finished < 24
+    with open(journal, "a") as f:
+        f.write('{"participant": "sim-')  # a line the kill cut short
+    proc = _cli(*args[3:])
+    assert proc.returncode == 0, proc.stderr
+    assert f"; {finished} fits from the journal of a stopped run)" in proc.stdout, proc.stdout
+    pd.testing.assert_frame_equal(pd.read_csv(whole / "fits.csv"), pd.read_csv(out / "fits.csv"))
+    assert not journal.exists()
+
+
 def _section(text: str, title: str) -> list[str]:
     """The lines of the section ``## title`` of a markdown text."""
     lines = text.splitlines()

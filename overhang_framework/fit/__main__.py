@@ -128,8 +128,8 @@ def run(cfg: DictConfig) -> dict:
     """Fit this job's share of the units; write its part, and the aggregate when every part is there."""
     from overhang_framework.fit.compare import comparison, read_truth
     from overhang_framework.fit.fitting import log_placements
-    from overhang_framework.fit.run import (Predictors, aggregate, check_directory, fit_units, units_of,
-                                        write_part)
+    from overhang_framework.fit.run import (FitJournal, Predictors, aggregate, check_directory, fit_units,
+                                            journal_path, units_of, write_part)
     from overhang_framework.fit.scores import ENGINE_KEYS, ScoreCache, _strip
     from overhang_framework.progress import progress_bar
 
@@ -147,6 +147,7 @@ def run(cfg: DictConfig) -> dict:
     mine = [u for k, u in enumerate(units) if k % checked["shards"] == checked["shard"]]
     cache = ScoreCache(cfg.cache)
     build = Predictors(checked["registry"], world)
+    journal = FitJournal(journal_path(out, checked["shard"], checked["shards"]))
 
     bar = progress_bar(total=len(mine) * len(space), desc="fits", unit="fit", disable=not cfg.progress,
                        miniters=1, mininterval=0.5, dynamic_ncols=True)
@@ -163,12 +164,13 @@ def run(cfg: DictConfig) -> dict:
 
     try:
         result = fit_units(mine, world, value, context, space, cache, build, on_unit, cfg.states, cfg.jobs,
-                           lambda: table_bar.update(1), set_total, cfg.cv)
+                           lambda: table_bar.update(1), set_total, cfg.cv, journal)
     finally:
         table_bar.close()
         bar.close()
         cache.close()
     part = write_part(out, checked["shard"], checked["shards"], result.fits)
+    journal.remove()
     fits = aggregate(out, checked["shards"])
     if fits is not None:
         families = {i.family: str(i.variants[0].predictor.get("name")) for i in space}
@@ -177,7 +179,7 @@ def run(cfg: DictConfig) -> dict:
     stats = {label: vars(s) for label, s in result.stats.items()}
     log.info("fitted %d units x %d models in %.1f s: %s", len(mine), len(space), result.seconds, stats)
     return {"part": str(part), "complete": fits is not None, "seconds": result.seconds, "tables": stats,
-            "units": len(mine), "models": len(space)}
+            "units": len(mine), "models": len(space), "resumed": result.resumed}
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
@@ -191,14 +193,15 @@ def app(cfg: DictConfig) -> Optional[dict]:
             return None
         sys.exit(2)
     except KeyboardInterrupt:
-        print(f"interrupted: the score tables computed so far are kept in {cfg.cache}; run the same command "
-              "to continue from them", file=sys.stderr)
+        print(f"interrupted: the score tables computed so far are kept in {cfg.cache} and the finished fits in "
+              f"{Path(cfg.out) / 'parts'}; run the same command to continue from them", file=sys.stderr)
         sys.exit(130)
     out = Path(cfg.out)
     total = sum(t["computed"] for t in summary["tables"].values())
     cached = sum(t["cached"] for t in summary["tables"].values())
     print(f"{summary['units']} participants and pooled conditions x {summary['models']} models in "
-          f"{summary['seconds']:.1f} s ({total} score tables computed, {cached} from the cache)")
+          f"{summary['seconds']:.1f} s ({total} score tables computed, {cached} from the cache"
+          + (f"; {summary['resumed']} fits from the journal of a stopped run" if summary["resumed"] else "") + ")")
     if summary["complete"]:
         print(f"wrote {out / 'fits.csv'} and {out / 'comparison.md'}")
     else:

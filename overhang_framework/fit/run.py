@@ -6,13 +6,20 @@ writes its rows to ``DIR/parts/shard-<shard>-of-<shards>.csv`` (atomically). Eve
 then rebuilds ``DIR/fits.csv`` and ``DIR/comparison.md`` from all parts there,
 under a lock, so the last job of a multirun leaves them complete, and a job
 run again (with a warm score cache) replaces only its own part.
+
+While a job runs, each finished fit is appended to its journal,
+``DIR/parts/shard-<shard>-of-<shards>.fits.jsonl``: a job stopped part-way (a
+Slurm time limit, a kill) and run again takes those fits from it and fits only
+the rest. The journal goes once the part is written.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,38 +75,92 @@ class JobResult:
     fits: list[ModelFit]
     stats: dict[str, TableStats] = field(default_factory=dict)
     seconds: float = 0.0
+    #: Fits taken from the journal of a stopped run.
+    resumed: int = 0
+
+
+class FitJournal:
+    """The fits a job has finished, one JSON line each, appended as they finish: a job run again after a stop
+    takes them from here instead of fitting them again. A line cut short by a kill is ignored."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.done: dict[tuple[str, str], ModelFit] = {}
+        self._cut = False  # the file ends inside a line: the next line starts on a new one
+        if self.path.exists():
+            names = {f.name for f in dataclasses.fields(ModelFit)}
+            text = self.path.read_text()
+            self._cut = bool(text) and not text.endswith("\n")
+            for line in text.splitlines():
+                try:
+                    data = json.loads(line)
+                except ValueError:
+                    continue  # the last line of a job killed while writing it
+                if isinstance(data, dict) and set(data) == names:
+                    fit = ModelFit(**data)
+                    self.done[(fit.label, fit.participant)] = fit
+
+    def get(self, label: str, unit: str) -> Optional[ModelFit]:
+        return self.done.get((label, unit))
+
+    def add(self, fit: ModelFit) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "a") as f:
+            f.write(("\n" if self._cut else "") + json.dumps(dataclasses.asdict(fit)) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        self._cut = False
+        self.done[(fit.label, fit.participant)] = fit
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def journal_path(out: Path, shard: int, shards: int) -> Path:
+    return out / PARTS / f"shard-{shard}-of-{shards}.fits.jsonl"
 
 
 def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], space: Sequence[ModelIndex],
               cache: Optional[ScoreCache], build_predictor: Callable[[Mapping[str, Any]], Any],
               on_unit: Callable[[str, Unit], None] = lambda label, unit: None, states: str = "logged",
               jobs: int = 1, on_table: Callable[[], None] = lambda: None,
-              on_total: Callable[[int], None] = lambda n: None, folds: int = 0) -> JobResult:
+              on_total: Callable[[int], None] = lambda n: None, folds: int = 0,
+              journal: Optional[FitJournal] = None) -> JobResult:
     """Fit every model index of ``space`` to every unit. Tables are shared across units (one
     :class:`ScoreTables` per model) and kept in ``cache``. ``states`` says how decision states are built
     (:func:`~overhang_framework.fit.fitting.map_placements`). With ``jobs > 1`` the tables not in the
-    cache are first computed on that many worker processes (``on_table`` is called for each)."""
+    cache are first computed on that many worker processes (``on_table`` is called for each). Fits in
+    ``journal`` are taken from it; every other one is added to it as it finishes."""
     started = time.perf_counter()
     mapped = {u.name: map_placements(world, u.placements, states) for u in units}
     tables = [[ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
               for index in space]
     share_memory([t for variants in tables for t in variants])
     share_tables([t for variants in tables for t in variants])
+    done = (lambda label, unit: journal.get(label, unit.name)) if journal is not None else (lambda label, unit: None)
     if jobs > 1:
-        fill_tables([t for variants in tables for t in variants], [s for m in mapped.values() for s in m.states],
+        todo = [u for u in units if any(done(index.label, u) is None for index in space)]
+        fill_tables([t for variants in tables for t in variants], [s for u in todo for s in mapped[u.name].states],
                     jobs, on_table, on_total)
     fits: list[ModelFit] = []
     stats: dict[str, TableStats] = {}
+    resumed = 0
     for index, variants in zip(space, tables):
         for unit in units:
-            fits.append(fit_index(unit.name, unit.condition, variants, mapped[unit.name], folds))
+            fit = done(index.label, unit)
+            resumed += fit is not None
+            if fit is None:
+                fit = fit_index(unit.name, unit.condition, variants, mapped[unit.name], folds)
+                if journal is not None:
+                    journal.add(fit)
+            fits.append(fit)
             on_unit(index.label, unit)
         total = TableStats()
         for v in variants:
             for name in ("asked", "computed", "cached", "predictor_calls", "seconds"):
                 setattr(total, name, getattr(total, name) + getattr(v.stats, name))
         stats[index.label] = total
-    return JobResult(fits, stats, time.perf_counter() - started)
+    return JobResult(fits, stats, time.perf_counter() - started, resumed)
 
 
 #: States per work item of :func:`fill_tables`: enough to amortise the hand-over, few enough to balance.
