@@ -189,7 +189,6 @@ def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tm
     assert proc.returncode == 2 and "holds fits of another" in proc.stderr, proc.stderr
 
 
-
 def test_a_fit_killed_part_way_continues_from_its_journal_with_the_same_fits(tmp_path, tiny_log):
     import os
     import signal

@@ -137,7 +137,10 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
               for index in space]
     share_memory([t for variants in tables for t in variants])
     share_tables([t for variants in tables for t in variants])
-    done = (lambda label, unit: journal.get(label, unit.name)) if journal is not None else (lambda label, unit: None)
+
+    def done(label: str, unit: Unit) -> Optional[ModelFit]:
+        return journal.get(label, unit.name) if journal is not None else None
+
     if jobs > 1:
         todo = [u for u in units if any(done(index.label, u) is None for index in space)]
         fill_tables([t for variants in tables for t in variants], [s for u in todo for s in mapped[u.name].states],
