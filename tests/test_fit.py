@@ -438,6 +438,36 @@ def test_engine_settings_leave_a_tables_key_and_draws_alone():
     assert Model(fast, 2).draw_seed(world) == Model(fast, 2).draw_seed(plain)
 
 
+def test_one_process_computes_every_models_tables_of_a_state_together_in_the_states_order(monkeypatch):
+    from types import SimpleNamespace
+
+    from overhang_framework import parallel
+    from overhang_framework.fit import run
+
+    states = [state([[1.2, 0.0, 0], [0.6, 0.1 * i, 1]], [1.2]) for i in range(6)]
+    known = [{2}, set(), {0, 1, 2, 3, 4, 5}]  # model 2 has every table already
+    computed = []
+
+    class Tables(SimpleNamespace):
+        def known(self, s):
+            return states.index(s) in known[self.k]
+
+        def owner(self, s):
+            return self
+
+        def compute(self, s):
+            computed.append((self.k, states.index(s)))
+
+    monkeypatch.setattr(parallel, "pool_map", lambda *a: pytest.fail("one job needs no worker process"))
+    tables = [Tables(k=k, context=CONTEXT, model=Model({"name": "ipe"}, 1)) for k in (0, 1, 2)]
+    totals, ticks = [], []
+    run.fill_tables(tables, states + states[:3], jobs=1, on_table=lambda: ticks.append(1), on_total=totals.append)
+    # state by state, and within a state every model that lacks its table: a hybrid's parts then answer
+    # from what the models of their settings asked just before
+    assert computed == [(k, i) for i in range(6) for k in (0, 1) if (k, i) != (0, 2)]
+    assert totals == [11] and len(ticks) == 11
+
+
 def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monkeypatch):
     from types import SimpleNamespace
 

@@ -151,7 +151,7 @@ def run(cfg: DictConfig) -> dict:
 
     bar = progress_bar(total=len(mine) * len(space), desc="fits", unit="fit", disable=not cfg.progress,
                        miniters=1, mininterval=0.5, dynamic_ncols=True)
-    table_bar = progress_bar(desc="score tables", unit="table", disable=not cfg.progress or cfg.jobs < 2,
+    table_bar = progress_bar(desc="score tables", unit="table", disable=not cfg.progress,
                              miniters=1, mininterval=0.5, dynamic_ncols=True)
 
     def set_total(n):

@@ -128,8 +128,9 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
               journal: Optional[FitJournal] = None) -> JobResult:
     """Fit every model index of ``space`` to every unit. Tables are shared across units (one
     :class:`ScoreTables` per model) and kept in ``cache``. ``states`` says how decision states are built
-    (:func:`~overhang_framework.fit.fitting.map_placements`). With ``jobs > 1`` the tables not in the
-    cache are first computed on that many worker processes (``on_table`` is called for each). Fits in
+    (:func:`~overhang_framework.fit.fitting.map_placements`). The tables not in the cache are first computed
+    state by state, every model's tables of a state together (:func:`fill_tables`), on ``jobs`` worker
+    processes when ``jobs > 1`` and in this process otherwise (``on_table`` is called for each). Fits in
     ``journal`` are taken from it; every other one is added to it as it finishes."""
     started = time.perf_counter()
     mapped = {u.name: map_placements(world, u.placements, states) for u in units}
@@ -141,10 +142,9 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
     def done(label: str, unit: Unit) -> Optional[ModelFit]:
         return journal.get(label, unit.name) if journal is not None else None
 
-    if jobs > 1:
-        todo = [u for u in units if any(done(index.label, u) is None for index in space)]
-        fill_tables([t for variants in tables for t in variants], [s for u in todo for s in mapped[u.name].states],
-                    jobs, on_table, on_total)
+    todo = [u for u in units if any(done(index.label, u) is None for index in space)]
+    fill_tables([t for variants in tables for t in variants], [s for u in todo for s in mapped[u.name].states],
+                jobs, on_table, on_total)
     fits: list[ModelFit] = []
     stats: dict[str, TableStats] = {}
     resumed = 0
@@ -234,28 +234,26 @@ class Predictors:
 
 def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs: int,
                 on_table: Callable[[], None] = lambda: None, on_total: Callable[[int], None] = lambda n: None) -> None:
-    """Compute, on ``jobs`` worker processes, every table of ``all_tables`` x ``states`` that neither memory
-    nor the cache holds, and hand each to its :class:`ScoreTables` (which keeps it and writes it to the cache).
+    """Compute every table of ``all_tables`` x ``states`` that neither memory nor the cache holds, and hand
+    each to its :class:`ScoreTables` (which keeps it and writes it to the cache).
 
-    The states keep their order (a trial's steps stay together, so a worker's expander reuses the subtrees
-    they share); each item is the next few states, with every model's tables of them, so that models
-    sharing a predictor (:class:`Predictors`) share its answers. A table is the same whichever process
-    computes it (common random numbers).
+    The states keep their order (a trial's steps stay together, so an expander reuses the subtrees they
+    share), and a state's tables are computed together, every model's, so that models sharing a predictor
+    (:class:`Predictors`) share its answers: a hybrid's parts answer from what the models of their
+    settings asked just before, within the answers they remember. With ``jobs > 1`` each worker process
+    is given the next few states at a time; otherwise they are computed here. A table is the same
+    whichever process computes it (common random numbers).
     """
+    rows = _missing(all_tables, states)
+    on_total(sum(len(ks) for _, ks in rows))
+    if jobs <= 1:
+        for state, ks in rows:
+            for k in ks:
+                all_tables[k].compute(state)
+                on_table()
+        return
     from overhang_framework.parallel import pool_map
 
-    rows, seen = [], set()  # (state, the models that need its table), in the states' order
-    present = {id(t) for t in all_tables}
-    for state in states:
-        key = state_key(state)
-        if key in seen:
-            continue
-        seen.add(key)
-        # a table that another of all_tables computes in this state (share_tables) is not asked for
-        ks = [k for k, tables in enumerate(all_tables) if not tables.known(state)
-              and ((owner := tables.owner(state)) is tables or id(owner) not in present)]
-        if ks:
-            rows.append((state, ks))
     # chunks of CHUNK states, fewer when there are few states, so that every worker has items
     size = max(1, min(CHUNK, len(rows) // (4 * max(jobs, 1))))
     items = []
@@ -263,7 +261,6 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
         chunk = rows[i:i + size]
         items.append([(k, [state for state, ks in chunk if k in ks]) for k in range(len(all_tables))
                       if any(k in ks for _, ks in chunk)])
-    on_total(sum(len(ks) for _, ks in rows))
     if not items:
         return
     first = all_tables[0]
@@ -272,6 +269,23 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
     for item, results, _ in pool_map(_tables_setup, setup, _tables_work, items, jobs, on_table):
         for (k, chunk), (scores, stats) in zip(item, results):
             all_tables[k].receive(chunk, scores, stats)
+
+
+def _missing(all_tables: Sequence[ScoreTables], states: Sequence[State]) -> list[tuple[State, list[int]]]:
+    """Each distinct state of ``states``, in their order, with the indices of the tables to compute in it:
+    not known, and not computed by another of ``all_tables`` (:func:`~overhang_framework.fit.scores.share_tables`)."""
+    rows, seen = [], set()
+    present = {id(t) for t in all_tables}
+    for state in states:
+        key = state_key(state)
+        if key in seen:
+            continue
+        seen.add(key)
+        ks = [k for k, tables in enumerate(all_tables) if not tables.known(state)
+              and ((owner := tables.owner(state)) is tables or id(owner) not in present)]
+        if ks:
+            rows.append((state, ks))
+    return rows
 
 
 def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, families: list) -> list:

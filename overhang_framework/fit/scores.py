@@ -318,6 +318,10 @@ class ScoreTables:
         self.stats.asked += 1
         return self._table(state)
 
+    def compute(self, state: State) -> None:
+        """Compute and keep the table of ``state`` ahead of the fit that asks for it (not counted as asked)."""
+        self._table(state)
+
     def _table(self, state: State) -> np.ndarray:
         skey = state_key(state)
         known = self._tables.get(skey)
