@@ -101,16 +101,32 @@ def test_bms_equals_groupbmc_on_known_evidence():
     for shift in ([0.0, 1.5, 0.5], [0.0, 0.0, 4.0]):
         L = rng.normal(size=(20, 3)) * 3 + np.array(shift)
         ref = groupbmc.GroupBMC(L.T, max_iter=10_000, tolerance=1e-12).get_result()   # its prior: alpha0 = 1/K
-        ours = bms(L, alpha0=1 / 3, samples=2_000_000)
+        ours = bms(L, alpha0=1 / 3)
         assert ours.frequencies == pytest.approx(ref.frequency_mean, abs=1e-6)
-        # exceedance probabilities by 2,000,000 Dirichlet samples: within 5 standard errors
-        assert ours.ep == pytest.approx(ref.exceedance_probability, abs=5 * 0.5 / math.sqrt(2_000_000))
+        # ours exact, groupBMC's by Dirichlet samples: within 5 of its standard errors at 1,000,000 samples
+        assert ours.ep == pytest.approx(ref.exceedance_probability, abs=5 * 0.5 / math.sqrt(1_000_000))
         assert ours.pxp == pytest.approx(ref.protected_exceedance_probability, abs=2e-3)
         ref1 = groupbmc.GroupBMC(L.T, np.ones(3), max_iter=10_000, tolerance=1e-12).get_result()
         assert bms(L).frequencies == pytest.approx(ref1.frequency_mean, abs=1e-6)
     # identical evidence: nothing to choose, the omnibus risk is near 1 and every PXP near 1/K
     flat = bms(np.zeros((30, 4)))
     assert flat.bor > 0.95 and flat.pxp == pytest.approx([0.25] * 4, abs=0.01)
+
+
+def test_exact_exceedance_probabilities_match_the_closed_form_and_dirichlet_samples():
+    from scipy.stats import beta
+
+    from overhang_framework.fit.bms import exceedance
+
+    # two models: P(r_1 > 1/2) under Beta(a_1, a_2)
+    for a in ([3.0, 7.0], [1 / 3, 0.5], [40.0, 41.0]):
+        assert exceedance(np.array(a))[0] == pytest.approx(beta.sf(0.5, *a), abs=1e-10)
+    rng = np.random.default_rng(5)
+    for alpha in (np.array([1 / 3, 5.0, 2.5]), rng.uniform(1 / 24, 40, size=24), np.array([80.0, 1.0, 1.0, 1.0])):
+        exact = exceedance(alpha)
+        assert exact.sum() == pytest.approx(1.0, abs=1e-10) and (exact >= 0).all()
+        sampled = exceedance(alpha, samples=400_000, seed=1)
+        assert exact == pytest.approx(sampled, abs=5 * 0.5 / math.sqrt(400_000))
 
 
 def _cli(*args):
