@@ -2,7 +2,8 @@
 
 The two fresh-machine commands are read from README.md itself and run in a copy
 of the repository's files (what a clone holds) with a new virtual environment,
-so a README edit that breaks them fails here.
+so a README edit that breaks them fails here. The test command runs among the slow tests
+(``pytest -m slow``): CI runs it itself, from a fresh clone.
 """
 
 import json
@@ -49,13 +50,17 @@ def test_ci_runs_the_readme_test_command():
     assert test in ci.splitlines(), ".ci/run must run README's test command as written"
 
 
-@pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="needs a git checkout")
-def test_fresh_machine_commands_work_from_the_repository_root(tmp_path):
-    run, test = fresh_machine_commands()
+NEEDS_GIT = pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(),
+                               reason="needs a git checkout")
+
+
+@NEEDS_GIT
+def test_the_fresh_machine_run_command_works_from_the_repository_root(tmp_path):
+    run, _ = fresh_machine_commands()
     clone = clone_files(tmp_path / "clone")
     env = user_env()
 
-    # 1. install and run the main job, exactly as written
+    # install and run the main job, exactly as written
     proc = subprocess.run(["bash", "-c", run], cwd=clone, env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "terminal reward" in proc.stdout and "Traceback" not in proc.stderr
@@ -80,7 +85,16 @@ def test_fresh_machine_commands_work_from_the_repository_root(tmp_path):
     assert sweep.returncode == 0, sweep.stderr[-3000:]
     assert sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.name.isdigit()) == ["0", "1"]
 
-    # 2. install for development and run the tests, exactly as written; the nested run is
+
+# CI runs the test command itself, from a fresh clone (test_ci_runs_the_readme_test_command), so the
+# default suite does not run it a second time inside itself
+@pytest.mark.slow
+@NEEDS_GIT
+def test_the_fresh_machine_test_command_works_from_the_repository_root(tmp_path):
+    _, test = fresh_machine_commands()
+    clone = clone_files(tmp_path / "clone")
+    env = user_env()
+    # install for development and run the tests, exactly as written; the nested run is
     # narrowed to one quick test file through pytest's own environment variable
     env_tests = dict(env, PYTEST_ADDOPTS="tests/test_rules.py -p no:cacheprovider")
     proc = subprocess.run(["bash", "-c", test], cwd=clone, env=env_tests, capture_output=True, text=True)
