@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import subprocess
+import sysconfig
 import venv
 from pathlib import Path
 
@@ -41,8 +42,8 @@ class Installed:
 
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
-    """A fresh venv holding a plain (non-editable) install of the framework with its test extra, the
-    com_margin plugin and the documented ``overhang-edge`` plugin; sources are copied first so that
+    """A fresh venv holding a plain (non-editable) install of the framework, the com_margin plugin and the
+    documented ``overhang-edge`` plugin, with the test run's dependencies; sources are copied first so that
     building them leaves the working tree untouched."""
     box = Installed(tmp_path_factory.mktemp("plugins"))
     framework = box.src / "framework"
@@ -63,9 +64,18 @@ def installed(tmp_path_factory):
     assert len([line for line in body if line.strip() and not line.startswith("#")]) <= 25
 
     venv.EnvBuilder(with_pip=True).create(box.base / "venv")
-    # --no-compile: byte-compiling the dependencies would double the install time
-    box.run("-m", "pip", "install", "-q", "--no-compile", f"{framework}[test]",
+    # The three packages are installed into the venv as a user would (plain, with their entry points); their
+    # dependencies (torch, and the rest of the test extra) are those of the test run, reached through a path
+    # file after the venv's own site-packages, rather than copied again. The venv's own installs come first,
+    # and importlib.metadata takes the first distribution of a name, so the test run's overhang-framework
+    # (an editable install, whose path hooks a path file does not run) is not seen.
+    inner = box.run("-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])").stdout.strip()
+    outer = sorted({sysconfig.get_paths()[k] for k in ("purelib", "platlib")})
+    (Path(inner) / "zz_test_run_dependencies.pth").write_text("".join(f"{d}\n" for d in outer))
+    box.run("-m", "pip", "install", "-q", "--no-compile", "--no-deps", str(framework),
             str(box.src / "examples" / "com_margin_plugin"), str(edge), cwd=box.base)
+    missing = box.run("-m", "pip", "check", check=False)
+    assert "overhang" not in missing.stdout, missing.stdout
     return box
 
 
@@ -92,9 +102,10 @@ def test_the_plugins_pass_their_own_tests_in_the_installed_environment(installed
         out = installed.run("-m", "pytest", "-q", "-p", "no:cacheprovider", tests).stdout
         assert re.search(r"\d+ passed", out) and "skipped" not in out and "failed" not in out, out[-2000:]
     # the classes under test come from the installed packages, not from the copied sources
-    where = installed.run("-c", "import overhang_com_margin, overhang_edge; "
-                                "print(overhang_com_margin.__file__, overhang_edge.__file__)").stdout
-    assert where.count(str(installed.base / "venv")) == 2
+    where = installed.run("-c", "import overhang_com_margin, overhang_edge, overhang_framework; "
+                                "print(overhang_com_margin.__file__, overhang_edge.__file__, "
+                                "overhang_framework.__file__)").stdout
+    assert where.count(str(installed.base / "venv")) == 3
 
 
 def test_a_multirun_runs_the_plugins_beside_a_built_in(installed):
