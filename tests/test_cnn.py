@@ -580,6 +580,23 @@ def test_the_fit_benchmark_compares_the_tables_with_the_code_before(capsys):
     assert "the same best action in 1 of 1 tables" in out
 
 
+def test_the_fit_benchmark_times_the_hybrids_tables_as_a_fit_computes_them(capsys, tmp_path):
+    from overhang_framework.bench import fit
+
+    assert fit.main(["--scale", "0.02", "--states", "4", "--depths", "2", "--families", "hybrid", "--compare",
+                     "--trials", "0", "--world", "world.physics=static", "--json", str(tmp_path / "b.json")]) == 0
+    assert "in a fit: the hybrid's 6 switch points together" in capsys.readouterr().out
+    row = json.loads((tmp_path / "b.json").read_text())["tables"][0]
+    in_fit = row["in_fit"]
+    # every switch point the paper's tasks allow (2 to 7); at depth 2 at most one of a state's tables is neither
+    # the CNN's nor the IPE's, so the others are not computed again
+    assert in_fit["switch_points"] == 6 and in_fit["states"] == 4
+    assert in_fit["computed_per_state"] <= 1
+    # the same numbers as the model's table computed alone, in states where its IPE judges some towers too
+    assert in_fit["states_with_early_part"] >= 1 and in_fit["max_score_difference"] < 1e-4
+    assert in_fit["reference_seconds_per_state"] == pytest.approx(row["reference_seconds_per_table"])
+
+
 def test_mirror_settings_parse_from_words_and_booleans():
     from overhang_framework.cnn.model import parse_mirror
 

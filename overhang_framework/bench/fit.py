@@ -123,7 +123,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     started = time.perf_counter()
     path = _log(args, args.world)
-    placements = log_placements(read_log(path))
+    df = read_log(path)
+    placements = log_placements(df)
+    blocks = max((len(seq) for seq in df["sequence"]), default=None)  # as the fit finds its switch points
     world = build_world(list(args.world))
     registry = Registry()
     value = registry.create("value", {"name": "overhang"}, world=world)
@@ -195,6 +197,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 print(f"  {'':<14}before: {old_per:.3f} s/table, now {old_per / per:.2f}x faster; scores differ "
                       f"by at most {difference:.1e}, the same best action in {same_best} of {done} tables",
                       flush=True)
+            if before and f == "hybrid":
+                row["in_fit"] = _hybrid_in_fit(world, value, context, sample[:done], depth, blocks, before,
+                                               predictors[f].switch)
 
     # reuse across the steps of a trial: one expander per model (the fit) against one per table
     mapped_trials = _grid_trials(world, placements)
@@ -225,7 +230,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
               f"{t_fresh:.1f} s / {c_fresh} calls (saves {1 - t_shared / max(t_fresh, 1e-9):.0%} of the time)",
               flush=True)
     if args.space and long:
-        figures["space"] = _space(world, value, context, placements, args, rng)
+        figures["space"] = _space(world, value, context, placements, blocks, args, rng)
     figures["seconds"] = time.perf_counter() - started
     print(f"\nbenchmark took {figures['seconds']:.0f} s", flush=True)
     if args.json:
@@ -233,7 +238,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     return 0
 
 
-def _space(world, value, context, placements, args, rng) -> dict:
+def _space(world, value, context, placements, blocks, args, rng) -> dict:
     """The fit's default model space on whole logged trials, as a fit process computes it (predictors shared,
     tables that are the same numbers shared), against each model's own tables, and against the code before the
     hybrid drew as its early part (its own draws: its all-IPE tables computed, not the IPE's)."""
@@ -249,7 +254,6 @@ def _space(world, value, context, placements, args, rng) -> dict:
     from overhang_framework.plugins import Registry
 
     conf = compose_config([], config_name="fit")
-    blocks = max(len(p.state.remaining) for p in placements)
     space = model_space(OmegaConf.to_container(conf.models, resolve=True), list(conf.depths), blocks)
     by_trial: dict[tuple, list] = {}
     for p in placements:
@@ -294,6 +298,64 @@ def _space(world, value, context, placements, args, rng) -> dict:
           f"the same as each model's own to {difference:.1e}", flush=True)
     return {"models": len(models), "trials": len(trials), **{f"{k}_{m}": v for k, a in arms.items() for m, v in a.items()},
             "speedup": each, "speedup_over_before": before, "max_difference": difference}
+
+
+def _hybrid_in_fit(world, value, context, states, depth: int, blocks: int, before: Sequence[float],
+                   switch: int) -> dict:
+    """The hybrid family's tables of each of ``states`` as a fit computes them, timed: every switch point of the
+    default model space, after the state's IPE tables (every sigma) and the CNN's, with the fit's shared
+    predictors (:class:`~overhang_framework.fit.run.Predictors`) and shared tables, answer caches emptied before
+    each state. ``before`` holds the seconds of the state's one hybrid table as computed before the engine's
+    speed-ups (its own predictor, one switch point), as a fit computed it then. The table of switch point
+    ``switch`` is compared with the same model's table computed alone (a predictor of its own), untimed."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.fit.run import Predictors
+    from overhang_framework.fit.scores import ScoreTables, share_memory, share_tables
+    from overhang_framework.fit.space import model_space
+    from overhang_framework.plugins import Registry
+
+    conf = compose_config([], config_name="fit")
+    space = model_space(OmegaConf.to_container(conf.models, resolve=True), [depth], blocks)
+    models = [m for index in space for m in index.variants]
+    built = Predictors(Registry(), world)
+    registry = built.registry
+    chosen = [m for m in models if m.family == "hybrid" and m.predictor.get("switch") == switch]
+    alone = registry.create("predictor", dict(chosen[0].predictor), world=world) if chosen else None
+    seconds, computed, switches, difference, early = [], 0, 0, 0.0, 0
+    for state in states:
+        early += len(state.geometry) + 1 < switch  # the early part judges some of the towers
+        for predictor in list(built.built.values()):
+            clear = getattr(predictor, "clear_cache", None)
+            if callable(clear):
+                clear()
+        tables = [ScoreTables(world, value, built(dict(m.predictor)), m, context, None) for m in models]
+        share_memory(tables)
+        share_tables(tables)
+        hybrid = [t for t, m in zip(tables, models) if m.family == "hybrid"]
+        for t in tables:
+            if all(t is not h for h in hybrid):
+                t.compute(state)
+        t0 = time.perf_counter()
+        for t in hybrid:
+            t.compute(state)
+        seconds.append(time.perf_counter() - t0)
+        computed += sum(t.stats.computed for t in hybrid)
+        switches = len(hybrid)
+        if alone is not None:
+            own = _timed_table(world, value, alone, chosen[0], context, state)[2]
+            shared = hybrid[[t.model for t in hybrid].index(chosen[0])].table(state)
+            difference = max(difference, float(np.max(np.abs(shared - own), initial=0.0)))
+    now, old = float(np.mean(seconds)), float(np.mean(before))
+    print(f"  {'':<14}in a fit: the hybrid's {switches} switch points together {now:.3f} s a state, "
+          f"{computed / max(len(states), 1):.1f} tables of them computed (the rest are the CNN's and the IPE's), "
+          f"after the state's IPE and CNN tables; before, its one table {old:.3f} s: {old / now:.1f}x faster; "
+          f"switch point {switch}'s table differs from the one computed alone by at most {difference:.1e}",
+          flush=True)
+    return {"switch_points": switches, "seconds_per_state": now, "computed_per_state": computed / max(len(states), 1),
+            "reference_seconds_per_state": old, "speedup": old / now, "states": len(states),
+            "max_score_difference": difference, "states_with_early_part": early}
 
 
 def _grid_trials(world, placements) -> list[list]:
