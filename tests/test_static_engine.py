@@ -164,3 +164,74 @@ def test_scenes_without_blocks_get_the_verdict_of_empty_geometries():
     expected = backend.stable_batch([Geometry(), Geometry()])
     assert np.array_equal(backend.stable_arrays(empty, empty, empty), expected)
     assert np.array_equal(backend.stable_arrays(empty, empty, empty, None, np.zeros((2, 0))), expected)
+
+
+def _lp_batches(params: StaticParams):
+    """The thousands of noisy and the near-critical scenes above, as batches with their LP scenes."""
+    towers = _lp_towers()
+    W, X, L, grav, fric = _noisy(towers, copies=25, seed=1)
+    out = []
+    for batch in (sb._Batch.from_arrays(W, X, L, grav, fric, params),
+                  sb._Batch(_near_critical(family_towers("indeterminate", 40, seed=8), params), None, None, params)):
+        out.append((batch, _lp_rows(batch, params)))
+    return out
+
+
+@pytest.mark.parametrize("params", [StaticParams(), StaticParams(friction_scale=0.3)], ids=["default", "low-friction"])
+def test_the_compiled_least_squares_give_scipys_verdicts_and_residuals(params):
+    from dataclasses import replace
+
+    from scipy.optimize import nnls
+
+    from overhang_framework.physics.nnls_kernel import nnls_batch
+
+    batches = _lp_batches(params)
+    scenes = sum(rows.size for _, rows in batches)
+    assert scenes > 2500
+    finished, undecided = 0, {"compiled": 0, "scipy": 0}
+    for batch, rows in batches:
+        # the stage's verdicts: the same, whichever way its least squares are solved
+        both = {how: sb._lp_nnls(batch, rows, replace(params, nnls=how)) for how in ("compiled", "scipy")}
+        assert np.array_equal(both["compiled"], both["scipy"])
+        for idx in sb._structures(batch, rows):
+            A, b = sb._dense_lp(batch, rows[idx], params)
+            codes = {how: sb._nnls_verdicts(A, b, how) for how in ("compiled", "scipy")}
+            # a certificate never contradicts another; either may leave a scene to HiGHS
+            decided = (codes["compiled"] >= 0) & (codes["scipy"] >= 0)
+            assert np.array_equal(codes["compiled"][decided], codes["scipy"][decided])
+            for how in codes:
+                undecided[how] += int((codes[how] < 0).sum())
+            A, rhs = np.ascontiguousarray(A), np.ascontiguousarray(-b)
+            x, ok = nnls_batch(A, rhs)
+            finished += int(ok.sum())
+            for k in np.flatnonzero(ok)[:5]:  # the least residual is unique even where the forces are not
+                assert (x[k] >= 0).all()
+                best = nnls(A[k], rhs[k])[1]
+                assert np.linalg.norm(A[k] @ x[k] - rhs[k]) == pytest.approx(best, abs=1e-10)
+    assert finished >= 0.99 * scenes
+    # no more scenes left to HiGHS than SciPy's least squares leave
+    assert undecided["compiled"] <= undecided["scipy"] + 0.002 * scenes
+
+
+def test_the_compiled_least_squares_solve_or_flag_random_and_dependent_systems():
+    from scipy.optimize import nnls
+
+    from overhang_framework.physics.nnls_kernel import nnls_batch
+
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((300, 12, 20))
+    A[100:200, :, 5] = A[100:200, :, 4]  # a repeated column: the forces are not unique
+    A[200:, :, 7] = 0.0  # a column of zeros
+    b = rng.standard_normal((300, 12))
+    b[:150] = np.einsum("kij,kj->ki", A[:150], np.abs(rng.standard_normal((150, 20))))  # feasible ones
+    x, ok = nnls_batch(A, b)
+    assert ok.mean() > 0.95
+    for k in np.flatnonzero(ok):
+        assert (x[k] >= 0).all()
+        assert np.linalg.norm(A[k] @ x[k] - b[k]) == pytest.approx(nnls(A[k], b[k])[1], abs=1e-9)
+    assert np.abs(np.einsum("kij,kj->ki", A[:150], x[:150]) - b[:150])[ok[:150]].max() < 1e-10
+
+
+def test_unknown_least_squares_solver_is_refused():
+    with pytest.raises(ValueError, match="nnls must be compiled or scipy, not 'lapack'"):
+        StaticParams(nnls="lapack")

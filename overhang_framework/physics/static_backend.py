@@ -114,10 +114,15 @@ class StaticParams:
     lp_nnls: bool = True
     # how the cheap stages run, not what they decide: left out of the repr that keys verdict caches
     compiled: bool = field(default=True, repr=False)
+    # how the LP stage's least squares are solved ("compiled": all systems of a contact structure in one
+    # compiled loop; "scipy": one SciPy call per system), not what it decides: left out of the repr too
+    nnls: str = field(default="compiled", repr=False)
 
     def __post_init__(self):
         if self.friction_combine not in ("product", "min", "mean"):
             raise ValueError(f"friction_combine must be product, min or mean, not {self.friction_combine!r}")
+        if self.nnls not in ("compiled", "scipy"):
+            raise ValueError(f"nnls must be compiled or scipy, not {self.nnls!r}")
         if isinstance(self.margin, bool) or not isinstance(self.margin, (int, float)) or not np.isfinite(self.margin):
             raise ValueError(f"StaticParams.margin must be a finite number, got {self.margin!r}")
         check_fields(self, non_negative=("friction", "height_margin", "friction_scale", "ground_friction", "gravity", "min_contact",
@@ -604,9 +609,13 @@ def _dense_lp(bt: _Batch, rows: np.ndarray, params: StaticParams) -> tuple[np.nd
     return A, b
 
 
-def _nnls_verdicts(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _nnls_verdicts(A: np.ndarray, b: np.ndarray, how: str = "compiled") -> np.ndarray:
     """Verdicts of the systems ``A[k] f = -b[k], f >= 0`` by non-negative least squares: 1 stands, 0 falls,
     -1 undecided.
+
+    ``how`` solves them: ``"compiled"`` all in one compiled loop
+    (:func:`~overhang_framework.physics.nnls_kernel.nnls_batch`; a system it does not finish cleanly goes to
+    SciPy), ``"scipy"`` one SciPy call each. The certificates below decide either way.
 
     Each verdict carries a checked certificate. Standing: the least-squares forces balance the weight to
     within :data:`NNLS_STANDS`. Falling: at the least-squares optimum the residual ``r = A f + b`` has
@@ -617,13 +626,22 @@ def _nnls_verdicts(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     ``1 / (CERT_TOLERANCE / NNLS_FALLS)`` (10,000) times the tower's weight.
     """
     G = A.shape[0]
-    F = np.zeros((G, A.shape[2]))
-    ran = np.ones(G, dtype=bool)
-    solve = _nnls_solver()
     A = np.ascontiguousarray(A, dtype=float)
     rhs = np.ascontiguousarray(-b, dtype=float)
-    for k in range(G):
-        F[k], ran[k] = solve(A[k], rhs[k])
+    if how == "compiled":
+        from overhang_framework.physics.nnls_kernel import nnls_batch
+
+        F, done = nnls_batch(A, rhs)
+        ran = np.ones(G, dtype=bool)
+        todo = np.flatnonzero(~done)
+    else:
+        F = np.zeros((G, A.shape[2]))
+        ran = np.ones(G, dtype=bool)
+        todo = range(G)
+    if len(todo):
+        solve = _nnls_solver()
+        for k in todo:
+            F[k], ran[k] = solve(A[k], rhs[k])
     r = (A @ F[:, :, None])[:, :, 0] + b
     miss = np.abs(r).max(axis=1)
     y = -r / np.maximum((r * r).sum(axis=1), 1e-300)[:, None]
@@ -668,7 +686,7 @@ def _lp_nnls(bt: _Batch, rows_b: np.ndarray, params: StaticParams, stats: Option
     verdict = np.full(rows_b.size, -1, dtype=np.int8)
     for idx in _structures(bt, rows_b):
         A, b = _dense_lp(bt, rows_b[idx], params)
-        verdict[idx] = _nnls_verdicts(A, b)
+        verdict[idx] = _nnls_verdicts(A, b, params.nnls)
     left = np.flatnonzero(verdict < 0)
     out[:] = verdict == 1
     if left.size:
