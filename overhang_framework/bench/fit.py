@@ -25,7 +25,9 @@ With ``--compare``, each model whose family has a reference setting (:data:`REFE
 the way it was computed before the engine's speed-ups, e.g. the CNN unfused and asked
 state by state) is also timed that way on the same states, alternating state by state,
 and the run prints both times, their ratio and the largest difference between the two
-score tables. Predictors' answer caches are emptied before every timed table.
+score tables. Predictors' answer caches are emptied before every timed table. With
+``--reference nnls`` the reference is today's code with the LP stage's least squares solved one
+SciPy call per system (:data:`REFERENCES_NNLS`; the IPE and the hybrid).
 
 Without ``--log``, the log is the synthetic study of
 ``python -m overhang_framework.bench.analysis`` (paper size, ``--scale`` of it).
@@ -53,6 +55,10 @@ REFERENCES = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03, "scenes": "objects"
               "cnn": {"name": "cnn", "fused": False, "batch_size": 512},
               "hybrid": {"name": "hybrid", "early_params": {"scenes": "objects", "backend_params": _BEFORE_STATIC},
                          "late_params": {"fused": False, "batch_size": 512}}}
+#: ``--compare --reference nnls``: today's code with one SciPy call per least-squares system of the LP stage.
+_SCIPY_NNLS = {"nnls": "scipy"}
+REFERENCES_NNLS = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03, "backend_params": _SCIPY_NNLS},
+                   "hybrid": {"name": "hybrid", "early_params": {"backend_params": _SCIPY_NNLS}}}
 
 
 def _timed_table(world, value, predictor, model, context, state) -> tuple[float, int, np.ndarray]:
@@ -103,6 +109,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--compare", action="store_true",
                     help="also time each family's reference setting (the code before) on the same states")
+    ap.add_argument("--reference", choices=("engine", "nnls"), default="engine",
+                    help="with --compare, what 'before' is: the code before issue 33's engine (default), or "
+                         "today's with one SciPy call per least-squares system of the LP stage (nnls)")
     ap.add_argument("--space", action="store_true",
                     help="also time the fit's default model space on --trials trials, tables shared and not")
     ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
@@ -149,8 +158,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     depths = [int(d) for d in args.depths.split(",") if d]
     families = [f for f in args.families.split(",") if f]
     predictors = {f: registry.create("predictor", dict(FAMILIES[f]), world=world) for f in families}
-    references = {f: registry.create("predictor", dict(REFERENCES[f]), world=world)
-                  for f in families if args.compare and f in REFERENCES}
+    chosen = REFERENCES if args.reference == "engine" else REFERENCES_NNLS
+    references = {f: registry.create("predictor", dict(chosen[f]), world=world)
+                  for f in families if args.compare and f in chosen}
     for f in families:  # warm up (a network's first call, a backend's start)
         for predictor in (predictors[f], references.get(f)):
             if predictor is not None:
@@ -191,13 +201,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                   flush=True)
             if before:
                 old_per = float(np.mean(before))
-                row.update({"reference": dict(REFERENCES[f]), "reference_seconds_per_table": old_per,
+                row.update({"reference": dict(chosen[f]), "reference_seconds_per_table": old_per,
                             "speedup": old_per / per, "max_score_difference": difference,
                             "same_best_action": same_best})
                 print(f"  {'':<14}before: {old_per:.3f} s/table, now {old_per / per:.2f}x faster; scores differ "
                       f"by at most {difference:.1e}, the same best action in {same_best} of {done} tables",
                       flush=True)
-            if before and f == "hybrid":
+            if before and f == "hybrid" and args.reference == "engine":
                 row["in_fit"] = _hybrid_in_fit(world, value, context, sample[:done], depth, blocks, before,
                                                predictors[f].switch)
 
