@@ -9,8 +9,8 @@ The static backend's LP stage decides a scene by non-negative least squares with
   free (passive) columns' block grows by one row when a column is freed, so a step costs ``O(p^2)``;
   it is computed again only when a step sends columns back to zero;
 * the systems of a batch share a contact structure, so each starts from the free columns the previous
-  one ended with when their least-squares solution is positive (about a third of the time), and from none
-  otherwise;
+  one ended with: those whose least-squares solution is positive, dropping the others until it is (a
+  valid start for the method: a non-negative least-squares solution on its free columns);
 * the final solution is refined once against the system itself (the residual in double precision, a
   correction from the same factor), so it balances a standing scene as exactly as a QR solve would;
 * a system the method cannot finish cleanly (a nearly dependent column, the iteration limit, or an optimum
@@ -109,23 +109,28 @@ def _one(A, b, x, maxiter, G, c, w, idx, free, L, r, y, z, rhs, warm, nwarm, nwa
     tol = 1e-13 * max(scale, 1e-300)
     p = 0
     it = 0
-    if nwarm:
-        for k in range(nwarm):
-            idx[k] = warm[k]
-        if _factor(G, idx, nwarm, L):
-            for k in range(nwarm):
-                rhs[k] = c[idx[k]]
-            _solve(L, nwarm, rhs, y, z)
-            good = True
-            for k in range(nwarm):
-                if z[k] <= 0.0:
-                    good = False
-                    break
-            if good:
-                p = nwarm
-                for k in range(p):
-                    x[idx[k]] = z[k]
-                    free[idx[k]] = True
+    for k in range(nwarm):
+        idx[k] = warm[k]
+    q = nwarm
+    while q > 0:
+        # the warm columns whose least-squares solution is positive: drop the others until it is
+        if not _factor(G, idx, q, L):
+            break
+        for k in range(q):
+            rhs[k] = c[idx[k]]
+        _solve(L, q, rhs, y, z)
+        kept = 0
+        for k in range(q):
+            if z[k] > 0.0:
+                idx[kept] = idx[k]
+                kept += 1
+        if kept == q:
+            p = q
+            for k in range(p):
+                x[idx[k]] = z[k]
+                free[idx[k]] = True
+            break
+        q = kept
     while True:
         # the gradient's most promising column still held at zero
         for i in range(n):
