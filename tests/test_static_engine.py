@@ -235,3 +235,23 @@ def test_the_compiled_least_squares_solve_or_flag_random_and_dependent_systems()
 def test_unknown_least_squares_solver_is_refused():
     with pytest.raises(ValueError, match="nnls must be compiled or scipy, not 'lapack'"):
         StaticParams(nnls="lapack")
+
+
+@pytest.mark.parametrize("params", [StaticParams(), StaticParams(margin=0.005, height_margin=0.0),
+                                    StaticParams(margin=-0.002, friction_combine="min", friction_scale=1.0),
+                                    StaticParams(friction_combine="mean", side_contacts=False)],
+                         ids=["default", "scalar-margin", "wider-min", "mean-no-sides"])
+def test_the_compiled_systems_are_the_numpy_systems(params):
+    from dataclasses import replace
+
+    numpy_params = replace(params, compiled=False)
+    groups = 0
+    for batch, rows in _lp_batches(params):
+        for idx in sb._structures(batch, rows):
+            A, b = sb._dense_lp(batch, rows[idx], params)
+            A0, b0 = sb._dense_lp(batch, rows[idx], numpy_params)
+            assert A.shape == A0.shape and b.shape == b0.shape
+            np.testing.assert_allclose(A, A0, rtol=0, atol=1e-15)
+            np.testing.assert_allclose(b, b0, rtol=0, atol=1e-15)
+            groups += 1
+    assert groups > 50

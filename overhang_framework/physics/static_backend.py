@@ -561,6 +561,17 @@ def _dense_lp(bt: _Batch, rows: np.ndarray, params: StaticParams) -> tuple[np.nd
     r0 = rows[0]
     G = rows.size
     blocks = np.flatnonzero(bt.valid[r0])
+    if params.compiled:
+        bi, bj = np.nonzero(bt.below[r0])
+        si, sj = np.nonzero(bt.side[r0])
+        cm = bt.cmargin
+        scalar = np.isscalar(cm)
+        return _kernel().dense_lp(np.ascontiguousarray(rows, dtype=np.int64), blocks, bi, bj,
+                                  np.flatnonzero(bt.ground[r0]), si, sj, bt.left, bt.right,
+                                  np.zeros((0, 0)) if scalar else cm, float(cm) if scalar else 0.0,
+                                  bt.layer, bt.mu, bt.x, bt.zc, bt.m, bt.g, h, float(params.margin),
+                                  float(params.ground_friction), _kernel().COMBINE[params.friction_combine],
+                                  float(params.friction_scale))
     pos = np.full(bt.N, -1)
     pos[blocks] = np.arange(blocks.size)
     cm = bt.cmargin

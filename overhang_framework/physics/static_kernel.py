@@ -1,4 +1,4 @@
-"""The static backend's cheap stages as one compiled loop over scenes (numba).
+"""The static backend's cheap stages as one compiled loop over scenes (numba), and the LP stage's systems.
 
 :func:`decide` gives, for each scene of a padded batch, the verdict of stages 1-3 of
 :class:`~overhang_framework.physics.static_backend.StaticBackend` (tree check, load paths, cuts):
@@ -6,6 +6,9 @@
 same order of operations, one scene at a time in fixed-size scratch arrays: no temporary ``(B, N, N)``
 array per stage, no Python call per step. The NumPy stages stay (``StaticParams.compiled=False``);
 tests/test_static_engine.py checks that both give the same verdicts.
+
+:func:`dense_lp` builds the LP stage's force-balance systems of one contact structure's scenes as the
+NumPy function does (the same numbers, tested), one scene at a time.
 """
 
 from __future__ import annotations
@@ -306,3 +309,84 @@ def decide(w, x, layer, valid, mu, g, zero_g, H, margin, height_margin, min_cont
                 break
         code[b] = -1 if passed else 0
     return code
+
+
+@njit(cache=True)
+def dense_lp(rows, blocks, bi, bj, gi, si, sj, left, right, cm, cm_scalar, layer, mu, x, zc, m, g, H, margin,
+             gfric, how, scale):
+    """The LP stage's force-balance systems of the scenes ``rows`` of one contact structure (the contacts
+    ``bi`` on ``bj``, ``gi`` on the ground, ``si`` beside ``sj``; ``blocks`` the valid ones), as
+    :func:`~overhang_framework.physics.static_backend._dense_lp` builds them in NumPy: ``A`` of shape
+    ``(G, 3 * blocks, 4 * contacts)`` and ``b`` of shape ``(G, 3 * blocks)``. ``cm`` holds each block's
+    contact margin, or is ignored for the scalar ``cm_scalar`` when it is empty."""
+    G = rows.size
+    nb = blocks.size
+    N = left.shape[1]
+    pos = np.full(N, -1, dtype=np.int64)
+    for k in range(nb):
+        pos[blocks[k]] = k
+    nbot, ngr, nsd = bi.size, gi.size, si.size
+    Q = nbot + ngr + nsd
+    A = np.zeros((G, 3 * nb, 4 * Q))
+    b = np.zeros((G, 3 * nb))
+    per_block = cm.shape[0] > 0
+    for t in range(G):
+        R = rows[t]
+        for q in range(Q):
+            if q < nbot:
+                i, j = bi[q], bj[q]
+                lo = max(left[R, i], left[R, j])
+                hi = min(right[R, i], right[R, j])
+                mg = cm[R, i] if per_block else cm_scalar
+                ba, bb, vert = i, j, True
+                z0 = layer[R, i] * H
+                z1 = z0
+                mu_c = _combine(mu[R, i], mu[R, j], how, scale)
+            elif q < nbot + ngr:
+                i = gi[q - nbot]
+                lo, hi = left[R, i], right[R, i]
+                mg = cm[R, i] if per_block else cm_scalar
+                ba, bb, vert = i, -1, True
+                z0 = 0.0
+                z1 = 0.0
+                mu_c = _combine(mu[R, i], gfric, how, scale)
+            else:
+                i, j = si[q - nbot - ngr], sj[q - nbot - ngr]
+                lo = (right[R, i] + left[R, j]) / 2
+                hi = lo
+                mg = 0.0
+                ba, bb, vert = j, i, False
+                z0 = _shrink_lo(layer[R, i] * H, layer[R, i] * H + H, margin)
+                z1 = _shrink_hi(layer[R, i] * H, layer[R, i] * H + H, margin)
+                mu_c = _combine(mu[R, i], mu[R, j], how, scale)
+            if vert:
+                a_, c_ = _shrink_lo(lo, hi, mg), _shrink_hi(lo, hi, mg)
+                nx, nz, tx, tz = 0.0, 1.0, 1.0, 0.0
+            else:
+                a_, c_ = lo, hi
+                nx, nz, tx, tz = 1.0, 0.0, 0.0, 1.0
+            for e in range(2):
+                px = a_ if e == 0 else c_
+                pz = z0 if e == 0 else z1
+                for s_ in range(2):
+                    sgn = 1.0 if s_ == 0 else -1.0
+                    dx = nx + sgn * mu_c * tx
+                    dz = nz + sgn * mu_c * tz
+                    col = 4 * q + 2 * e + s_
+                    for side in range(2):
+                        body = ba if side == 0 else bb
+                        if body < 0:
+                            continue
+                        sign = 1.0 if side == 0 else -1.0
+                        r = 3 * pos[body]
+                        A[t, r, col] = sign * dx
+                        A[t, r + 1, col] = sign * dz
+                        A[t, r + 2, col] = sign * ((px - x[R, body]) * dz - (pz - zc[R, body]) * dx)
+        total = 0.0
+        for k in range(nb):
+            total += m[R, blocks[k]]
+        for k in range(nb):
+            mn = m[R, blocks[k]] / total
+            b[t, 3 * k] = mn * g[R, 0]
+            b[t, 3 * k + 1] = mn * g[R, 1]
+    return A, b
