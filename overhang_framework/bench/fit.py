@@ -26,8 +26,8 @@ the way it was computed before the engine's speed-ups, e.g. the CNN unfused and 
 state by state) is also timed that way on the same states, alternating state by state,
 and the run prints both times, their ratio and the largest difference between the two
 score tables. Predictors' answer caches are emptied before every timed table. With
-``--reference nnls`` the reference is today's code with the LP stage's least squares solved one
-SciPy call per system (:data:`REFERENCES_NNLS`; the IPE and the hybrid).
+``--reference nnls`` the reference is today's code with the LP stage's systems built in NumPy and
+solved one SciPy call per system (:data:`REFERENCES_NNLS`; the IPE and the hybrid).
 
 Without ``--log``, the log is the synthetic study of
 ``python -m overhang_framework.bench.analysis`` (paper size, ``--scale`` of it).
@@ -55,7 +55,8 @@ REFERENCES = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03, "scenes": "objects"
               "cnn": {"name": "cnn", "fused": False, "batch_size": 512},
               "hybrid": {"name": "hybrid", "early_params": {"scenes": "objects", "backend_params": _BEFORE_STATIC},
                          "late_params": {"fused": False, "batch_size": 512}}}
-#: ``--compare --reference nnls``: today's code with one SciPy call per least-squares system of the LP stage.
+#: ``--compare --reference nnls``: today's code with the LP stage's systems built in NumPy and solved one SciPy
+#: call per system.
 _SCIPY_NNLS = {"nnls": "scipy"}
 REFERENCES_NNLS = {"ipe": {"name": "ipe", "K": 50, "sigma": 0.03, "backend_params": _SCIPY_NNLS},
                    "hybrid": {"name": "hybrid", "early_params": {"backend_params": _SCIPY_NNLS}}}
@@ -111,7 +112,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     help="also time each family's reference setting (the code before) on the same states")
     ap.add_argument("--reference", choices=("engine", "nnls"), default="engine",
                     help="with --compare, what 'before' is: the code before issue 33's engine (default), or "
-                         "today's with one SciPy call per least-squares system of the LP stage (nnls)")
+                         "today's with the LP stage's systems built in NumPy and solved by SciPy one by one (nnls)")
     ap.add_argument("--space", action="store_true",
                     help="also time the fit's default model space on --trials trials, tables shared and not")
     ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")

@@ -114,8 +114,9 @@ class StaticParams:
     lp_nnls: bool = True
     # how the cheap stages run, not what they decide: left out of the repr that keys verdict caches
     compiled: bool = field(default=True, repr=False)
-    # how the LP stage's least squares are solved ("compiled": all systems of a contact structure in one
-    # compiled loop; "scipy": one SciPy call per system), not what it decides: left out of the repr too
+    # how the LP stage's least squares run ("compiled": the systems of a contact structure built and solved
+    # in compiled loops; "scipy": built in NumPy, one SciPy call per system), not what it decides: left out
+    # of the repr too
     nnls: str = field(default="compiled", repr=False)
 
     def __post_init__(self):
@@ -561,7 +562,7 @@ def _dense_lp(bt: _Batch, rows: np.ndarray, params: StaticParams) -> tuple[np.nd
     r0 = rows[0]
     G = rows.size
     blocks = np.flatnonzero(bt.valid[r0])
-    if params.compiled:
+    if params.nnls == "compiled":
         bi, bj = np.nonzero(bt.below[r0])
         si, sj = np.nonzero(bt.side[r0])
         cm = bt.cmargin

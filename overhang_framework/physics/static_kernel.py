@@ -7,7 +7,7 @@ same order of operations, one scene at a time in fixed-size scratch arrays: no t
 array per stage, no Python call per step. The NumPy stages stay (``StaticParams.compiled=False``);
 tests/test_static_engine.py checks that both give the same verdicts.
 
-:func:`dense_lp` builds the LP stage's force-balance systems of one contact structure's scenes as the
+:func:`dense_lp` builds (``nnls: compiled``) the LP stage's force-balance systems of one contact structure's scenes as the
 NumPy function does (the same numbers, tested), one scene at a time.
 """
 
