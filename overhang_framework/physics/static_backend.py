@@ -556,7 +556,8 @@ def _dense_lp(bt: _Batch, rows: np.ndarray, params: StaticParams) -> tuple[np.nd
     Returns ``A`` of shape ``(G, 3 * blocks, 4 * contacts)`` and ``b`` of shape ``(G, 3 * blocks)``:
     scene ``k`` stands when some ``f >= 0`` has ``A[k] f = -b[k]``. The unknowns and equations are those
     of :func:`_lp_verdicts` (two end points per contact, two friction-cone rays each; x force, z force
-    and torque per block, the weight normalised to a total of 1).
+    and torque per block, the weight normalised to a total of 1). With ``nnls: compiled`` they are built
+    by :func:`~overhang_framework.physics.static_kernel.dense_lp`, the same numbers one scene at a time.
     """
     h = BLOCK_HEIGHT
     r0 = rows[0]
