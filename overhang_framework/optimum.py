@@ -37,7 +37,7 @@ from overhang_framework.search import Expander, lookahead_value, root_scores, se
 
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
 #: Backend parameters that choose how verdicts are computed, not the verdicts: left out of result keys.
-SOLVER_SETTINGS = ("lp_nnls", "compiled")
+SOLVER_SETTINGS = ("lp_nnls", "compiled", "nnls")
 
 
 

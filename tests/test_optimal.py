@@ -109,3 +109,16 @@ def test_the_optimal_planner_replays_stored_optimal_paths(tmp_path, world, verid
         played[stored] = (overhang(state.geometry), calls)
     assert played[True][0] == played[False][0] == pytest.approx(row["optimum"])
     assert played[True][1] == 3 < played[False][1], "stored paths are replayed with one check per placement"
+
+
+@pytest.mark.parametrize("physics", ["static", "tiered"])
+def test_the_shipped_optima_are_found_under_every_engine_setting(physics):
+    # how the static engine computes a verdict (its stages, its least squares) is not part of the key
+    from overhang_framework.optimum import optimal_moves
+
+    default = optimal_moves(REG.create("world", {"name": "overhang", "physics": physics}))
+    assert len(default) > 50
+    if physics == "static":
+        for setting in ({"nnls": "scipy"}, {"compiled": False}, {"lp_nnls": False}):
+            other = REG.create("world", {"name": "overhang", "physics": "static", "static": setting})
+            assert optimal_moves(other) == default, setting

@@ -60,7 +60,7 @@ NOISE_KEYS = ("sigma", "sigma_position", "sigma_gravity", "sigma_friction")
 SHARED_DRAW_KEYS = ("switch",)
 #: Settings that choose how the same numbers are computed (the IPE's scene path, the static LP stage):
 #: a table's key and draw seed leave them out, so either way gives and finds the same tables.
-ENGINE_KEYS = ("scenes", "lp_nnls", "compiled", "lazy", "settle_batch")
+ENGINE_KEYS = ("scenes", "lp_nnls", "compiled", "nnls", "lazy", "settle_batch")
 
 
 def _digest(data: Any) -> str:
