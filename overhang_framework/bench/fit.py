@@ -334,7 +334,7 @@ def _hybrid_in_fit(world, value, context, states, depth: int, blocks: int, befor
     registry = built.registry
     chosen = [m for m in models if m.family == "hybrid" and m.predictor.get("switch") == switch]
     alone = registry.create("predictor", dict(chosen[0].predictor), world=world) if chosen else None
-    seconds, computed, switches, difference, early = [], 0, 0, 0.0, 0
+    seconds, computed, switches, difference, early, compared = [], 0, 0, 0.0, 0, 0
     for state in states:
         early += len(state.geometry) + 1 < switch  # the early part judges some of the towers
         for predictor in list(built.built.values()):
@@ -358,6 +358,7 @@ def _hybrid_in_fit(world, value, context, states, depth: int, blocks: int, befor
             own = _timed_table(world, value, alone, chosen[0], context, state)[2]
             shared = hybrid[[t.model for t in hybrid].index(chosen[0])].table(state)
             difference = max(difference, float(np.max(np.abs(shared - own), initial=0.0)))
+            compared += 1
     now, old = float(np.mean(seconds)), float(np.mean(before))
     print(f"  {'':<14}in a fit: the hybrid's {switches} switch points together {now:.3f} s a state, "
           f"{computed / max(len(states), 1):.1f} tables of them computed (the rest are the CNN's and the IPE's), "
@@ -366,7 +367,7 @@ def _hybrid_in_fit(world, value, context, states, depth: int, blocks: int, befor
           flush=True)
     return {"switch_points": switches, "seconds_per_state": now, "computed_per_state": computed / max(len(states), 1),
             "reference_seconds_per_state": old, "speedup": old / now, "states": len(states),
-            "max_score_difference": difference, "states_with_early_part": early}
+            "max_score_difference": difference, "states_with_early_part": early, "states_compared": compared}
 
 
 def _grid_trials(world, placements) -> list[list]:
