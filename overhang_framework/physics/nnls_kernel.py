@@ -81,6 +81,16 @@ def _solve(L, p, rhs, y, z):
 
 
 @njit(cache=True)
+def _residual(A, b, idx, p, x, r):
+    """``r = b - A x`` over the first ``p`` free columns ``idx``."""
+    for k in range(A.shape[0]):
+        s = b[k]
+        for q in range(p):
+            s -= A[k, idx[q]] * x[idx[q]]
+        r[k] = s
+
+
+@njit(cache=True)
 def _one(A, b, x, maxiter, G, c, w, idx, free, L, r, y, z, rhs, warm, nwarm, nwarm_out):
     """Lawson-Hanson NNLS of ``A x = b`` into ``x``; False when it did not finish cleanly. The first
     ``nwarm`` entries of ``warm`` are free columns to start from, when their least-squares solution is
@@ -189,11 +199,7 @@ def _one(A, b, x, maxiter, G, c, w, idx, free, L, r, y, z, rhs, warm, nwarm, nwa
                 return False
     # refine once against the system itself, then check the optimum's conditions
     if p:
-        for k in range(m):
-            s = b[k]
-            for q in range(p):
-                s -= A[k, idx[q]] * x[idx[q]]
-            r[k] = s
+        _residual(A, b, idx, p, x, r)
         for q in range(p):
             s = 0.0
             for k in range(m):
@@ -204,11 +210,7 @@ def _one(A, b, x, maxiter, G, c, w, idx, free, L, r, y, z, rhs, warm, nwarm, nwa
             x[idx[q]] += z[q]
             if x[idx[q]] <= 0.0:
                 return False
-    for k in range(m):
-        s = b[k]
-        for q in range(p):
-            s -= A[k, idx[q]] * x[idx[q]]
-        r[k] = s
+    _residual(A, b, idx, p, x, r)
     for i in range(n):
         if not free[i]:
             s = 0.0
