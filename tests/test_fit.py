@@ -200,6 +200,12 @@ def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tm
     assert "0 from the cache" in proc.stdout and " 0 score tables computed" not in proc.stdout
     pd.testing.assert_frame_equal(a, pd.read_csv(three / "fits.csv"))
     assert "Simulated participants" not in (three / "comparison.md").read_text()
+    # a cold two-job multirun: the jobs split the states both need (the pooled conditions'), the same fits.csv
+    four = tmp_path / "four"
+    proc = _cli(str(elsewhere), "--out", str(four), *FIT, f"cache={tmp_path / 'four.sqlite'}", "-m", "shard=0,1",
+                "shards=2")
+    assert proc.returncode == 0, proc.stderr
+    pd.testing.assert_frame_equal(a, pd.read_csv(four / "fits.csv"))
     # another model space into the same directory is refused
     proc = _cli(str(tiny_log), "--out", str(one), *FIT, "depths=[1]", f"cache={tmp_path / 'scores.sqlite'}")
     assert proc.returncode == 2 and "holds fits of another" in proc.stderr, proc.stderr
@@ -465,7 +471,7 @@ def test_one_process_computes_every_models_tables_of_a_state_together_in_the_sta
     computed = []
 
     class Tables(SimpleNamespace):
-        def known(self, s):
+        def known(self, s, keep=True):
             return states.index(s) in known[self.k]
 
         def owner(self, s):
@@ -484,6 +490,71 @@ def test_one_process_computes_every_models_tables_of_a_state_together_in_the_sta
     assert totals == [11] and len(ticks) == 11
 
 
+def test_jobs_sharing_a_cache_split_the_states_they_all_need_and_balance_their_tables():
+    from overhang_framework.fit import run
+    from overhang_framework.search import state_key
+
+    states = [state([[1.2, 0.0, 0], [0.6, 0.1 * i, 1]], [1.2]) for i in range(30)]
+    # three jobs: 0 needs states 0-19, 1 needs 10-29, 2 needs 5-14 and 25-29; a state costs 1-3 tables
+    needs = [range(0, 20), range(10, 30), [*range(5, 15), *range(25, 30)]]
+    cost = {i: 1 + i % 3 for i in range(30)}
+    rows = [[(states[i], list(range(cost[i]))) for i in need] for need in needs]
+    split = run.split_states(rows)
+    assert set(split) == {state_key(s) for s in states}
+    for i, s in enumerate(states):  # every state goes to a job that needs it
+        assert i in needs[split[state_key(s)]]
+    load = [sum(cost[i] for i in range(30) if split[state_key(states[i])] == k) for k in range(3)]
+    assert sum(load) == sum(cost.values()) and max(load) - min(load) <= max(cost.values())
+    # each job reaches the same split whatever order its own states are listed in
+    assert run.split_states([r[::-1] for r in rows]) == split
+
+
+def test_a_job_computes_its_share_first_then_what_the_others_have_not_written_from_the_far_end(monkeypatch):
+    from types import SimpleNamespace
+
+    from overhang_framework import parallel
+    from overhang_framework.fit import run
+    from overhang_framework.search import state_key
+
+    states = [state([[1.2, 0.0, 0], [0.6, 0.1 * i, 1]], [1.2]) for i in range(12)]
+    mine, theirs = states[:9], states[3:]  # states 3-8 are needed by both jobs
+    written = set()  # what the shared cache holds
+    computed = []
+    split = run.split_states([[(s, [0]) for s in mine], [(s, [0]) for s in theirs]])
+    given = [states.index(s) for s in mine if split[state_key(s)] == 0]
+    others = [states.index(s) for s in mine if split[state_key(s)] == 1]
+    assert given and len(others) >= 2
+
+    class Tables(SimpleNamespace):
+        def known(self, s, keep=True):
+            return states.index(s) in written
+
+        def owner(self, s):
+            return self
+
+        def compute(self, s):
+            i = states.index(s)
+            computed.append(i)
+            written.add(i)
+            if i == given[-1]:  # meanwhile the other job wrote the last of its share
+                written.add(others[-1])
+
+    monkeypatch.setattr(parallel, "pool_map", lambda *a: pytest.fail("one job needs no worker process"))
+    totals = []
+    run.fill_tables([Tables(context=CONTEXT, model=Model({"name": "ipe"}, 1))], mine, jobs=1,
+                    on_total=totals.append, shards=[mine, theirs], shard=0)
+    assert computed == given + others[:-1][::-1]
+    assert totals == [9, 8]  # all it lacked at the start; then its share and what the other had not written
+    # on worker processes: its share in one pass, then what is still missing, from the far end
+    items = []
+    monkeypatch.setattr(parallel, "pool_map", lambda setup, args, work, chunks, jobs, tick: items.append(chunks) or [])
+    written.clear()
+    run.fill_tables([Tables(context=CONTEXT, model=Model({"name": "ipe"}, 1))], mine, jobs=2,
+                    shards=[mine, theirs], shard=0)
+    asked = [[states.index(x) for item in chunks for _, chunk in item for x in chunk] for chunks in items]
+    assert asked == [given, others[::-1]]
+
+
 def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monkeypatch):
     from types import SimpleNamespace
 
@@ -494,7 +565,7 @@ def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monk
     known = [{3, 4}, set()]  # model 0 already has the tables of states 3 and 4
 
     class Tables(SimpleNamespace):
-        def known(self, s):
+        def known(self, s, keep=True):
             return states.index(s) in known[self.k]
 
         def owner(self, s):

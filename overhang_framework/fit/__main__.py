@@ -144,7 +144,9 @@ def run(cfg: DictConfig) -> dict:
                    "states": cfg.states, "cv": cfg.cv}
     check_directory(out, description)
     units = units_of(log_placements(checked["df"]), cfg.pooled)
-    mine = [u for k, u in enumerate(units) if k % checked["shards"] == checked["shard"]]
+    # every job's units: jobs sharing a score cache split the tables they all need
+    shards = [[u for k, u in enumerate(units) if k % checked["shards"] == j] for j in range(checked["shards"])]
+    mine = shards[checked["shard"]]
     cache = ScoreCache(cfg.cache)
     build = Predictors(checked["registry"], world)
     journal = FitJournal(journal_path(out, checked["shard"], checked["shards"]))
@@ -164,7 +166,8 @@ def run(cfg: DictConfig) -> dict:
 
     try:
         result = fit_units(mine, world, value, context, space, cache, build, on_unit, cfg.states, cfg.jobs,
-                           lambda: table_bar.update(1), set_total, cfg.cv, journal)
+                           lambda: table_bar.update(1), set_total, cfg.cv, journal,
+                           shards if cfg.cache else (), checked["shard"])
     finally:
         table_bar.close()
         bar.close()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import hashlib
 import json
 import os
 import time
@@ -125,13 +126,18 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
               on_unit: Callable[[str, Unit], None] = lambda label, unit: None, states: str = "logged",
               jobs: int = 1, on_table: Callable[[], None] = lambda: None,
               on_total: Callable[[int], None] = lambda n: None, folds: int = 0,
-              journal: Optional[FitJournal] = None) -> JobResult:
+              journal: Optional[FitJournal] = None, shards: Sequence[Sequence[Unit]] = (),
+              shard: int = 0) -> JobResult:
     """Fit every model index of ``space`` to every unit. Tables are shared across units (one
     :class:`ScoreTables` per model) and kept in ``cache``. ``states`` says how decision states are built
     (:func:`~overhang_framework.fit.fitting.map_placements`). The tables not in the cache are first computed
     state by state, every model's tables of a state together (:func:`fill_tables`), on ``jobs`` worker
     processes when ``jobs > 1`` and in this process otherwise (``on_table`` is called for each). Fits in
-    ``journal`` are taken from it; every other one is added to it as it finishes."""
+    ``journal`` are taken from it; every other one is added to it as it finishes.
+
+    ``shards`` holds the units of every job of a multirun that shares ``cache``, in shard order, this job's
+    (``units``) at index ``shard``: the jobs then split the tables they all need between them
+    (:func:`fill_tables`) instead of each computing those of its own units."""
     started = time.perf_counter()
     mapped = {u.name: map_placements(world, u.placements, states) for u in units}
     tables = [[ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
@@ -143,8 +149,15 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
         return journal.get(label, unit.name) if journal is not None else None
 
     todo = [u for u in units if any(done(index.label, u) is None for index in space)]
+    peers = []
+    for k, others in enumerate(shards):
+        if k != shard:
+            for u in others:
+                if u.name not in mapped:
+                    mapped[u.name] = map_placements(world, u.placements, states)
+        peers.append([s for u in (todo if k == shard else others) for s in mapped[u.name].states])
     fill_tables([t for variants in tables for t in variants], [s for u in todo for s in mapped[u.name].states],
-                jobs, on_table, on_total)
+                jobs, on_table, on_total, peers, shard)
     fits: list[ModelFit] = []
     stats: dict[str, TableStats] = {}
     resumed = 0
@@ -233,7 +246,8 @@ class Predictors:
 
 
 def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs: int,
-                on_table: Callable[[], None] = lambda: None, on_total: Callable[[int], None] = lambda n: None) -> None:
+                on_table: Callable[[], None] = lambda: None, on_total: Callable[[int], None] = lambda n: None,
+                shards: Sequence[Sequence[State]] = (), shard: int = 0) -> None:
     """Compute every table of ``all_tables`` x ``states`` that neither memory nor the cache holds, and hand
     each to its :class:`ScoreTables` (which keeps it and writes it to the cache).
 
@@ -243,9 +257,61 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
     settings asked just before, within the answers they remember. With ``jobs > 1`` each worker process
     is given the next few states at a time; otherwise they are computed here. A table is the same
     whichever process computes it (common random numbers).
+
+    ``shards`` holds the states of every job of a multirun that shares the score cache, this job's
+    (``states``) at index ``shard``. Each state some of them lack is then given to one job
+    (:func:`split_states`): the jobs do those first, then, in reverse order, the states given to others
+    that they need too, which by then the cache mostly holds; where a job that was given states falls
+    behind, the others meet it from the far end of its share. So overlapping jobs (a pooled condition's
+    states are its participants') compute each table about once and finish together.
     """
     rows = _missing(all_tables, states)
-    on_total(sum(len(ks) for _, ks in rows))
+    total = sum(len(ks) for _, ks in rows)
+    on_total(total)
+    if len(shards) > 1:
+        assigned = split_states([_missing(all_tables, s, keep=False) if k != shard else rows
+                                 for k, s in enumerate(shards)])
+        first = [row for row in rows if assigned.get(state_key(row[0]), shard) == shard]
+        later = [row for row in rows if assigned.get(state_key(row[0]), shard) != shard][::-1]
+        done = sum(len(ks) for _, ks in first)
+        _fill(all_tables, first, jobs, on_table)
+        later = _missing(all_tables, [state for state, _ in later])  # what the others have not written yet
+        on_total(done + sum(len(ks) for _, ks in later))
+        _fill(all_tables, later, jobs, on_table)
+        return
+    _fill(all_tables, rows, jobs, on_table)
+
+
+def split_states(shards: Sequence[Sequence[tuple[State, list[int]]]]) -> dict[tuple, int]:
+    """The job that computes each state of ``shards`` (every job's missing states with the tables they lack,
+    :func:`_missing`), keyed by :func:`state_key`: a job's own where no other needs it; a state several need
+    goes to the one of them with the fewest tables so far, the shared states taken in an order every job
+    computes alike (by a digest of the state), so every job reaches the same split from the same cache."""
+    need: dict[tuple, list[int]] = {}
+    cost: dict[tuple, int] = {}
+    for k, rows in enumerate(shards):
+        for state, ks in rows:
+            key = state_key(state)
+            need.setdefault(key, []).append(k)
+            cost[key] = max(cost.get(key, 0), len(ks))
+    load = [0] * len(shards)
+    out: dict[tuple, int] = {}
+    for key, ks in need.items():
+        if len(ks) == 1:
+            out[key] = ks[0]
+            load[ks[0]] += cost[key]
+    shared = sorted((k for k, ks in need.items() if len(ks) > 1),
+                    key=lambda k: hashlib.sha256(repr(k).encode()).hexdigest())
+    for key in shared:
+        k = min(need[key], key=lambda j: (load[j], j))
+        out[key] = k
+        load[k] += cost[key]
+    return out
+
+
+def _fill(all_tables: Sequence[ScoreTables], rows: Sequence[tuple[State, list[int]]], jobs: int,
+          on_table: Callable[[], None]) -> None:
+    """Compute the tables of ``rows`` (from :func:`_missing`), here or on ``jobs`` worker processes."""
     if jobs <= 1:
         for state, ks in rows:
             for k in ks:
@@ -271,9 +337,11 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
             all_tables[k].receive(chunk, scores, stats)
 
 
-def _missing(all_tables: Sequence[ScoreTables], states: Sequence[State]) -> list[tuple[State, list[int]]]:
+def _missing(all_tables: Sequence[ScoreTables], states: Sequence[State],
+             keep: bool = True) -> list[tuple[State, list[int]]]:
     """Each distinct state of ``states``, in their order, with the indices of the tables to compute in it:
-    not known, and not computed by another of ``all_tables`` (:func:`~overhang_framework.fit.scores.share_tables`)."""
+    not known, and not computed by another of ``all_tables`` (:func:`~overhang_framework.fit.scores.share_tables`).
+    ``keep=False`` only looks (:meth:`ScoreTables.known`): for states of other jobs."""
     rows, seen = [], set()
     present = {id(t) for t in all_tables}
     for state in states:
@@ -281,7 +349,7 @@ def _missing(all_tables: Sequence[ScoreTables], states: Sequence[State]) -> list
         if key in seen:
             continue
         seen.add(key)
-        ks = [k for k, tables in enumerate(all_tables) if not tables.known(state)
+        ks = [k for k, tables in enumerate(all_tables) if not tables.known(state, keep)
               and ((owner := tables.owner(state)) is tables or id(owner) not in present)]
         if ks:
             rows.append((state, ks))

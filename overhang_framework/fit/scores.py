@@ -211,6 +211,10 @@ class ScoreCache:
         self._db.execute("INSERT OR REPLACE INTO scores (key, n, scores) VALUES (?, ?, ?)",
                          (key, int(data.size), data.tobytes()))
 
+    def __contains__(self, key: str) -> bool:
+        return self._db is not None and \
+            self._db.execute("SELECT 1 FROM scores WHERE key = ?", (key,)).fetchone() is not None
+
     def __len__(self) -> int:
         if self._db is None:
             return 0
@@ -287,17 +291,22 @@ class ScoreTables:
                             f"{len(state.geometry)} blocks; a predictor's equivalent_switch must return a switch "
                             "point whose own is itself")
 
-    def known(self, state: State) -> bool:
-        """Whether the table of ``state`` is in memory or in the cache (computing nothing)."""
+    def known(self, state: State, keep: bool = True) -> bool:
+        """Whether the table of ``state`` is in memory or in the cache (computing nothing); with ``keep``, a
+        table found in the cache is then kept in memory (a fit of this job uses it)."""
         if state_key(state) in self._tables:
             return True
-        scores = self.cache.get(ScoreCache.entry(self.key, state)) if self.cache is not None else None
-        if scores is not None:
-            self._tables[state_key(state)] = scores
-            self.stats.cached += 1
-            return True
+        if self.cache is not None:
+            entry = ScoreCache.entry(self.key, state)
+            if not keep:
+                if entry in self.cache:
+                    return True
+            elif (scores := self.cache.get(entry)) is not None:
+                self._tables[state_key(state)] = scores
+                self.stats.cached += 1
+                return True
         owner = self.owner(state)
-        return owner is not self and owner.known(state)
+        return owner is not self and owner.known(state, keep)
 
     def receive(self, states, scores, stats: "TableStats") -> None:
         """Tables of ``states`` computed elsewhere (a worker process), with what they cost there."""
