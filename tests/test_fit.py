@@ -481,7 +481,7 @@ def test_one_process_computes_every_models_tables_of_a_state_together_in_the_sta
             computed.append((self.k, states.index(s)))
 
     monkeypatch.setattr(parallel, "pool_map", lambda *a: pytest.fail("one job needs no worker process"))
-    tables = [Tables(k=k, context=CONTEXT, model=Model({"name": "ipe"}, 1)) for k in (0, 1, 2)]
+    tables = [Tables(k=k, context=CONTEXT, model=Model({"name": "ipe"}, 1), cache=None) for k in (0, 1, 2)]
     totals, ticks = [], []
     run.fill_tables(tables, states + states[:3], jobs=1, on_table=lambda: ticks.append(1), on_total=totals.append)
     # state by state, and within a state every model that lacks its table: a hybrid's parts then answer
@@ -509,50 +509,45 @@ def test_jobs_sharing_a_cache_split_the_states_they_all_need_and_balance_their_t
     assert run.split_states([r[::-1] for r in rows]) == split
 
 
-def test_a_job_computes_its_share_first_then_what_the_others_have_not_written_from_the_far_end(monkeypatch):
-    from types import SimpleNamespace
-
+def test_a_job_computes_its_share_first_then_reads_what_the_others_wrote_meeting_them_from_the_far_end(
+        world, value, tmp_path, monkeypatch):
     from overhang_framework import parallel
     from overhang_framework.fit import run
     from overhang_framework.search import state_key
 
-    states = [state([[1.2, 0.0, 0], [0.6, 0.1 * i, 1]], [1.2]) for i in range(12)]
-    mine, theirs = states[:9], states[3:]  # states 3-8 are needed by both jobs
-    written = set()  # what the shared cache holds
-    computed = []
+    states = [state([[1.2, 0.0, 0], [0.6, 0.05 * i - 0.3, 1]], [1.2]) for i in range(12)]
+    mine, theirs = states[:9], states[3:][::-1]  # states 3-8 are needed by both jobs, listed in other orders
+    cache = ScoreCache(tmp_path / "scores.sqlite")
+    ours = tables(world, value, {"name": "veridical"}, 1, cache)
+    other = tables(world, value, {"name": "veridical"}, 1, ScoreCache(tmp_path / "scores.sqlite"))
     split = run.split_states([[(s, [0]) for s in mine], [(s, [0]) for s in theirs]])
-    given = [states.index(s) for s in mine if split[state_key(s)] == 0]
-    others = [states.index(s) for s in mine if split[state_key(s)] == 1]
+    given = [s for s in mine if split[state_key(s)] == 0]
+    others = [s for s in theirs if split[state_key(s)] == 1 and s in mine]  # the other's share, in its order
     assert given and len(others) >= 2
+    computed = []
+    compute = ScoreTables.compute
 
-    class Tables(SimpleNamespace):
-        def known(self, s, keep=True):
-            return states.index(s) in written
+    def counted(self, s):
+        if self is ours:
+            computed.append(states.index(s))
+            if s is given[-1]:  # meanwhile the other job has done the first of its share
+                other.compute(others[0])
+        compute(self, s)
 
-        def owner(self, s):
-            return self
-
-        def compute(self, s):
-            i = states.index(s)
-            computed.append(i)
-            written.add(i)
-            if i == given[-1]:  # meanwhile the other job wrote the last of its share
-                written.add(others[-1])
-
+    monkeypatch.setattr(ScoreTables, "compute", counted)
     monkeypatch.setattr(parallel, "pool_map", lambda *a: pytest.fail("one job needs no worker process"))
     totals = []
-    run.fill_tables([Tables(context=CONTEXT, model=Model({"name": "ipe"}, 1))], mine, jobs=1,
-                    on_total=totals.append, shards=[mine, theirs], shard=0)
-    assert computed == given + others[:-1][::-1]
-    assert totals == [9, 8]  # all it lacked at the start; then its share and what the other had not written
-    # on worker processes: its share in one pass, then what is still missing, from the far end
-    items = []
-    monkeypatch.setattr(parallel, "pool_map", lambda setup, args, work, chunks, jobs, tick: items.append(chunks) or [])
-    written.clear()
-    run.fill_tables([Tables(context=CONTEXT, model=Model({"name": "ipe"}, 1))], mine, jobs=2,
-                    shards=[mine, theirs], shard=0)
-    asked = [[states.index(x) for item in chunks for _, chunk in item for x in chunk] for chunks in items]
-    assert asked == [given, others[::-1]]
+    run.fill_tables([ours], mine, jobs=1, on_total=totals.append, shards=[mine, theirs], shard=0)
+    # its share, then the other's from its far end; the table the other wrote is read, not computed
+    assert computed == [states.index(s) for s in given + others[::-1]]  # compute() reads the cache first
+    assert ours.stats.computed == len(given) + len(others) - 1 and ours.stats.cached == 1
+    assert totals == [9]  # an upper bound: the other job wrote one of them first
+    # looking at another job's states keeps nothing in memory and counts nothing
+    fresh = tables(world, value, {"name": "veridical"}, 1, cache)
+    assert all(fresh.known(s, keep=False) for s in mine) and not fresh.known(states[11], keep=False)
+    assert not fresh._tables and fresh.stats.cached == 0
+    assert state_key(states[0]) not in {state_key(s) for s in theirs} and fresh.known(states[0]) and fresh._tables
+    assert ScoreCache.entry(fresh.key, states[0]) in cache and "x" not in cache and "x" not in ScoreCache(None)
 
 
 def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monkeypatch):
@@ -571,12 +566,31 @@ def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monk
         def owner(self, s):
             return self
 
-    tables = [Tables(k=k, context=CONTEXT, model=Model({"name": "ipe"}, 1)) for k in (0, 1)]
+    tables = [Tables(k=k, context=CONTEXT, model=Model({"name": "ipe"}, 1), cache=None) for k in (0, 1)]
     seen = {}
-    monkeypatch.setattr(parallel, "pool_map", lambda setup, args, work, items, jobs, tick: seen.setdefault("items", items) and [])
+
+    def pool_map(setup, args, work, items, jobs, tick):
+        seen.update(items=items, args=args)
+        return []
+
+    monkeypatch.setattr(parallel, "pool_map", pool_map)
     totals = []
     run.fill_tables(tables, states + states[:2], jobs=2, on_total=totals.append)
     asked = [(k, states.index(s)) for item in seen["items"] for k, chunk in item for s in chunk]
     assert totals == [18] and len(asked) == 18 and len(set(asked)) == 18
     assert [i for k, i in asked if k == 1] == list(range(10)) and [i for k, i in asked if k == 0] == [0, 1, 2, 5, 6, 7, 8, 9]
     assert len(seen["items"]) >= 2 * 2  # enough items for two workers
+    assert seen["args"][-1] is None  # no cache for the workers to read
+    # jobs sharing a cache: the workers are given its path, and this job's share comes first, then the
+    # other job's share from its far end
+    for t in tables:
+        t.cache = SimpleNamespace(path="scores.sqlite")
+    theirs = states[5:] + states[10:]
+    run.fill_tables(tables, states, jobs=2, shards=[states, theirs], shard=0)
+    from overhang_framework.search import state_key
+
+    split = run.split_states([run._missing(tables, states), run._missing(tables, theirs)])
+    given = [i for i, s in enumerate(states) if split[state_key(s)] == 0]
+    others = [i for i, s in enumerate(states) if split[state_key(s)] == 1]
+    order = list(dict.fromkeys(states.index(s) for item in seen["items"] for k, chunk in item for s in chunk))
+    assert others and order == given + others[::-1] and seen["args"][-1] == "scores.sqlite"

@@ -129,7 +129,7 @@ def run(cfg: DictConfig) -> dict:
     from overhang_framework.fit.compare import comparison, read_truth
     from overhang_framework.fit.fitting import log_placements
     from overhang_framework.fit.run import (FitJournal, Predictors, aggregate, check_directory, fit_units,
-                                            journal_path, units_of, write_part)
+                                            journal_path, shard_units, units_of, write_part)
     from overhang_framework.fit.scores import ENGINE_KEYS, ScoreCache, _strip
     from overhang_framework.progress import progress_bar
 
@@ -144,8 +144,7 @@ def run(cfg: DictConfig) -> dict:
                    "states": cfg.states, "cv": cfg.cv}
     check_directory(out, description)
     units = units_of(log_placements(checked["df"]), cfg.pooled)
-    # every job's units: jobs sharing a score cache split the tables they all need
-    shards = [[u for k, u in enumerate(units) if k % checked["shards"] == j] for j in range(checked["shards"])]
+    shards = shard_units(units, checked["shards"])  # every job's: jobs sharing a cache split the tables they need
     mine = shards[checked["shard"]]
     cache = ScoreCache(cfg.cache)
     build = Predictors(checked["registry"], world)
@@ -167,7 +166,7 @@ def run(cfg: DictConfig) -> dict:
     try:
         result = fit_units(mine, world, value, context, space, cache, build, on_unit, cfg.states, cfg.jobs,
                            lambda: table_bar.update(1), set_total, cfg.cv, journal,
-                           shards if cfg.cache else (), checked["shard"])
+                           shards, checked["shard"])
     finally:
         table_bar.close()
         bar.close()

@@ -71,6 +71,11 @@ def units_of(placements: Sequence[Placement], pooled: bool) -> list[Unit]:
     return units
 
 
+def shard_units(units: Sequence[Unit], shards: int) -> list[list[Unit]]:
+    """Each job's units: job ``j`` of ``shards`` does the units ``k`` with ``k % shards == j``."""
+    return [[u for k, u in enumerate(units) if k % shards == j] for j in range(shards)]
+
+
 @dataclass
 class JobResult:
     fits: list[ModelFit]
@@ -137,7 +142,8 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
 
     ``shards`` holds the units of every job of a multirun that shares ``cache``, in shard order, this job's
     (``units``) at index ``shard``: the jobs then split the tables they all need between them
-    (:func:`fill_tables`) instead of each computing those of its own units."""
+    (:func:`fill_tables`) instead of each computing those of its own units (with a cache on disk; without
+    one ``shards`` is not used)."""
     started = time.perf_counter()
     mapped = {u.name: map_placements(world, u.placements, states) for u in units}
     tables = [[ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
@@ -149,15 +155,13 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
         return journal.get(label, unit.name) if journal is not None else None
 
     todo = [u for u in units if any(done(index.label, u) is None for index in space)]
-    peers = []
-    for k, others in enumerate(shards):
-        if k != shard:
-            for u in others:
-                if u.name not in mapped:
-                    mapped[u.name] = map_placements(world, u.placements, states)
-        peers.append([s for u in (todo if k == shard else others) for s in mapped[u.name].states])
-    fill_tables([t for variants in tables for t in variants], [s for u in todo for s in mapped[u.name].states],
-                jobs, on_table, on_total, peers, shard)
+    mine = [s for u in todo for s in mapped[u.name].states]
+    peers: list[Sequence[State]] = []
+    if len(shards) > 1 and mine and cache is not None and cache.path is not None:
+        peers = [mine if k == shard else [s for u in others for s in (mapped[u.name] if u.name in mapped else
+                 map_placements(world, u.placements, states)).states] for k, others in enumerate(shards)]
+    fill_tables([t for variants in tables for t in variants], mine, jobs, on_table, on_total, peers, shard)
+    del peers
     fits: list[ModelFit] = []
     stats: dict[str, TableStats] = {}
     resumed = 0
@@ -259,26 +263,25 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
     whichever process computes it (common random numbers).
 
     ``shards`` holds the states of every job of a multirun that shares the score cache, this job's
-    (``states``) at index ``shard``. Each state some of them lack is then given to one job
-    (:func:`split_states`): the jobs do those first, then, in reverse order, the states given to others
-    that they need too, which by then the cache mostly holds; where a job that was given states falls
-    behind, the others meet it from the far end of its share. So overlapping jobs (a pooled condition's
-    states are its participants') compute each table about once and finish together.
+    (``states``) at index ``shard``. Each state that several of them lack is then given to one of them
+    (:func:`split_states`). A job computes its share first, then the states given to the others that it
+    needs too, each other job's share from its far end: a table is read from the cache when its turn comes
+    if another job has written it by then (with ``jobs > 1`` the worker processes read the cache too), so
+    where a job falls behind the others meet it from the end of its share. Overlapping jobs (a pooled
+    condition's states are its participants') compute each table about once and finish together. The
+    total given to ``on_total`` is an upper bound then: it counts the tables the others write first.
     """
     rows = _missing(all_tables, states)
-    total = sum(len(ks) for _, ks in rows)
-    on_total(total)
-    if len(shards) > 1:
-        assigned = split_states([_missing(all_tables, s, keep=False) if k != shard else rows
-                                 for k, s in enumerate(shards)])
-        first = [row for row in rows if assigned.get(state_key(row[0]), shard) == shard]
-        later = [row for row in rows if assigned.get(state_key(row[0]), shard) != shard][::-1]
-        done = sum(len(ks) for _, ks in first)
-        _fill(all_tables, first, jobs, on_table)
-        later = _missing(all_tables, [state for state, _ in later])  # what the others have not written yet
-        on_total(done + sum(len(ks) for _, ks in later))
-        _fill(all_tables, later, jobs, on_table)
-        return
+    on_total(sum(len(ks) for _, ks in rows))
+    if len(shards) > 1 and rows:
+        lacking = [_missing(all_tables, s, keep=False) if k != shard else rows for k, s in enumerate(shards)]
+        assigned = split_states(lacking)
+        place = {state_key(state): n for k, own in enumerate(lacking) for n, (state, _) in enumerate(own)
+                 if assigned[state_key(state)] == k}
+        first = [row for row in rows if assigned[state_key(row[0])] == shard]
+        later = sorted((row for row in rows if assigned[state_key(row[0])] != shard),
+                       key=lambda row: -place[state_key(row[0])])
+        rows = first + later
     _fill(all_tables, rows, jobs, on_table)
 
 
@@ -330,11 +333,12 @@ def _fill(all_tables: Sequence[ScoreTables], rows: Sequence[tuple[State, list[in
     if not items:
         return
     first = all_tables[0]
+    cache = first.cache.path if first.cache is not None else None  # the workers read and write it themselves
     setup = (dict(first.context), [dict(t.model.predictor) for t in all_tables], [t.model.depth for t in all_tables],
-             [t.model.family for t in all_tables])
+             [t.model.family for t in all_tables], cache)
     for item, results, _ in pool_map(_tables_setup, setup, _tables_work, items, jobs, on_table):
         for (k, chunk), (scores, stats) in zip(item, results):
-            all_tables[k].receive(chunk, scores, stats)
+            all_tables[k].receive(chunk, scores, stats, written=cache is not None)
 
 
 def _missing(all_tables: Sequence[ScoreTables], states: Sequence[State],
@@ -356,7 +360,8 @@ def _missing(all_tables: Sequence[ScoreTables], states: Sequence[State],
     return rows
 
 
-def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, families: list) -> list:
+def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, families: list,
+                  cache: Optional[Path] = None) -> list:
     from overhang_framework.fit.scores import Model
     from overhang_framework.plugins import Registry
 
@@ -364,7 +369,8 @@ def _tables_setup(context: Mapping[str, Any], predictors: list, depths: list, fa
     world = registry.create("world", dict(context["world"]))
     value = registry.create("value", dict(context["value"]), world=world)
     built = Predictors(registry, world)
-    tables = [ScoreTables(world, value, built(config), Model(config, depth, family), context, None)
+    shared = ScoreCache(cache) if cache is not None else None
+    tables = [ScoreTables(world, value, built(config), Model(config, depth, family), context, shared)
               for config, depth, family in zip(predictors, depths, families)]
     share_memory(tables)
     share_tables(tables)

@@ -308,11 +308,12 @@ class ScoreTables:
         owner = self.owner(state)
         return owner is not self and owner.known(state, keep)
 
-    def receive(self, states, scores, stats: "TableStats") -> None:
-        """Tables of ``states`` computed elsewhere (a worker process), with what they cost there."""
+    def receive(self, states, scores, stats: "TableStats", written: bool = False) -> None:
+        """Tables of ``states`` computed elsewhere (a worker process), with what they cost there; ``written``:
+        that process wrote them to the cache already."""
         for state, table in zip(states, scores):
             self._tables[state_key(state)] = np.asarray(table, dtype=float)
-            if self.cache is not None:
+            if self.cache is not None and not written:
                 self.cache.put(ScoreCache.entry(self.key, state), np.asarray(table, dtype=float))
         for name in ("computed", "cached", "predictor_calls", "seconds"):
             setattr(self.stats, name, getattr(self.stats, name) + getattr(stats, name))
