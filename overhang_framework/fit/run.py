@@ -20,6 +20,7 @@ import dataclasses
 import fcntl
 import hashlib
 import json
+import logging
 import os
 import time
 from dataclasses import dataclass, field
@@ -43,6 +44,7 @@ FIT_JSON = "fit.json"
 COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "beta", "lapse", "loglik", "k", "n",
            "bic", "aic", "unmapped", "heldout_loglik", "folds"]
 POOLED = "pooled:"
+log = logging.getLogger("overhang_framework.fit")
 
 
 @dataclass
@@ -281,6 +283,9 @@ def fill_tables(all_tables: Sequence[ScoreTables], states: Sequence[State], jobs
         first = [row for row in rows if assigned[state_key(row[0])] == shard]
         later = sorted((row for row in rows if assigned[state_key(row[0])] != shard),
                        key=lambda row: -place[state_key(row[0])])
+        log.info("score tables: this job lacks %d, %d of them its share; the rest are other jobs' shares, "
+                 "read from the cache once they are written", sum(len(ks) for _, ks in rows),
+                 sum(len(ks) for _, ks in first))
         rows = first + later
     _fill(all_tables, rows, jobs, on_table)
 
