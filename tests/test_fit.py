@@ -200,10 +200,11 @@ def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tm
     assert "0 from the cache" in proc.stdout and " 0 score tables computed" not in proc.stdout
     pd.testing.assert_frame_equal(a, pd.read_csv(three / "fits.csv"))
     assert "Simulated participants" not in (three / "comparison.md").read_text()
-    # a cold two-job multirun: the jobs split the states both need (the pooled conditions'), the same fits.csv
+    # a cold two-job multirun, both jobs at once: they split the states both need (the pooled conditions'),
+    # the same fits.csv
     four = tmp_path / "four"
     proc = _cli(str(elsewhere), "--out", str(four), *FIT, f"cache={tmp_path / 'four.sqlite'}", "-m", "shard=0,1",
-                "shards=2")
+                "shards=2", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
     assert proc.returncode == 0, proc.stderr
     pd.testing.assert_frame_equal(a, pd.read_csv(four / "fits.csv"))
     # another model space into the same directory is refused
