@@ -158,12 +158,9 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
 
     todo = [u for u in units if any(done(index.label, u) is None for index in space)]
     mine = [s for u in todo for s in mapped[u.name].states]
-    peers: list[Sequence[State]] = []
-    if len(shards) > 1 and mine and cache is not None and cache.path is not None:
-        peers = [mine if k == shard else [s for u in others for s in (mapped[u.name] if u.name in mapped else
-                 map_placements(world, u.placements, states)).states] for k, others in enumerate(shards)]
-    fill_tables([t for variants in tables for t in variants], mine, jobs, on_table, on_total, peers, shard)
-    del peers
+    sharing = len(shards) > 1 and bool(mine) and cache is not None and cache.path is not None
+    fill_tables([t for variants in tables for t in variants], mine, jobs, on_table, on_total,
+                _shards_states(world, shards, shard, mine, states) if sharing else (), shard)
     fits: list[ModelFit] = []
     stats: dict[str, TableStats] = {}
     resumed = 0
@@ -183,6 +180,13 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
                 setattr(total, name, getattr(total, name) + getattr(v.stats, name))
         stats[index.label] = total
     return JobResult(fits, stats, time.perf_counter() - started, resumed)
+
+
+def _shards_states(world, shards: Sequence[Sequence[Unit]], shard: int, mine: Sequence[State],
+                   states: str) -> list[Sequence[State]]:
+    """Every job's decision states for :func:`fill_tables`: ``mine`` for this job, the others' units mapped."""
+    return [mine if k == shard else [s for u in units for s in map_placements(world, u.placements, states).states]
+            for k, units in enumerate(shards)]
 
 
 #: States per work item of :func:`fill_tables`: enough to amortise the hand-over, few enough to balance.
