@@ -521,7 +521,10 @@ def test_score_tables_with_the_fused_batched_cnn_are_the_tables_of_the_trained_n
                 tables[label] = ScoreTables(world, value, predictor, model, {"test": 1}).table(state)
             assert len(tables["new"]) == len(world.legal_actions(state)) > 10
             assert np.abs(tables["new"] - tables["old"]).max() < 1e-4
-            assert np.argmax(tables["new"]) == np.argmax(tables["old"])
+            # Mirror-image placements on a centred tower score the same up to rounding, so the best
+            # action of one table is among the best of the other, not always the same index.
+            assert tables["old"][np.argmax(tables["new"])] > tables["old"].max() - 1e-4
+            assert tables["new"][np.argmax(tables["old"])] > tables["new"].max() - 1e-4
             np.testing.assert_allclose(rule.probabilities(tables["new"]), rule.probabilities(tables["old"]),
                                        atol=1e-4)
             assert sum(passes["new"]) == sum(passes["old"])  # the same towers
