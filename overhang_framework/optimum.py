@@ -33,7 +33,7 @@ import numpy as np
 
 from overhang_framework.interfaces import Budget, Predictor, State, Task, World
 from overhang_framework.results import atomic_write_json
-from overhang_framework.search import Expander, lookahead_value, root_scores, settled_scores
+from overhang_framework.search import Expander, lookahead_value, reach_bound, root_scores, score_step, settled_scores
 
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
 #: Backend parameters that choose how verdicts are computed, not the verdicts: left out of result keys.
@@ -50,10 +50,13 @@ class _FinalOverhang:
     almost its whole width and still stand.
     """
 
-    def __init__(self, world: World):
+    def __init__(self, world: World, lattice: bool = False):
         from overhang_builtins.values import OverhangValue
 
+        self.world = world
         self.inner = OverhangValue(world)
+        self.lattice = lattice
+        self._steps: dict = {}
 
     def __call__(self, state: State) -> float:
         return self.inner(state)
@@ -61,20 +64,40 @@ class _FinalOverhang:
     def children_values(self, expansion):
         return expansion.overhang
 
+    def step(self, state: State) -> float:
+        """The lattice spacing of the overhangs reachable from ``state`` (0 without ``lattice``)."""
+        if not self.lattice:
+            return 0.0
+        widths = tuple(sorted({b.width for b in state.geometry.blocks} | set(state.remaining)))
+        step = self._steps.get(widths)
+        if step is None:
+            step = self._steps[widths] = score_step(getattr(self.world, "resolution", None) or 0.1, widths)
+        return step
+
     def bound(self, state: State, depth: int) -> float:
-        return self.inner.bound(state, depth)
+        if not self.lattice:
+            return self.inner.bound(state, depth)
+        return reach_bound(self.world, state, depth, step=self.step(state))
 
 
 class OptimumSearch:
     """Exhaustive search with bounds for the best ``prod p * final overhang`` from a state."""
 
     def __init__(self, world: World, predictor: Predictor, seed: int = 0, mirror: bool = True,
-                 budget: Optional[Budget] = None):
+                 budget: Optional[Budget] = None, lattice: bool = True):
         self.world = world
         self.expander = Expander(world, predictor, Budget() if budget is None else _Unlimited(budget),
                                  seed=seed, mirror=mirror)
-        self.value = _FinalOverhang(world)
+        # 0/1 verdicts times an overhang on the grid: scores lie on a lattice (search.score_step), so once
+        # one is found only a whole step more counts, and each later block reaches one step less than its
+        # width; ``lattice=False`` searches without either
+        self.lattice = lattice and binary_verdicts(predictor)
+        self.value = _FinalOverhang(world, lattice=self.lattice)
         self.memo: dict = {}
+
+    def step(self, state: State) -> float:
+        """The lattice spacing of the scores from ``state`` (0: none is used)."""
+        return self.value.step(state)
 
     def greedy(self, state: State) -> float:
         """The score of the myopic continuation from ``state``: a score the optimum reaches or beats."""
@@ -94,7 +117,7 @@ class OptimumSearch:
         """The optimum score from ``state`` to the end of its episode."""
         floor = self.greedy(state)
         return lookahead_value(self.expander, self.value, state, len(state.remaining), floor, self.memo,
-                               prefetch=True)
+                               prefetch=True, step=self.step(state))
 
     def best_path(self, state: State) -> tuple[float, list]:
         """The optimum score from ``state`` and a sequence of actions that reaches it."""
@@ -112,7 +135,7 @@ class OptimumSearch:
                 if p <= 0:
                     continue
                 v = lookahead_value(self.expander, self.value, child, depth - 1, target / p, self.memo,
-                                    prefetch=True)
+                                    prefetch=True, step=self.step(child))
                 if p * v >= target * (1 - 1e-9):
                     path.append(action)
                     state, target = child, v
@@ -126,6 +149,12 @@ class OptimumSearch:
         self.greedy(state)
         return root_scores(self.expander, self.value, state, len(state.remaining), exact_all=False,
                            memo=self.memo, prefetch=True)
+
+
+def binary_verdicts(predictor: Predictor) -> bool:
+    """Whether every probability ``predictor`` gives is 0 or 1 (one deterministic verdict per tower)."""
+    return bool(getattr(predictor, "world_verdicts", False)
+                or (getattr(predictor, "deterministic", False) and getattr(predictor, "K", None) == 1))
 
 
 class _Unlimited(Budget):

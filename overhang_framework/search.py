@@ -281,17 +281,21 @@ def max_reach(world: World, state: State, resolution: Optional[float] = None) ->
     return max([base] + [abs(a.x) + width / 2 for a in actions])
 
 
-def reach_bound(world: World, state: State, depth: int, resolution: Optional[float] = None) -> float:
+def reach_bound(world: World, state: State, depth: int, resolution: Optional[float] = None,
+                step: float = 0.0) -> float:
     """An upper bound on the overhang of any geometry reachable from ``state`` in ``depth`` placements.
 
     Geometry alone: the next block's reach is computed exactly over its legal
     placements, and each later block rests on some block below with a positive
     overlap, so it extends the tower by less than its width. Capped by the grid.
+    With ``step``, the lattice every centre distance and half width lies on
+    (:func:`score_step`), a positive overlap is at least one step, so each later
+    block extends the tower by at most its width less one step.
     """
     depth = min(depth, len(state.remaining))
     if depth <= 0:
         return overhang(state.geometry)
-    bound = max_reach(world, state, resolution) + sum(state.remaining[1:depth])
+    bound = max_reach(world, state, resolution) + sum(state.remaining[1:depth]) - step * (depth - 1)
     return max(overhang(state.geometry), min(bound, GRID_HALF_WIDTH))
 
 
@@ -308,13 +312,15 @@ def _below(bound: Optional[float], threshold: float) -> bool:
 
 
 def settled_scores(expansion: Expansion, values: np.ndarray, floor: float = 0.0, exact_all: bool = False,
-                   batch: int = 1) -> np.ndarray:
+                   batch: int = 1, step: float = 0.0) -> np.ndarray:
     """``p * values`` for every child, settling unknown answers only where they can matter.
 
     Exact for every child scoring at least ``floor`` and at least every other child's score (ties
     included); another child may get an upper bound of its score instead (still below the best, or
     below ``floor``). With ``exact_all`` every score is exact. Unknown children are settled best
-    bound first, ``batch`` at a time.
+    bound first, ``batch`` at a time. With ``step`` > 0 the scores are known to lie on a lattice of
+    that spacing (see :func:`lookahead_value`): a child is settled only if it could beat the best known
+    score by a whole step, so the maximum is still exact but a child tied with it may keep its bound.
     """
     values = np.asarray(values, dtype=float)
     unknown = expansion.unknown
@@ -323,7 +329,7 @@ def settled_scores(expansion: Expansion, values: np.ndarray, floor: float = 0.0,
     upper = expansion.upper * values
     known = ~unknown
     best = float(upper[known].max()) if known.any() else 0.0
-    expansion.look([i for i in np.flatnonzero(unknown) if not _below(upper[i], max(best, floor))])
+    expansion.look([i for i in np.flatnonzero(unknown) if not _below(upper[i], _wanted(best, floor, step))])
     unknown = expansion.unknown
     upper = expansion.upper * values
     scores = upper.copy()
@@ -332,9 +338,9 @@ def settled_scores(expansion: Expansion, values: np.ndarray, floor: float = 0.0,
     order = [int(i) for i in np.argsort(-upper, kind="stable") if unknown[i]]
     k = 0
     while k < len(order):
-        if _below(upper[order[k]], max(best, floor)) or upper[order[k]] <= 0:
+        if _below(upper[order[k]], _wanted(best, floor, step)) or upper[order[k]] <= 0:
             break
-        group = [i for i in order[k:k + batch] if not _below(upper[i], max(best, floor))]
+        group = [i for i in order[k:k + batch] if not _below(upper[i], _wanted(best, floor, step))]
         expansion.settle(group)
         for i in group:
             scores[i] = expansion.p_at(i) * values[i]
@@ -343,8 +349,34 @@ def settled_scores(expansion: Expansion, values: np.ndarray, floor: float = 0.0,
     return scores
 
 
+def score_step(resolution: float, widths: Sequence[float]) -> float:
+    """The spacing of the lattice that every overhang of a task lies on: placements sit at
+    ``k * resolution`` and a block reaches half its width beyond its centre, so every overhang is a
+    whole multiple of the greatest common divisor of ``resolution`` and the half widths (0.1 for the
+    default grid). Scores of 0/1 verdicts times an overhang lie on the same lattice."""
+    from fractions import Fraction
+    from math import gcd
+
+    parts = [Fraction(float(resolution)).limit_denominator(10**6)] + \
+        [Fraction(float(w) / 2).limit_denominator(10**6) for w in widths]
+    den = 1
+    for f in parts:
+        den = den * f.denominator // gcd(den, f.denominator)
+    num = 0
+    for f in parts:
+        num = gcd(num, f.numerator * (den // f.denominator))
+    return num / den
+
+
+def _wanted(best: float, floor: float, step: float) -> float:
+    """The least score worth looking for: ``floor``, and with ``step`` a whole step above ``best``
+    (``best`` itself without one); just under it, so that rounding never hides a score on the lattice."""
+    return max(floor, best + step * (1 - 1e-6)) if step > 0 and best > 0 else max(floor, best)
+
+
 def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
-                    threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None, prefetch: bool = False) -> float:
+                    threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None,
+                    prefetch: bool = False, step: float = 0.0) -> float:
     """``max`` over action sequences of length ``depth`` of ``prod p * V(leaf)`` from ``state``.
 
     Branch and bound: a child whose score cannot reach ``threshold`` (or the
@@ -361,6 +393,11 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     cost of scoring children that a bound would have skipped.
     Children whose answer the predictor left unknown (:class:`Expansion`) count as standing in the
     bounds and are settled only when they are about to be searched, so the result is the same.
+
+    ``step`` > 0 says that every score lies on a lattice of that spacing (0/1 verdicts times an
+    overhang on the grid, :func:`score_step`): once a score is found, only a whole step more counts,
+    so subtrees that could at best tie it are skipped. The value is the same; which of several tied
+    sequences reached it first is not searched for. A ``memo`` must not mix calls with different ``step``.
     """
     memo = {} if memo is None else memo
     depth = min(depth, len(state.remaining))
@@ -375,7 +412,8 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     expansion = expander.expand(state)
     best = 0.0
     if depth == 1:
-        scores = settled_scores(expansion, _leaf_values(value, expansion), threshold, batch=expander.settle_batch)
+        scores = settled_scores(expansion, _leaf_values(value, expansion), threshold, batch=expander.settle_batch,
+                                step=step)
         best = float(scores.max()) if len(scores) else 0.0
     else:
         upper = expansion.upper
@@ -392,7 +430,7 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
             expander.expand_many([expansion.children[i] for i in order
                                   if upper[i] > 0 and not _below(upper[i] * bounds[i], floor)])
         for n, i in enumerate(order):
-            floor = max(threshold, best)
+            floor = _wanted(best, threshold, step)
             if upper[i] <= 0 or _below(upper[i] * bounds[i], floor):
                 expander.stats.leaves_pruned += 1
                 continue
@@ -401,7 +439,7 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
             if p_i <= 0:
                 continue
             child = lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                    floor / p_i, memo, beam, prefetch)
+                                    floor / p_i, memo, beam, prefetch, step)
             best = max(best, float(p_i * child))
     exact = best >= threshold * (1 - TIE) or threshold <= 0
     memo[key] = (best, exact, threshold)

@@ -1,0 +1,82 @@
+"""The benchmark's figures: one run's score against compute, and the leaderboard's, with people.
+
+People are drawn on the raw-reward panel, where the paper reports them: the paper's participants'
+mean terminal reward, 0.913 with 5 s per placement and 0.979 without (SEM 0.03), measured on the
+paper's own 20 tasks, which it does not list; and the framework's simulated participants on ``paper20``
+(:data:`SIMULATED`, from ``python -m overhang_framework.benchmark.people``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional, Sequence
+
+#: The paper's participants (Table 2): mean terminal reward and SEM, on the paper's own 20 tasks.
+PAPER_PEOPLE = {"5 s per placement": (0.913, 0.03), "no time limit": (0.979, 0.03)}
+SIMULATED = Path(__file__).resolve().parent.parent / "data" / "benchmark_people.json"
+
+
+def simulated_people(path: Optional[Path] = None) -> list[dict]:
+    """The simulated participants' rows kept by ``python -m overhang_framework.benchmark.people`` (none if absent)."""
+    path = SIMULATED if path is None else Path(path)
+    if not path.exists():
+        return []
+    return json.loads(path.read_text()).get("rows", [])
+
+
+def _people(ax, raw: bool) -> None:
+    if raw:
+        for (name, (mean, sem)), colour in zip(PAPER_PEOPLE.items(), ("#c0392b", "#8e44ad")):
+            ax.axhline(mean, color=colour, ls="--", lw=1)
+            ax.axhspan(mean - sem, mean + sem, color=colour, alpha=0.08)
+            ax.text(1.0, mean, f" paper's people, {name}\n (paper's own tasks)", color=colour, fontsize=7,
+                    va="center", ha="left", transform=ax.get_yaxis_transform())
+    for row, colour in zip(simulated_people(), ("#16a085", "#2980b9")):
+        value = row["reward"] if raw else row["score"]
+        ax.axhline(value, color=colour, ls=":", lw=1)
+        ax.text(1.0, value, f" simulated, {row['condition']}\n (paper20)", color=colour, fontsize=7, va="center",
+                ha="left", transform=ax.get_yaxis_transform())
+
+
+def run_figure(result: dict, path: Path) -> None:
+    """Score and mean raw reward against the budget (one point without a ladder), people marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from overhang_framework.results import atomic_output
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    if result.get("budgets"):
+        budgets = sorted(result["budgets"], key=float)
+        xs = [float(b) for b in budgets]
+        rungs = [result["budgets"][b] for b in budgets]
+        xlabel = "predictor calls per decision" if result.get("budget_kind") == "calls" else "seconds per decision"
+    else:
+        spent = result.get("calls_per_decision")
+        xs = [spent if spent else result.get("seconds_per_decision") or 1.0]
+        rungs = [result]
+        xlabel = "predictor calls per decision (spent)" if spent else "seconds per decision (spent)"
+    for ax, key, title in ((axes[0], "score", "score (reward / optimum)"), (axes[1], "reward", "mean raw reward")):
+        ys = [r[key] for r in rungs]
+        if key == "score":
+            err = [[r["score"] - r["ci_low"] for r in rungs], [r["ci_high"] - r["score"] for r in rungs]]
+            ax.errorbar(xs, ys, yerr=err, marker="o", capsize=3, label=result["agent"])
+            ax.set_ylim(0, 1.05)
+            ax.axhline(1.0, color="grey", lw=0.8)
+        else:
+            ax.plot(xs, ys, marker="o", label=result["agent"])
+        _people(ax, raw=key == "reward")
+        ax.set_xscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_title(title, fontsize=10)
+    axes[0].legend(fontsize=8, loc="lower right")
+    area = f", area {result['area']:.3f}" if result.get("area") is not None else ""
+    fig.suptitle(f"{result['agent']} on {result['split']}: {result['score']:.3f} "
+                 f"[{result['ci_low']:.3f}, {result['ci_high']:.3f}]{area}", fontsize=10)
+    fig.tight_layout()
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)

@@ -1,0 +1,322 @@
+"""The benchmark: splits, optima, the metric, the protocol and agents of any kind."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from overhang_framework.benchmark import score, splits
+
+ROOT = Path(__file__).resolve().parents[1]
+STATIC = ["world.physics=static", "verdicts=null", "figure=false", "progress=false"]
+
+
+# ------------------------------------------------------------------------------------------------ splits
+
+def test_task_ids_name_their_sequences_and_refuse_what_is_not_a_task():
+    assert splits.task_id((1.2, 1.8, 0.6, 1.8, 1.2, 0.6)) == "w231321"
+    assert splits.sequence_of("w231321") == (1.2, 1.8, 0.6, 1.8, 1.2, 0.6)
+    space = splits.task_space(6)
+    assert len(space) == len(set(space)) == 729
+    assert all(splits.task_id(splits.sequence_of(t)) == t for t in space)
+    with pytest.raises(splits.SplitError, match="not a task id"):
+        splits.sequence_of("w1204")
+    with pytest.raises(splits.SplitError, match="not one of"):
+        splits.task_id((0.6, 0.9))
+
+
+def test_the_splits_are_disjoint_and_cover_the_six_block_space():
+    data = splits.load()
+    test, paper20 = set(splits.split_ids("test")), set(splits.split_ids("paper20"))
+    folds = [set(splits.split_ids("train", k)) for k in range(splits.FOLDS)]
+    train = set().union(*folds)
+    assert len(test) >= 100 and len(paper20) == 20
+    assert sum(len(f) for f in folds) == len(train)  # folds disjoint
+    assert not (test & paper20) and not (test & train) and not (train & paper20)
+    assert test | train | paper20 == set(splits.task_space(6))
+    assert max(len(f) for f in folds) - min(len(f) for f in folds) <= 1
+    cross = splits.split_ids("cross")
+    assert cross and all(len(splits.sequence_of(t)) == splits.CROSS_LENGTH for t in cross)
+    assert paper20 == {splits.task_id(s) for s in splits.paper20_sequences()}
+    assert data["seed"] == splits.SEED
+
+
+def test_the_test_split_covers_every_width_mix_ground_width_and_third_of_difficulty():
+    data = splits.load()
+    test = splits.split_ids("test")
+    assert {splits.composition(t) for t in test} == {splits.composition(t) for t in splits.task_space(6)}
+    assert {t[1] for t in test} == {"1", "2", "3"}
+    gaps = sorted(v["gap"] for t, v in data["measures"].items() if t not in set(splits.split_ids("paper20")))
+    cuts = np.quantile(gaps, [1 / 3, 2 / 3])
+    mine = np.array([data["measures"][t]["gap"] for t in test])
+    thirds = [(mine <= cuts[0]).sum(), ((mine > cuts[0]) & (mine <= cuts[1])).sum(), (mine > cuts[1]).sum()]
+    assert min(thirds) >= 20, thirds
+
+
+def test_the_splits_are_what_their_seed_draws_and_never_change():
+    data = splits.load()
+    assert splits.draw(data["measures"], data["splits"]["paper20"], seed=data["seed"]) == data["splits"]
+    # a published split is fixed: these digests change only if the split itself changed
+    digest = {name: hashlib.sha256(",".join(splits.split_ids(name)).encode()).hexdigest()[:16]
+              for name in ("test", "cross")}
+    assert digest == {"test": "eae8b7a1baa5405a", "cross": "dac38904d4d53805"}
+
+
+def test_check_command_says_whether_a_file_holds_its_draw(tmp_path):
+    data = splits.load()
+    good = tmp_path / "splits.json"
+    good.write_text(json.dumps(data))
+    from overhang_framework.benchmark.splits import main
+
+    assert main(["--check", "--out", str(good)]) == 0
+    data["splits"]["test"] = data["splits"]["test"][1:]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(data))
+    assert main(["--check", "--out", str(bad)]) == 1
+    (tmp_path / "broken.json").write_text("{")
+    assert main(["--check", "--out", str(tmp_path / "broken.json")]) == 2
+
+
+@pytest.mark.slow
+def test_the_kept_difficulty_measures_are_what_the_agents_score_now():
+    data = splits.load()
+    sample = sorted(data["measures"])[::50]
+    assert splits.measure(sample, progress=False) == {t: data["measures"][t] for t in sample}
+
+
+# ------------------------------------------------------------------------------------------------ the metric
+
+def _rows(values, seeds=1, budget=None):
+    rows = []
+    for k, v in enumerate(values):
+        for s in range(seeds):
+            rows.append({"task_id": f"w{k:06d}", "seed": s, "budget": budget, "reward": v * 2, "optimum": 2.0,
+                         "normalised": v, "stood": v > 0, "calls": 5, "seconds": 0.1, "reason": "", "steps": 5})
+    return rows
+
+
+def test_the_score_is_the_mean_over_tasks_with_a_bootstrap_interval_around_it():
+    rng = np.random.default_rng(1)
+    values = rng.uniform(0.2, 1.0, size=60)
+    result = score.summarise(_rows(values, seeds=2))
+    assert result["score"] == pytest.approx(values.mean())
+    assert result["ci_low"] < result["score"] < result["ci_high"]
+    sem = values.std(ddof=1) / np.sqrt(len(values))
+    assert result["ci_high"] - result["ci_low"] == pytest.approx(2 * 1.96 * sem, rel=0.1)
+    assert result["n_tasks"] == 60 and result["seeds"] == 2 and result["stood"] == 1.0
+    assert result["reward"] == pytest.approx(2 * values.mean())
+
+
+def test_the_summary_does_not_depend_on_the_order_of_its_rows():
+    rows = _rows(np.linspace(0, 1, 30), seeds=3)
+    shuffled = [rows[i] for i in np.random.default_rng(0).permutation(len(rows))]
+    assert score.summary(rows) == score.summary(shuffled)
+
+
+def test_the_area_weighs_each_doubling_of_compute_alike():
+    assert score.area([(1, 0.5), (4, 0.5), (16, 0.5)]) == pytest.approx(0.5)
+    early = score.area([(1, 0.8), (4, 0.9), (16, 0.9), (64, 0.9), (256, 0.9)])
+    late = score.area([(1, 0.1), (4, 0.2), (16, 0.3), (64, 0.6), (256, 0.9)])
+    assert early > late
+    # equal log spacing: the trapezoid is the mean with the ends weighted half
+    assert score.area([(1, 0.0), (2, 1.0), (4, 1.0)]) == pytest.approx(0.75)
+    assert score.area([(8, 0.4)]) is None
+    rows = _rows([0.5, 0.7], budget=1.0) + _rows([0.6, 0.8], budget=4.0)
+    result = score.summary(rows)
+    assert result["curve"] == [[1.0, pytest.approx(0.6)], [4.0, pytest.approx(0.7)]]
+    assert result["area"] == pytest.approx(0.65)
+    assert result["score"] == pytest.approx(0.7)  # the top rung's
+
+
+# ------------------------------------------------------------------------------------------------ running agents
+
+def bench(tmp_path, *words, name="run", check=True):
+    out = tmp_path / name
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.benchmark", *STATIC, *words,
+                           f"hydra.run.dir={out}"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    if check:
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    return out, proc
+
+
+def scores_without_time(out: Path) -> pd.DataFrame:
+    return pd.read_csv(out / "scores.csv").drop(columns=["seconds"])
+
+
+FIVE = "ids=[w121223,w122321,w212333,w233233,w133322]"
+
+
+@pytest.mark.parametrize("command", [["python3", "examples/agents/lean.py"], ["node", "examples/agents/centre.js"]],
+                         ids=["python", "node"])
+def test_the_example_agents_score_identically_twice(tmp_path, command):
+    word = "agent.command=[" + ",".join(command) + "]"
+    a, _ = bench(tmp_path, "agent=command", word, FIVE, "seeds=1", name="a")
+    b, _ = bench(tmp_path, "agent=command", word, FIVE, "seeds=1", name="b")
+    first = scores_without_time(a)
+    assert len(first) == 5 and first["optimum"].notna().all()
+    pd.testing.assert_frame_equal(first, scores_without_time(b))
+    summary = json.loads((a / "summary.json").read_text())
+    assert summary["reward"] > 0 and summary["score"] <= 1.0
+    assert (first["normalised"] <= 1 + 1e-9).all()
+
+
+BAD_AGENT = '''
+import json, sys, time
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("type") != "decision":
+        continue
+    if m["task_id"] == "w122321":
+        MODE
+    x, layer = m["legal"][0]
+    print(json.dumps({"x": x, "layer": layer}), flush=True)
+'''
+
+
+@pytest.mark.parametrize("mode,reason", [
+    ("sys.exit(3)", "agent crashed at placement 1 (exit code 3)"),
+    ("time.sleep(60)", "agent gave no answer within 2 s at placement 1"),
+    ('print(json.dumps({"x": 3.95, "layer": 1}), flush=True); continue', "illegal placement x=3.95, layer=1"),
+    ('print("left", flush=True); continue', "malformed answer at placement 1"),
+], ids=["crash", "hang", "illegal", "malformed"])
+def test_a_failing_agent_ends_its_task_with_a_reason_and_the_run_goes_on(tmp_path, mode, reason):
+    program = tmp_path / "agent.py"
+    program.write_text(BAD_AGENT.replace("MODE", mode))
+    out, proc = bench(tmp_path, "agent=command", f"agent.command=[{sys.executable},{program}]", "agent.timeout=2",
+                      "ids=[w121223,w122321,w212333]", "seeds=2")
+    rows = pd.read_csv(out / "scores.csv", keep_default_na=False)
+    assert len(rows) == 6
+    failed = rows[rows["task_id"] == "w122321"]
+    assert (failed["reward"] == 0).all() and failed["reason"].str.startswith(reason).all(), failed["reason"].tolist()
+    others = rows[rows["task_id"] != "w122321"]
+    assert others["steps"].min() >= 1 and not others["reason"].str.contains("agent").any()
+    assert len((out / "episodes.jsonl").read_text().splitlines()) == 6
+
+
+def test_a_stopped_run_continues_and_a_directory_of_another_config_is_refused(tmp_path):
+    out, _ = bench(tmp_path, FIVE, "seeds=2")
+    whole = scores_without_time(out)
+    lines = (out / "episodes.jsonl").read_text().splitlines()
+    (out / "episodes.jsonl").write_text("\n".join(lines[:4]) + "\n" + lines[4][:30])  # stopped mid-line
+    (out / "scores.csv").unlink()
+    bench(tmp_path, FIVE, "seeds=2")
+    pd.testing.assert_frame_equal(scores_without_time(out), whole)
+    _, proc = bench(tmp_path, FIVE, "seeds=3", check=False)
+    assert proc.returncode == 2 and "holds results of a different config (seeds: 2 -> 3)" in proc.stderr
+
+
+def test_the_oracle_scores_one_and_a_budget_ladder_gives_a_curve(tmp_path):
+    out, _ = bench(tmp_path, "planner=optimal", FIVE, "seeds=1", name="oracle")
+    rows = pd.read_csv(out / "scores.csv")
+    assert np.allclose(rows["normalised"], 1.0)
+    out, _ = bench(tmp_path, "planner=lookahead", "planner.depth=2", FIVE, "seeds=1", "budgets=[1,4,16]",
+                   name="ladder")
+    summary = json.loads((out / "summary.json").read_text())
+    assert [b for b, _ in summary["curve"]] == [1, 4, 16]
+    assert summary["area"] is not None and 0 <= summary["area"] <= 1
+    rows = pd.read_csv(out / "scores.csv")
+    assert len(rows) == 15 and (rows["normalised"] <= 1 + 1e-9).all()
+    assert (rows.groupby("budget")["calls"].max() <= rows.groupby("budget")["steps"].max() * rows["budget"].unique()).all()
+
+
+@pytest.mark.parametrize("words,message", [
+    (["split=validation"], "unknown split 'validation'; splits: test, train, cross, paper20"),
+    (["ids=[w1204]"], "'w1204' is not a task id"),
+    (["agent=command"], "agent=command needs agent.command"),
+    (["agent=random", "budgets=[1,4]"], "agent=random takes no budget"),
+    (["budgets=[0,4]"], "budgets must be a list of distinct numbers > 0"),
+    (["split=train", "fold=7"], "train fold 7 does not exist; folds are 0 to 4"),
+])
+def test_bad_benchmark_input_gets_one_line(tmp_path, words, message):
+    _, proc = bench(tmp_path, *words, check=False)
+    assert proc.returncode == 2
+    assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+# ------------------------------------------------------------------------------------------------ optima
+
+def test_the_lattice_search_finds_the_optimum_and_path_of_the_search_that_tries_ties():
+    from overhang_framework.optimum import OptimumSearch
+    from overhang_framework.plugins import Registry
+
+    world = Registry().create("world", {"name": "overhang", "physics": "static"})
+    for tid in ("w2312", "w13122", "w31211", "w22313"):
+        got = {}
+        for lattice in (False, True):
+            predictor = Registry().create("predictor", {"name": "veridical"}, world=world)
+            search = OptimumSearch(world, predictor, lattice=lattice)
+            best, path = search.best_path(world.initial_state(splits.task(tid)))
+            got[lattice] = (round(best, 9), [(a.x, a.layer) for a in path], search.expander.stats.nodes_expanded)
+        assert got[True][:2] == got[False][:2], tid
+        assert got[True][2] <= got[False][2], tid
+
+
+def test_optima_command_keeps_each_task_at_once_and_resumes(tmp_path):
+    out = tmp_path / "optima.json"
+    words = [sys.executable, "-m", "overhang_framework.benchmark.optima", "ids=[w2312,w13122]", f"out={out}",
+             "world.physics=static", "verdicts=null", "progress=false"]
+    proc = subprocess.run([*words, f"hydra.run.dir={tmp_path / 'r1'}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    optima = json.loads(out.read_text())["optima"]
+    assert sorted(r["task_id"] for r in optima.values()) == ["w13122", "w2312"]
+    assert all(r["reference"]["stood"] for r in optima.values())
+    table = pd.read_csv(tmp_path / "r1" / "optima.csv")
+    assert list(table["task_id"]) == ["w2312", "w13122"]
+    proc = subprocess.run([*words, f"hydra.run.dir={tmp_path / 'r2'}"], cwd=ROOT, capture_output=True, text=True)
+    assert "0 solved now" in proc.stdout
+    assert json.loads(out.read_text())["optima"] == optima
+
+
+def test_optimum_parts_of_several_jobs_merge_into_one_file(tmp_path):
+    from overhang_framework.benchmark.optima import keep_part, merge, parts_dir
+
+    out = tmp_path / "optima.json"
+    out.write_text(json.dumps({"optima": {"a": {"optimum": 1.0}}}))
+    keep_part(out, "b", {"optimum": 2.0})
+    keep_part(out, "c", {"optimum": 3.0})
+    assert merge(out) == 2
+    assert json.loads(out.read_text())["optima"] == {"a": {"optimum": 1.0}, "b": {"optimum": 2.0},
+                                                    "c": {"optimum": 3.0}}
+    assert not parts_dir(out).exists()
+
+
+def _benchmark_rows():
+    from overhang_framework.optimum import DATA_FILE, load_optima
+
+    scored = set(splits.split_ids("test")) | set(splits.split_ids("cross"))
+    return sorted((r for r in load_optima(DATA_FILE).values() if r["task_id"] in scored and r["physics"] == "tiered"),
+                  key=lambda r: r["task_id"])
+
+
+def test_every_scored_test_task_has_an_optimum_whose_path_stood_under_the_reference():
+    rows = {r["task_id"]: r for r in _benchmark_rows()}
+    assert set(splits.split_ids("test")) <= set(rows)
+    for row in rows.values():
+        assert row["reference"]["stood"] and row["reference"]["overhang"] == pytest.approx(row["optimum"])
+        assert len(row["actions"]) == len(row["sequence"]) - 1
+
+
+def _replay(row):
+    from overhang_framework.benchmark.optima import replay
+
+    return replay(row, {"name": "overhang", "physics": "tiered"})
+
+
+@pytest.mark.parametrize("row", _benchmark_rows()[::25], ids=lambda r: r["task_id"])
+def test_a_sample_of_stored_benchmark_paths_stands_under_the_reference_again(row):
+    again = _replay(row)
+    assert again["stood"] and again["overhang"] == pytest.approx(row["optimum"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("row", _benchmark_rows(), ids=lambda r: r["task_id"])
+def test_every_stored_benchmark_path_stands_under_the_reference_again(row):
+    again = _replay(row)
+    assert again["stood"] and again["overhang"] == pytest.approx(row["optimum"])
