@@ -239,10 +239,12 @@ def write_results(out_dir: Path, cfg_data: dict, records: Sequence[dict], world,
                    "budget_kind": cfg.budget_kind if cfg.get("budgets") is not None else None,
                    "physics": cfg.world.physics, "missing_optima": missing, "config": identity(cfg)})
     atomic_write_json(out_dir / SUMMARY, result)
-    if figure:
+    if figure and result["n_scored"]:
         from overhang_framework.benchmark.figures import run_figure
 
         run_figure(result, out_dir / FIGURE)
+    elif figure:
+        log.warning("no task of the run has an optimum under this physics: no score and no figure")
     return result
 
 
@@ -352,7 +354,8 @@ def app(cfg: DictConfig) -> Optional[dict]:
     if result["above_optimum"]:
         print(f"error: {', '.join(result['above_optimum'])} scored above its optimum: that optimum is wrong",
               file=sys.stderr)
-    print(f"wrote {out_dir / SCORES}, {out_dir / SUMMARY}" + (f" and {out_dir / FIGURE}" if cfg.figure else ""))
+    print(f"wrote {out_dir / SCORES}, {out_dir / SUMMARY}" + (f" and {out_dir / FIGURE}" if cfg.figure and
+                                                              result["n_scored"] else ""))
     return {k: result[k] for k in ("score", "ci_low", "ci_high", "stood", "reward", "n_tasks")}
 
 

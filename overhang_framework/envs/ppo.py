@@ -34,13 +34,28 @@ def _write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def make_env(tasks: str, physics: str, reward: str, resolution: float, seed: int, n_envs: int):
+BENCHMARK = "benchmark:"
+
+
+def task_kwargs(tasks: str) -> dict:
+    """The environment's task arguments for ``--tasks``: a task set, ``random``, or ``benchmark:SPLIT``
+    (a split of the benchmark, e.g. ``benchmark:train``: its sequences)."""
+    if tasks.startswith(BENCHMARK):
+        from overhang_framework.benchmark.splits import sequence_of, split_ids
+
+        return {"sequences": [list(sequence_of(t)) for t in split_ids(tasks[len(BENCHMARK):])]}
+    return {"tasks": tasks}
+
+
+def make_env(tasks: str, physics: str, reward: str, resolution: float, seed: int, n_envs: int,
+             max_blocks: int | None = None):
     """The vectorised flat environment PPO trains on."""
     from stable_baselines3.common.env_util import make_vec_env
 
     from overhang_framework.envs.wrappers import flat_env
 
-    kwargs = {"tasks": tasks, "physics": physics, "reward": reward, "resolution": resolution}
+    kwargs = {**task_kwargs(tasks), "physics": physics, "reward": reward, "resolution": resolution,
+              "max_blocks": max_blocks}
     return make_vec_env(lambda: flat_env(**kwargs), n_envs=n_envs, seed=seed)
 
 
@@ -54,7 +69,7 @@ def train(args) -> tuple[Path, dict]:
     from overhang_framework.progress import progress_bar
 
     torch.set_num_threads(args.threads)
-    env = make_env(args.tasks, args.physics, args.reward, args.resolution, args.seed, args.envs)
+    env = make_env(args.tasks, args.physics, args.reward, args.resolution, args.seed, args.envs, args.max_blocks)
 
     class Progress(BaseCallback):
         def _on_training_start(self):
@@ -86,7 +101,7 @@ def train(args) -> tuple[Path, dict]:
     seconds = time.perf_counter() - started
     figures = {"steps": int(model.num_timesteps), "seconds": round(seconds, 1),
                "steps_per_second": round(model.num_timesteps / seconds, 1), "threads": args.threads,
-               "envs": args.envs, "tasks": args.tasks, "physics": args.physics, "reward": args.reward,
+               "envs": args.envs, "tasks": args.tasks, "max_blocks": args.max_blocks, "physics": args.physics, "reward": args.reward,
                "resolution": args.resolution, "seed": args.seed, "log_std_init": args.log_std_init,
                "curve": [{"steps": n, "return": r, "length": ln} for n, r, ln in progress.curve[:: max(1, len(progress.curve) // 50)]]}
     path = save_policy(model, args.out / "policy.zip", env, training=figures)
@@ -141,7 +156,8 @@ def check_settings(args) -> None:
     Registry().create("world", OmegaConf.to_container(cfg.world, resolve=True))
     tasks_from_config(cfg.tasks)
     try:
-        flat_env(tasks=args.tasks, physics=args.physics, reward=args.reward, resolution=args.resolution).close()
+        flat_env(**task_kwargs(args.tasks), physics=args.physics, reward=args.reward, resolution=args.resolution,
+                 max_blocks=args.max_blocks).close()
     except ValueError as err:  # the environment's own refusal of --tasks or --resolution
         raise ConfigError(f"the training environment: {err}") from None
 
@@ -150,7 +166,12 @@ def parse(argv=None):
     parser = argparse.ArgumentParser(prog="python -m overhang_framework.envs.ppo", description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=200_000, help="environment steps of training (default 200000)")
     parser.add_argument("--out", type=Path, default=Path("runs/ppo"), help="output directory (default runs/ppo)")
-    parser.add_argument("--tasks", default="random", help="training tasks: random or a task set (default random)")
+    parser.add_argument("--tasks", default="random",
+                        help="training tasks: random, a task set, or benchmark:SPLIT (e.g. benchmark:train, the "
+                             "benchmark's training split) (default random)")
+    parser.add_argument("--max-blocks", type=int, default=None,
+                        help="the longest task the policy can play (default: the training tasks' length); "
+                             "7 lets a policy trained on 6-block tasks play the benchmark's cross split")
     parser.add_argument("--test", default="paper20", help="task set the agent and the models are compared on")
     parser.add_argument("--physics", default="static", help="world physics for training and test (default static)")
     parser.add_argument("--reward", default="shaped", choices=("paper", "shaped"), help="training reward")

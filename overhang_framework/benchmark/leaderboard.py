@@ -1,0 +1,184 @@
+"""The benchmark's leaderboard: one row per agent and split, with the command that recreates it.
+
+``overhang_framework/data/leaderboard.csv`` holds, per row, the agent, the split, the score with its
+95% interval, the share of towers that stood, the mean raw reward, the area under the
+score-against-compute curve (with a ladder), the compute spent per decision, the command, and the
+framework's version and commit and the date the row was scored::
+
+    python -m overhang_framework.benchmark.leaderboard add runs/bench/d2-ipe     # a finished run's row
+    python -m overhang_framework.benchmark.leaderboard show                      # the table, in Markdown
+    python -m overhang_framework.benchmark.leaderboard figure --out docs/figures/benchmark.png
+
+A row is replaced when a run of the same agent and split is added again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+DATA_FILE = Path(__file__).resolve().parent.parent / "data" / "leaderboard.csv"
+COLUMNS = ("agent", "split", "score", "ci_low", "ci_high", "stood", "reward", "area", "n_tasks", "seeds",
+           "budget_kind", "calls_per_decision", "seconds_per_decision", "curve", "physics", "command",
+           "version", "commit", "date")
+
+
+def commit() -> str:
+    """The framework's git commit, when it runs from a git checkout ('' otherwise)."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
+                             text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
+def command_of(run_dir: Path) -> str:
+    """The command that made ``run_dir`` (its Hydra overrides, less the run directory)."""
+    import yaml
+
+    path = run_dir / ".hydra" / "overrides.yaml"
+    words = yaml.safe_load(path.read_text()) if path.exists() else []
+    words = [w for w in words if not w.startswith("hydra.run.dir=")]
+    quoted = [f"'{w}'" if any(c in w for c in "[]{},") else w for w in words]
+    return " ".join(["python -m overhang_framework.benchmark", *quoted])
+
+
+def row_of(run_dir: Path, agent: Optional[str] = None) -> dict:
+    """The leaderboard row of the finished run in ``run_dir``."""
+    import overhang_framework
+
+    path = run_dir / "summary.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{run_dir} has no summary.json; is it a finished benchmark run?")
+    s = json.loads(path.read_text())
+    return {"agent": agent or s["agent"], "split": s["split"], "score": s["score"], "ci_low": s["ci_low"],
+            "ci_high": s["ci_high"], "stood": s["stood"], "reward": s["reward"], "area": s.get("area"),
+            "n_tasks": s["n_scored"], "seeds": s["seeds"], "budget_kind": s.get("budget_kind"),
+            "calls_per_decision": s.get("calls_per_decision"), "seconds_per_decision": s.get("seconds_per_decision"),
+            "curve": json.dumps(s["curve"]) if s.get("curve") else "", "physics": s.get("physics"),
+            "command": command_of(run_dir), "version": overhang_framework.__version__, "commit": commit(),
+            "date": _dt.date.today().isoformat()}
+
+
+def load(path: Path | str | None = None):
+    import pandas as pd
+
+    path = Path(DATA_FILE if path is None else path)
+    if not path.exists():
+        return pd.DataFrame(columns=list(COLUMNS))
+    return pd.read_csv(path, keep_default_na=False)
+
+
+def add(rows: Sequence[dict], path: Path | str | None = None) -> None:
+    """Put ``rows`` into the leaderboard, replacing rows of the same agent and split; sorted by split, score."""
+    import pandas as pd
+
+    from overhang_framework.results import atomic_write_text
+
+    path = Path(DATA_FILE if path is None else path)
+    board = load(path)
+    keys = {(r["agent"], r["split"]) for r in rows}
+    board = board[[(a, s) not in keys for a, s in zip(board["agent"], board["split"])]] if len(board) else board
+    board = pd.concat([board, pd.DataFrame(rows, columns=list(COLUMNS))], ignore_index=True)
+    board["score"] = board["score"].astype(float)
+    order = {s: k for k, s in enumerate(("test", "cross", "paper20", "train"))}
+    board = board.sort_values(by=["split", "score", "agent"], key=lambda c: c.map(order) if c.name == "split"
+                              else (-c if c.name == "score" else c)).reset_index(drop=True)
+    atomic_write_text(path, board.to_csv(index=False, float_format="%.6g"))
+
+
+def markdown(board, split: Optional[str] = None) -> str:
+    """The leaderboard as a Markdown table (one split, or all)."""
+    lines = ["| agent | split | score [95% CI] | stood | reward | area | calls / decision | s / decision |",
+             "|---|---|---|---|---|---|---|---|"]
+    for _, r in board.iterrows():
+        if split and r["split"] != split:
+            continue
+        area = f"{float(r['area']):.3f}" if str(r["area"]) not in ("", "nan", "None") else ""
+        calls = f"{float(r['calls_per_decision']):.1f}" if str(r["calls_per_decision"]) not in ("", "nan", "None") else ""
+        secs = f"{float(r['seconds_per_decision']):.3f}" if str(r["seconds_per_decision"]) not in ("", "nan", "None") else ""
+        lines.append(f"| {r['agent']} | {r['split']} | {float(r['score']):.3f} [{float(r['ci_low']):.3f}, "
+                     f"{float(r['ci_high']):.3f}] | {100 * float(r['stood']):.0f}% | {float(r['reward']):.3f} | {area} | "
+                     f"{calls} | {secs} |")
+    return "\n".join(lines)
+
+
+def figure(board, out: Path, split: str = "test") -> None:
+    """Score against predictor calls per decision for every row of ``split`` (curves for ladders, one point
+    otherwise), and mean raw reward beside it, with the paper's people and the simulated participants."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from overhang_framework.benchmark.figures import _people
+    from overhang_framework.results import atomic_output
+
+    rows = board[board["split"] == split]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    for k, (_, r) in enumerate(rows.iterrows()):
+        colour = plt.cm.tab20(k % 20)
+        calls = float(r["calls_per_decision"]) if str(r["calls_per_decision"]) not in ("", "nan", "None") else None
+        if r["curve"]:
+            curve = json.loads(r["curve"])
+            axes[0].plot([b for b, _ in curve], [s for _, s in curve], marker="o", color=colour, label=r["agent"])
+        elif calls:
+            axes[0].errorbar([max(calls, 0.5)], [float(r["score"])],
+                             yerr=[[float(r["score"]) - float(r["ci_low"])], [float(r["ci_high"]) - float(r["score"])]],
+                             marker="s", color=colour, capsize=3, label=r["agent"], ls="none")
+        if calls:
+            axes[1].plot([max(calls, 0.5)], [float(r["reward"])], marker="s", color=colour, ls="none")
+    for ax, title in ((axes[0], f"score (reward / optimum) on {split}"), (axes[1], f"mean raw reward on {split}")):
+        ax.set_xscale("log")
+        ax.set_xlabel("predictor calls per decision (spent, or the ladder's budget)")
+        ax.set_title(title, fontsize=10)
+    _people(axes[1], raw=True)
+    axes[0].axhline(1.0, color="grey", lw=0.8)
+    axes[0].set_ylim(0, 1.05)
+    axes[0].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    with atomic_output(out) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.benchmark.leaderboard",
+                                 description="Add finished benchmark runs to the leaderboard, show it, draw it.")
+    sub = ap.add_subparsers(dest="what", required=True)
+    a = sub.add_parser("add", help="add the rows of finished runs")
+    a.add_argument("runs", nargs="+", help="run directories (each with summary.json)")
+    a.add_argument("--agent", help="the name to show (default: the run's own)")
+    s = sub.add_parser("show", help="print the table in Markdown")
+    s.add_argument("--split", default=None)
+    f = sub.add_parser("figure", help="draw score against compute for one split")
+    f.add_argument("--out", required=True)
+    f.add_argument("--split", default="test")
+    for p in (a, s, f):
+        p.add_argument("--file", default=str(DATA_FILE), help=f"the leaderboard (default {DATA_FILE})")
+    args = ap.parse_args(argv)
+    if args.what == "add":
+        try:
+            rows = [row_of(Path(r), args.agent) for r in args.runs]
+        except (FileNotFoundError, KeyError, ValueError) as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        add(rows, args.file)
+        for r in rows:
+            print(f"{r['agent']} on {r['split']}: {r['score']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
+    elif args.what == "show":
+        print(markdown(load(args.file), args.split))
+    else:
+        figure(load(args.file), Path(args.out), args.split)
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
