@@ -320,3 +320,36 @@ def test_a_sample_of_stored_benchmark_paths_stands_under_the_reference_again(row
 def test_every_stored_benchmark_path_stands_under_the_reference_again(row):
     again = _replay(row)
     assert again["stood"] and again["overhang"] == pytest.approx(row["optimum"])
+
+
+def test_random_agent_and_rendered_scenes_for_an_external_program(tmp_path):
+    out, _ = bench(tmp_path, "agent=random", FIVE, "seeds=2", name="random")
+    rows = pd.read_csv(out / "scores.csv", keep_default_na=False)
+    assert len(rows) == 10 and (rows["normalised"] < 1).all()
+    again, _ = bench(tmp_path, "agent=random", FIVE, "seeds=2", name="random2")
+    pd.testing.assert_frame_equal(scores_without_time(out), scores_without_time(again))
+    program = tmp_path / "looks.py"
+    program.write_text('''
+import json, sys
+from pathlib import Path
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("type") == "decision":
+        assert Path(m["image"]).read_bytes()[:8] == b"\\x89PNG\\r\\n\\x1a\\n"
+        x, layer = min(m["legal"], key=lambda a: (-a[1], abs(a[0])))
+        print(json.dumps({"x": x, "layer": layer}), flush=True)
+''')
+    out, _ = bench(tmp_path, "agent=command", f"agent.command=[{sys.executable},{program}]", "agent.render=true",
+                   "ids=[w121223]", "seeds=1", name="render")
+    rows = pd.read_csv(out / "scores.csv", keep_default_na=False)
+    assert rows["reason"].tolist() == [""] and len(list((out / "images").glob("w121223-s0-*.png"))) == 5
+
+
+def test_ppo_trains_on_a_benchmark_split():
+    from overhang_framework.envs.ppo import task_kwargs
+
+    sequences = task_kwargs("benchmark:train")["sequences"]
+    assert len(sequences) == len(splits.split_ids("train")) and all(len(s) == 6 for s in sequences)
+    assert task_kwargs("paper20") == {"tasks": "paper20"}
+    with pytest.raises(splits.SplitError, match="unknown split"):
+        task_kwargs("benchmark:validation")

@@ -44,16 +44,21 @@ def clone_files(dest: Path) -> Path:
     return dest
 
 
-def test_ci_runs_the_readme_test_command():
-    _, test = fresh_machine_commands()
-    ci = (ROOT / ".ci" / "run").read_text()
-    assert test in ci.splitlines(), ".ci/run must run README's test command as written"
+def test_ci_runs_the_readme_commands():
+    run, test = fresh_machine_commands()
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert test in ci, ".ci/run must run README's test command as written"
+    assert run in ci, ".ci/run must run README's run command as written"
+    assert ci.index(run) < ci.index(test), "the plain install and main job first, then the development install"
 
 
 NEEDS_GIT = pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(),
                                reason="needs a git checkout")
 
 
+# CI runs the run command itself, from the root of a fresh clone, before the tests (test_ci_runs_the_readme_commands);
+# this test also checks what the run left behind, and runs among the slow tests
+@pytest.mark.slow
 @NEEDS_GIT
 def test_the_fresh_machine_run_command_works_from_the_repository_root(tmp_path):
     run, _ = fresh_machine_commands()
@@ -86,7 +91,7 @@ def test_the_fresh_machine_run_command_works_from_the_repository_root(tmp_path):
     assert sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.name.isdigit()) == ["0", "1"]
 
 
-# CI runs the test command itself, from a fresh clone (test_ci_runs_the_readme_test_command), so the
+# CI runs the test command itself, from a fresh clone (test_ci_runs_the_readme_commands), so the
 # default suite does not run it a second time inside itself
 @pytest.mark.slow
 @NEEDS_GIT
