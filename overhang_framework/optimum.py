@@ -117,7 +117,7 @@ class OptimumSearch:
         """The optimum score from ``state`` to the end of its episode."""
         floor = self.greedy(state)
         return lookahead_value(self.expander, self.value, state, len(state.remaining), floor, self.memo,
-                               prefetch=True, step=self.step(state))
+                               prefetch=True, step=self.step(state), defer=self.lattice)
 
     def best_path(self, state: State) -> tuple[float, list]:
         """The optimum score from ``state`` and a sequence of actions that reaches it."""
@@ -135,7 +135,7 @@ class OptimumSearch:
                 if p <= 0:
                     continue
                 v = lookahead_value(self.expander, self.value, child, depth - 1, target / p, self.memo,
-                                    prefetch=True, step=self.step(child))
+                                    prefetch=True, step=self.step(child), defer=self.lattice)
                 if p * v >= target * (1 - 1e-9):
                     path.append(action)
                     state, target = child, v

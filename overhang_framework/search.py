@@ -376,7 +376,7 @@ def _wanted(best: float, floor: float, step: float) -> float:
 
 def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
                     threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None,
-                    prefetch: bool = False, step: float = 0.0) -> float:
+                    prefetch: bool = False, step: float = 0.0, defer: bool = False) -> float:
     """``max`` over action sequences of length ``depth`` of ``prod p * V(leaf)`` from ``state``.
 
     Branch and bound: a child whose score cannot reach ``threshold`` (or the
@@ -398,6 +398,11 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     overhang on the grid, :func:`score_step`): once a score is found, only a whole step more counts,
     so subtrees that could at best tie it are skipped. The value is the same; which of several tied
     sequences reached it first is not searched for. A ``memo`` must not mix calls with different ``step``.
+
+    ``defer`` searches the subtree of an inner child whose answer is still unknown before settling it,
+    as if it stood, and settles it only when that subtree could beat the floor: where answers are dear
+    (the full-window reference) and most subtrees cannot, most unknown inner children are never
+    settled. The value is the same: a child's subtree value does not depend on its own answer.
     """
     memo = {} if memo is None else memo
     depth = min(depth, len(state.remaining))
@@ -434,12 +439,26 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
             if upper[i] <= 0 or _below(upper[i] * bounds[i], floor):
                 expander.stats.leaves_pruned += 1
                 continue
+            if defer and expansion.awaits_settling(i):
+                # its subtree first, as if it stood: settled only if the subtree could beat the floor
+                child = lookahead_value(expander, value, expansion.children[i], depth - 1,
+                                        floor, memo, beam, prefetch, step, defer)
+                if _below(child, floor):
+                    continue
+                p_i = expansion.p_at(i)
+                if p_i <= 0:
+                    continue
+                if p_i < 1:
+                    child = lookahead_value(expander, value, expansion.children[i], depth - 1,
+                                            floor / p_i, memo, beam, prefetch, step, defer)
+                best = max(best, float(p_i * child))
+                continue
             _settle_next(expander, expansion, order, n, upper, bounds, floor)
             p_i = expansion.p_at(i)  # settled just above
             if p_i <= 0:
                 continue
             child = lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                    floor / p_i, memo, beam, prefetch, step)
+                                    floor / p_i, memo, beam, prefetch, step, defer)
             best = max(best, float(p_i * child))
     exact = best >= threshold * (1 - TIE) or threshold <= 0
     memo[key] = (best, exact, threshold)

@@ -7,8 +7,10 @@ Both versions prove the optimum of the same tasks under the default physics, sid
   ties searched (``OptimumSearch(lattice=False)``);
 * **now**: as ``python -m overhang_framework.benchmark.optima`` runs it: scores known to lie on the
   0.1 lattice, so once a score is found only one a whole step higher is searched for, and each later
-  block bounded by its width less one step; one world for all the tasks of a worker, so a tower two
-  tasks build is decided once.
+  block bounded by its width less one step; an inner tower that only the reference can decide is
+  settled only after its subtree showed it could beat the best score (most cannot, so most such
+  towers are never simulated); one world for all the tasks of a worker, so a tower two tasks build is
+  decided once.
 
 Neither uses a verdict file. Prints seconds and PyBullet reference runs per task, the ratio, and one
 JSON line::

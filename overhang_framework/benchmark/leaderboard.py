@@ -23,8 +23,9 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 DATA_FILE = Path(__file__).resolve().parent.parent / "data" / "leaderboard.csv"
+NO_CALLS = 0.5
 COLUMNS = ("agent", "split", "score", "ci_low", "ci_high", "stood", "reward", "area", "n_tasks", "seeds",
-           "budget_kind", "calls_per_decision", "seconds_per_decision", "curve", "physics", "command",
+           "budget_kind", "calls_per_decision", "seconds_per_decision", "curve", "physics", "command", "config",
            "version", "commit", "date")
 
 
@@ -62,7 +63,7 @@ def row_of(run_dir: Path, agent: Optional[str] = None) -> dict:
             "n_tasks": s["n_scored"], "seeds": s["seeds"], "budget_kind": s.get("budget_kind"),
             "calls_per_decision": s.get("calls_per_decision"), "seconds_per_decision": s.get("seconds_per_decision"),
             "curve": json.dumps(s["curve"]) if s.get("curve") else "", "physics": s.get("physics"),
-            "command": command_of(run_dir), "version": overhang_framework.__version__, "commit": commit(),
+            "command": command_of(run_dir), "config": json.dumps(s.get("config", {}), sort_keys=True), "version": overhang_framework.__version__, "commit": commit(),
             "date": _dt.date.today().isoformat()}
 
 
@@ -124,19 +125,22 @@ def figure(board, out: Path, split: str = "test") -> None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     for k, (_, r) in enumerate(rows.iterrows()):
         colour = plt.cm.tab20(k % 20)
-        calls = float(r["calls_per_decision"]) if str(r["calls_per_decision"]) not in ("", "nan", "None") else None
+        counted = str(r["calls_per_decision"]) not in ("", "nan", "None")
+        # an agent that counts no predictor calls (a program, random placements) sits at the left edge
+        x = max(float(r["calls_per_decision"]), NO_CALLS) if counted else NO_CALLS
         if r["curve"]:
             curve = json.loads(r["curve"])
             axes[0].plot([b for b, _ in curve], [s for _, s in curve], marker="o", color=colour, label=r["agent"])
-        elif calls:
-            axes[0].errorbar([max(calls, 0.5)], [float(r["score"])],
+            axes[1].plot([curve[-1][0]], [float(r["reward"])], marker="o", color=colour, ls="none")
+        else:
+            axes[0].errorbar([x], [float(r["score"])],
                              yerr=[[float(r["score"]) - float(r["ci_low"])], [float(r["ci_high"]) - float(r["score"])]],
                              marker="s", color=colour, capsize=3, label=r["agent"], ls="none")
-        if calls:
-            axes[1].plot([max(calls, 0.5)], [float(r["reward"])], marker="s", color=colour, ls="none")
+            axes[1].plot([x], [float(r["reward"])], marker="s", color=colour, ls="none")
     for ax, title in ((axes[0], f"score (reward / optimum) on {split}"), (axes[1], f"mean raw reward on {split}")):
         ax.set_xscale("log")
-        ax.set_xlabel("predictor calls per decision (spent, or the ladder's budget)")
+        ax.set_xlabel(f"predictor calls per decision (spent, or the ladder's budget; {NO_CALLS:g}: counts none)")
+        ax.set_ylim(bottom=0)
         ax.set_title(title, fontsize=10)
     _people(axes[1], raw=True)
     axes[0].axhline(1.0, color="grey", lw=0.8)
