@@ -27,7 +27,7 @@ import difflib
 import os
 import tempfile
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from overhang_framework.errors import OverhangError, UnknownPluginError, UnknownPluginsError, closest
 
@@ -539,3 +539,55 @@ def _check_output_dir(cfg, multirun: bool) -> None:
         rundir = RunDir(directory)
         rundir.check_free()
         rundir.check_config(result_config(plain), overwrite=bool(plain.get("overwrite") is True))
+
+
+def check_app_command(args: Sequence[str], config_name: str, check_config: Callable) -> None:
+    """The checks of a Hydra command with its own primary config (``config_name``) before Hydra runs it:
+    its flags, its overrides, every job's composed config (``check_config``, when a job runs)."""
+    check_flags(args)
+    words = override_words(args)
+    check_group_choices(args)
+    configs = [compose_checked(v, config_name=config_name) for v in sweep_variants(words, is_multirun(args))]
+    if runs_job(args):
+        for cfg in configs:
+            check_config(cfg)
+
+
+def run_app_command(argv: Optional[Sequence[str]], app: Callable, config_name: str, check_config: Callable,
+                    doc: str) -> None:
+    """A Hydra command's ``main``: ``--help`` prints ``doc``; a mistake on the command line is one line
+    and exit status 2 before Hydra starts; otherwise Hydra runs ``app`` with its flags put first."""
+    import sys
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--help" in args or "-h" in args:
+        print(doc)
+        return
+    try:
+        check_app_command(args, config_name, check_config)
+    except (OverhangError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    flags, words = split_flags(args)
+    sys.argv = [sys.argv[0]] + flags + words
+    app()
+
+
+def job_result(run: Callable, interrupted: Callable[[], str], log) -> Any:
+    """``run()`` inside a Hydra job: a user's mistake is one line (exit status 2, or ``None`` in a sweep, so
+    the sweep's other jobs go on); Ctrl-C says what was kept (``interrupted()``) and exits 130."""
+    import sys
+
+    from overhang_framework.config import in_sweep
+
+    try:
+        return run()
+    except OverhangError as err:
+        log.error("%s", err)
+        print(f"error: {err}", file=sys.stderr)
+        if in_sweep():
+            return None
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print(interrupted(), file=sys.stderr)
+        sys.exit(130)

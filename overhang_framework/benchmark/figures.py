@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional
 
 #: The paper's participants (Table 2): mean terminal reward and SEM, on the paper's own 20 tasks.
 PAPER_PEOPLE = {"5 s per placement": (0.913, 0.03), "no time limit": (0.979, 0.03)}

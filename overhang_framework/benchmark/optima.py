@@ -25,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -269,19 +268,13 @@ def write_table(path: Path, rows: Sequence[dict]) -> None:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
 def app(cfg: DictConfig) -> Optional[dict]:
+    from overhang_framework.preflight import job_result
+
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    try:
-        summary = run(cfg, out_dir)
-    except OverhangError as err:
-        log.error("%s", err)
-        print(f"error: {err}", file=sys.stderr)
-        if in_sweep():
-            return None
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print(f"interrupted: every finished optimum is kept in {optima_file(cfg)}; run the same command to solve "
-              "the rest", file=sys.stderr)
-        sys.exit(130)
+    summary = job_result(lambda: run(cfg, out_dir), lambda: f"interrupted: every finished optimum is kept in "
+                         f"{optima_file(cfg)}; run the same command to solve the rest", log)
+    if summary is None:
+        return None
     print(f"{summary['tasks']} tasks: {summary['solved']} solved now in {summary['seconds']:.0f} s "
           f"({summary['search_seconds']:.0f} s of search), the rest already in {summary['file']}; table: {summary['table']}")
     if summary["falls"]:
@@ -291,35 +284,10 @@ def app(cfg: DictConfig) -> Optional[dict]:
     return summary
 
 
-def preflight(args: Sequence[str]) -> None:
-    from overhang_framework.preflight import (check_flags, check_group_choices, compose_checked, is_multirun,
-                                              override_words, runs_job, sweep_variants)
-
-    check_flags(args)
-    words = override_words(args)
-    check_group_choices(args)
-    configs = [compose_checked(v, config_name=CONFIG_NAME) for v in sweep_variants(words, is_multirun(args))]
-    if runs_job(args):
-        for cfg in configs:
-            check_config(cfg)
-
-
 def main(argv: Optional[Sequence[str]] = None) -> None:
-    from overhang_framework.preflight import split_flags
+    from overhang_framework.preflight import run_app_command
 
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--help" in args or "-h" in args:
-        print(__doc__)
-        return
-    try:
-        preflight(args)
-    except OverhangError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-    flags, words = split_flags(args)
-    sys.argv = [sys.argv[0]] + flags + words
-    os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    app()
+    run_app_command(argv, app, CONFIG_NAME, check_config, __doc__)
 
 
 if __name__ == "__main__":

@@ -21,8 +21,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
-from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
+from overhang_framework.errors import ConfigError
 
 enable_plugin_configs()
 log = logging.getLogger("overhang_framework.benchmark")
@@ -337,19 +337,13 @@ def format_summary(result: dict) -> str:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
 def app(cfg: DictConfig) -> Optional[dict]:
+    from overhang_framework.preflight import job_result
+
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    try:
-        result = run(cfg, out_dir)
-    except OverhangError as err:
-        log.error("%s", err)
-        print(f"error: {err}", file=sys.stderr)
-        if in_sweep():
-            return None
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print(f"interrupted: finished episodes are kept in {out_dir / EPISODES}; to resume, rerun the same command "
-              f"with hydra.run.dir={out_dir}", file=sys.stderr)
-        sys.exit(130)
+    result = job_result(lambda: run(cfg, out_dir), lambda: f"interrupted: finished episodes are kept in "
+                        f"{out_dir / EPISODES}; to resume, rerun the same command with hydra.run.dir={out_dir}", log)
+    if result is None:
+        return None
     print(format_summary(result))
     if result["above_optimum"]:
         print(f"error: {', '.join(result['above_optimum'])} scored above its optimum: that optimum is wrong",
@@ -359,34 +353,7 @@ def app(cfg: DictConfig) -> Optional[dict]:
     return {k: result[k] for k in ("score", "ci_low", "ci_high", "stood", "reward", "n_tasks")}
 
 
-def preflight(args: Sequence[str]) -> None:
-    from overhang_framework.preflight import (check_flags, check_group_choices, compose_checked, is_multirun,
-                                              override_words, runs_job, sweep_variants)
-
-    check_flags(args)
-    words = override_words(args)
-    check_group_choices(args)
-    configs = [compose_checked(v, config_name=CONFIG_NAME) for v in sweep_variants(words, is_multirun(args))]
-    if runs_job(args):
-        for cfg in configs:
-            check_config(cfg)
-
-
 def main(argv: Optional[Sequence[str]] = None) -> None:
-    from overhang_framework.preflight import split_flags
+    from overhang_framework.preflight import run_app_command
 
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--help" in args or "-h" in args:
-        print(__doc__)
-        return
-    try:
-        preflight(args)
-    except OverhangError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-    except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-    flags, words = split_flags(args)
-    sys.argv = [sys.argv[0]] + flags + words
-    app()
+    run_app_command(argv, app, CONFIG_NAME, check_config, __doc__)
