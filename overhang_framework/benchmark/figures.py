@@ -26,17 +26,16 @@ def simulated_people(path: Optional[Path] = None) -> list[dict]:
 
 
 def _people(ax, raw: bool) -> None:
+    """People as horizontal lines with their labels in the panel's legend (drawn by the caller)."""
     if raw:
         for (name, (mean, sem)), colour in zip(PAPER_PEOPLE.items(), ("#c0392b", "#8e44ad")):
-            ax.axhline(mean, color=colour, ls="--", lw=1)
+            ax.axhline(mean, color=colour, ls="--", lw=1,
+                       label=f"paper's people, {name}: {mean:.3f} (paper's own tasks)")
             ax.axhspan(mean - sem, mean + sem, color=colour, alpha=0.08)
-            ax.text(1.0, mean, f" paper's people, {name}\n (paper's own tasks)", color=colour, fontsize=7,
-                    va="center", ha="left", transform=ax.get_yaxis_transform())
     for row, colour in zip(simulated_people(), ("#16a085", "#2980b9")):
         value = row["reward"] if raw else row["score"]
-        ax.axhline(value, color=colour, ls=":", lw=1)
-        ax.text(1.0, value, f" simulated, {row['condition']}\n (paper20)", color=colour, fontsize=7, va="center",
-                ha="left", transform=ax.get_yaxis_transform())
+        ax.axhline(value, color=colour, ls=":", lw=1.2,
+                   label=f"simulated participants, {row['condition']}: {value:.3f} (paper20)")
 
 
 def run_figure(result: dict, path: Path) -> None:
@@ -72,7 +71,9 @@ def run_figure(result: dict, path: Path) -> None:
         ax.set_xscale("log")
         ax.set_xlabel(xlabel)
         ax.set_title(title, fontsize=10)
-    axes[0].legend(fontsize=8, loc="lower right")
+    axes[0].legend(fontsize=7, loc="lower right")
+    axes[1].legend(fontsize=7, loc="lower right")
+    axes[1].set_ylim(bottom=0)
     area = f", area {result['area']:.3f}" if result.get("area") is not None else ""
     fig.suptitle(f"{result['agent']} on {result['split']}: {result['score']:.3f} "
                  f"[{result['ci_low']:.3f}, {result['ci_high']:.3f}]{area}", fontsize=10)

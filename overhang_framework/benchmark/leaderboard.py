@@ -143,9 +143,11 @@ def figure(board, out: Path, split: str = "test") -> None:
         ax.set_ylim(bottom=0)
         ax.set_title(title, fontsize=10)
     _people(axes[1], raw=True)
+    _people(axes[0], raw=False)
     axes[0].axhline(1.0, color="grey", lw=0.8)
     axes[0].set_ylim(0, 1.05)
-    axes[0].legend(fontsize=7, loc="lower right")
+    axes[0].legend(fontsize=6, loc="lower right", ncol=2)
+    axes[1].legend(fontsize=6, loc="lower right")
     fig.tight_layout()
     with atomic_output(out) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
