@@ -362,3 +362,37 @@ def test_ppo_trains_on_a_benchmark_split():
     assert task_kwargs("paper20") == {"tasks": "paper20"}
     with pytest.raises(splits.SplitError, match="unknown split"):
         task_kwargs("benchmark:validation")
+
+
+def test_optima_jobs_of_a_multirun_share_one_file(tmp_path):
+    out = tmp_path / "optima.json"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.benchmark.optima", "-m", "shard=0,1", "shards=2",
+                           "ids=[w2312,w13122,w3121]", f"out={out}", "world.physics=static", "verdicts=null",
+                           "progress=false", "hydra/launcher=local", "hydra.launcher.n_jobs=2",
+                           f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    optima = json.loads(out.read_text())["optima"]
+    assert sorted(r["task_id"] for r in optima.values()) == ["w13122", "w2312", "w3121"]
+    shares = [pd.read_csv(tmp_path / "sweep" / str(k) / "optima.csv")["task_id"].tolist() for k in (0, 1)]
+    assert shares == [["w2312", "w3121"], ["w13122"]]
+
+
+def test_leaderboard_rows_carry_their_command_and_provenance_and_replace_their_own(tmp_path):
+    from overhang_framework.benchmark import leaderboard
+
+    out, _ = bench(tmp_path, FIVE, "seeds=1", name="myopic")
+    board = tmp_path / "leaderboard.csv"
+    assert leaderboard.main(["add", str(out), "--file", str(board)]) == 0
+    assert leaderboard.main(["add", str(out), "--file", str(board)]) == 0  # the same agent and split: replaced
+    rows = leaderboard.load(board)
+    assert len(rows) == 1
+    row = rows.iloc[0]
+    assert row["agent"] == "myopic + veridical" and row["split"] == "ids"
+    assert row["command"].startswith("python -m overhang_framework.benchmark ") and "seeds=1" in row["command"]
+    assert "hydra.run.dir" not in row["command"] and json.loads(row["config"])["planner"]["name"] == "myopic"
+    assert row["version"] and row["date"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert float(row["score"]) == pytest.approx(summary["score"], abs=1e-6)
+    assert "| myopic + veridical | ids |" in leaderboard.markdown(rows)
+    assert leaderboard.main(["figure", "--split", "ids", "--out", str(tmp_path / "b.png"), "--file", str(board)]) == 0
+    assert (tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"

@@ -45,7 +45,7 @@ def command_of(run_dir: Path) -> str:
 
     path = run_dir / ".hydra" / "overrides.yaml"
     words = yaml.safe_load(path.read_text()) if path.exists() else []
-    words = [w for w in words if not w.startswith("hydra.run.dir=")]
+    words = [w for w in words if not w.startswith(("hydra.run.dir=", "progress="))]
     quoted = [f"'{w}'" if any(c in w for c in "[]{},") else w for w in words]
     return " ".join(["python -m overhang_framework.benchmark", *quoted])
 
@@ -163,6 +163,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     a.add_argument("--agent", help="the name to show (default: the run's own)")
     s = sub.add_parser("show", help="print the table in Markdown")
     s.add_argument("--split", default=None)
+    s.add_argument("--commands", action="store_true", help="also list the command that recreates each row")
     f = sub.add_parser("figure", help="draw score against compute for one split")
     f.add_argument("--out", required=True)
     f.add_argument("--split", default="test")
@@ -179,7 +180,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         for r in rows:
             print(f"{r['agent']} on {r['split']}: {r['score']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
     elif args.what == "show":
-        print(markdown(load(args.file), args.split))
+        board = load(args.file)
+        print(markdown(board, args.split))
+        if args.commands:
+            print()
+            for _, r in board.iterrows():
+                if not args.split or r["split"] == args.split:
+                    print(f"- {r['agent']} ({r['split']}): `{r['command']}`")
     else:
         figure(load(args.file), Path(args.out), args.split)
         print(f"wrote {args.out}")
