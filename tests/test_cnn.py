@@ -168,6 +168,8 @@ def test_training_with_auxiliary_margin_targets_keeps_the_verdict_first(tmp_path
     assert probs.shape == (2,) and ((probs > 0) & (probs < 1)).all()
 
 
+# a training run of its own (31 s on a busy machine); the training tests that stay in the default suite train and resume too
+@pytest.mark.slow
 def test_training_keeps_a_moving_average_of_the_weights_and_resumes_it(tmp_path, monkeypatch):
     from overhang_framework.cnn import train
 
@@ -220,6 +222,8 @@ def test_a_training_without_an_average_is_resumed_as_before(tmp_path):
         train.train(train_cfg(tmp_path, "epochs=1", "ema=0.9"))
 
 
+# two training processes (42 s on a busy machine); one-process training and resuming stay in the default suite
+@pytest.mark.slow
 def test_training_on_two_processes_is_reproducible_and_resumes(tmp_path, capsys):
     from overhang_framework.cnn import train
 

@@ -49,6 +49,8 @@ def _check(root: Path, *args):
                           timeout=900)
 
 
+# 39 repeats of every trial under two models (50 s on a busy machine); the check's parts and refusals stay in the default suite
+@pytest.mark.slow
 def test_the_generating_model_passes_the_check_and_a_wrong_model_fails_it(fitted):
     proc = _check(fitted)
     assert proc.returncode == 0, proc.stderr

@@ -139,6 +139,8 @@ def test_fit_index_reports_the_switch_point_and_counts_it_as_a_parameter(world, 
     assert single.k == 2 and single.switch == 2
 
 
+# a simulated cohort fitted over every switch point (42 s on a busy machine); the switch's fits on known tables stay in the default suite
+@pytest.mark.slow
 def test_the_switch_point_of_simulated_hybrid_participants_is_recovered_within_one_stage(tmp_path):
     """Myopic hybrids (IPE early, CNN late) with switch points 3 or 5 (five participants), 8 tasks each: the fit over every
     switch point the tasks allow finds each participant's within one stage. The IPE has the default K = 50: with

@@ -66,8 +66,8 @@ def label(cfg: DictConfig) -> str:
         planner = f"lookahead D={cfg.planner.depth}"
     elif planner == "mcts":
         planner = f"mcts {cfg.planner.get('iterations')} it."
-    elif planner == "policy":
-        planner = f"policy {Path(str(cfg.planner.get('path'))).name}"
+    elif planner == "policy":  # a policy asks no predictor
+        return f"policy {Path(str(cfg.planner.get('path'))).name}"
     return f"{planner} + {cfg.predictor.name}"
 
 
