@@ -396,3 +396,16 @@ def test_leaderboard_rows_carry_their_command_and_provenance_and_replace_their_o
     assert "| myopic + veridical | ids |" in leaderboard.markdown(rows)
     assert leaderboard.main(["figure", "--split", "ids", "--out", str(tmp_path / "b.png"), "--file", str(board)]) == 0
     assert (tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_no_agent_beats_a_stored_optimum_and_the_oracle_reaches_each(tmp_path):
+    """Depth-2 lookahead with the world's own verdicts on a sample of test tasks, under the default physics:
+    a reward above a task's stored optimum would mean the optimum is wrong."""
+    sample = "ids=[" + ",".join(splits.split_ids("test")[::20]) + "]"
+    words = ["world.physics=tiered", f"verdicts={tmp_path / 'v.sqlite'}", sample, "seeds=1"]
+    out, _ = bench(tmp_path, *words, "planner=lookahead", "planner.depth=2", name="d2")
+    rows = pd.read_csv(out / "scores.csv")
+    assert rows["optimum"].notna().all() and (rows["normalised"] <= 1 + 1e-9).all()
+    assert json.loads((out / "summary.json").read_text())["above_optimum"] == []
+    out, _ = bench(tmp_path, *words, "planner=optimal", name="oracle")
+    assert np.allclose(pd.read_csv(out / "scores.csv")["normalised"], 1.0)
