@@ -58,6 +58,9 @@ def row_of(run_dir: Path, agent: Optional[str] = None) -> dict:
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} has no summary.json; is it a finished benchmark run?")
     s = json.loads(path.read_text())
+    if s.get("score") is None:
+        raise ValueError(f"{run_dir} has no score: none of its tasks has an optimum under its physics; "
+                         "rescore it (python -m overhang_framework.benchmark.rescore) once they do")
     return {"agent": agent or s["agent"], "split": s["split"], "score": s["score"], "ci_low": s["ci_low"],
             "ci_high": s["ci_high"], "stood": s["stood"], "reward": s["reward"], "area": s.get("area"),
             "n_tasks": s["n_scored"], "seeds": s["seeds"], "budget_kind": s.get("budget_kind"),
@@ -104,7 +107,11 @@ def markdown(board, split: Optional[str] = None) -> str:
         area = f"{float(r['area']):.3f}" if str(r["area"]) not in ("", "nan", "None") else ""
         calls = f"{float(r['calls_per_decision']):.1f}" if str(r["calls_per_decision"]) not in ("", "nan", "None") else ""
         secs = f"{float(r['seconds_per_decision']):.3f}" if str(r["seconds_per_decision"]) not in ("", "nan", "None") else ""
-        lines.append(f"| {r['agent']} | {r['split']} | {float(r['score']):.3f} [{float(r['ci_low']):.3f}, "
+        agent = r["agent"]
+        if r["curve"]:
+            budgets = [b for b, _ in json.loads(r["curve"])]
+            agent += f" (ladder {budgets[0]:g}-{budgets[-1]:g} {r['budget_kind']}; score at the top rung)"
+        lines.append(f"| {agent} | {r['split']} | {float(r['score']):.3f} [{float(r['ci_low']):.3f}, "
                      f"{float(r['ci_high']):.3f}] | {100 * float(r['stood']):.0f}% | {float(r['reward']):.3f} | {area} | "
                      f"{calls} | {secs} |")
     return "\n".join(lines)
