@@ -37,7 +37,7 @@ from overhang_framework.behaviour.participants import (
     participants_csv,
     simulate_participant,
 )
-from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
+from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.plugins import Registry
 from overhang_framework.progress import progress_bar
@@ -194,19 +194,13 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
 def app(cfg: DictConfig) -> Optional[dict]:
+    from overhang_framework.preflight import job_result
+
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    try:
-        summary = run(cfg, out_dir)
-    except OverhangError as err:
-        log.error("%s", err)
-        print(f"error: {err}", file=sys.stderr)
-        if in_sweep():
-            return None
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print(f"interrupted: the participants already simulated are kept in {out_dir / PARTS}; run the same "
-              f"command into {out_dir} to continue", file=sys.stderr)
-        sys.exit(130)
+    summary = job_result(lambda: run(cfg, out_dir), lambda: f"interrupted: the participants already simulated are "
+                         f"kept in {out_dir / PARTS}; run the same command into {out_dir} to continue", log)
+    if summary is None:
+        return None
     print(format_summary(summary["conditions"]))
     print(f"{summary['records']} records of {summary['participants']} participants: {out_dir}")
     return summary

@@ -35,7 +35,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
+from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
 from overhang_framework.errors import ConfigError, OverhangError, closest
 
 enable_plugin_configs()
@@ -186,18 +186,13 @@ def run(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name=CONFIG_NAME)
 def app(cfg: DictConfig) -> Optional[dict]:
-    try:
-        summary = run(cfg)
-    except OverhangError as err:
-        log.error("%s", err)
-        print(f"error: {err}", file=sys.stderr)
-        if in_sweep():
-            return None
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print(f"interrupted: the score tables computed so far are kept in {cfg.cache} and the finished fits in "
-              f"{Path(cfg.out) / 'parts'}; run the same command to continue from them", file=sys.stderr)
-        sys.exit(130)
+    from overhang_framework.preflight import job_result
+
+    summary = job_result(lambda: run(cfg), lambda: f"interrupted: the score tables computed so far are kept in "
+                         f"{cfg.cache} and the finished fits in {Path(cfg.out) / 'parts'}; run the same command to "
+                         "continue from them", log)
+    if summary is None:
+        return None
     out = Path(cfg.out)
     total = sum(t["computed"] for t in summary["tables"].values())
     cached = sum(t["cached"] for t in summary["tables"].values())
