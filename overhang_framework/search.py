@@ -355,17 +355,11 @@ def score_step(resolution: float, widths: Sequence[float]) -> float:
     whole multiple of the greatest common divisor of ``resolution`` and the half widths (0.1 for the
     default grid). Scores of 0/1 verdicts times an overhang lie on the same lattice."""
     from fractions import Fraction
-    from math import gcd
+    from math import gcd, lcm
 
-    parts = [Fraction(float(resolution)).limit_denominator(10**6)] + \
-        [Fraction(float(w) / 2).limit_denominator(10**6) for w in widths]
-    den = 1
-    for f in parts:
-        den = den * f.denominator // gcd(den, f.denominator)
-    num = 0
-    for f in parts:
-        num = gcd(num, f.numerator * (den // f.denominator))
-    return num / den
+    parts = [Fraction(float(v)).limit_denominator(10**6) for v in (resolution, *(w / 2 for w in widths))]
+    den = lcm(*(f.denominator for f in parts))
+    return gcd(*(f.numerator * (den // f.denominator) for f in parts)) / den
 
 
 def _wanted(best: float, floor: float, step: float) -> float:
