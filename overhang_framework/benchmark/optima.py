@@ -211,7 +211,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     out = optima_file(cfg)
     world_cfg = world_config(cfg)
     verdicts = str(Path(cfg.verdicts).expanduser()) if cfg.get("verdicts") else None
-    world = _world(world_cfg, None)
+    world = _world(world_cfg, verdicts)  # the world a one-process run solves with
     mine = shard_of(config_ids(cfg), cfg.shard, cfg.shards)
     merge(out)  # a stopped run's finished tasks
     known = {**load_optima(out), **read_parts(out)}
