@@ -53,6 +53,13 @@ def tasks_from_config(cfg: Mapping[str, Any]) -> list[Task]:
     """The tasks of a ``tasks`` config group entry, restricted to ``only`` when it is set."""
     seed = cfg.get("generator_seed")
     sequences = cfg.get("sequences")
+    count = cfg.get("count")
+    if not sequences and seed is not None and count is not None:
+        length = cfg.get("length", 6)
+        for name, value, least in (("count", count, 1), ("length", length, 2), ("generator_seed", seed, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise TaskError(f"tasks.{name} must be a whole number >= {least}, got {value!r}")
+        sequences = generate_sequences(count, length, seed=seed)
     if seed is not None and sequences:
         expected = generate_sequences(len(sequences), len(sequences[0]), seed=seed)
         if [list(map(float, s)) for s in sequences] != expected:

@@ -699,3 +699,26 @@ def test_the_cnn_runs_on_one_torch_thread_by_default(overrides):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_cnn_can_be_made_over_or_underconfident_on_the_logit_scale():
+    world = static_world()
+    state = State(Geometry((Block(1.8, 0.0, 0),)), (1.2,))
+    actions = world.legal_actions(state)
+    made = {kw: Registry().create("predictor", {"name": "cnn", "device": "cpu", **dict(kw)}, world=world)
+            for kw in [(), (("bias", 2.0),), (("temperature", 0.5),), (("temperature", 2.0),)]}
+    p = {kw: pred.predict(state, actions, np.random.default_rng(0)) for kw, pred in made.items()}
+    plain = p[()]
+    logit = np.log(np.clip(plain, 1e-9, 1 - 1e-9)) - np.log1p(-np.clip(plain, 1e-9, 1 - 1e-9))
+    np.testing.assert_allclose(p[(("bias", 2.0),)], 1 / (1 + np.exp(-(logit + 2.0))), rtol=1e-9)
+    assert np.all(p[(("bias", 2.0),)] >= plain) and np.any(p[(("bias", 2.0),)] > plain + 0.05)
+    sharp, flat = p[(("temperature", 0.5),)], p[(("temperature", 2.0),)]
+    assert np.all(np.abs(sharp - 0.5) >= np.abs(plain - 0.5) - 1e-12)  # overconfident: further from 0.5
+    assert np.all(np.abs(flat - 0.5) <= np.abs(plain - 0.5) + 1e-12)
+    # the cache keeps the network's own answers: a second call with a hit gives the same calibrated answer
+    biased = made[(("bias", 2.0),)]
+    np.testing.assert_allclose(biased.predict(state, actions, np.random.default_rng(1)), p[(("bias", 2.0),)])
+    for bad, allowed in (({"temperature": 0}, "temperature must be a number > 0"),
+                         ({"bias": "high"}, "bias must be a finite number")):
+        with pytest.raises(ConfigError, match=allowed):
+            Registry().create("predictor", {"name": "cnn", "device": "cpu", **bad}, world=world)

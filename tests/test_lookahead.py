@@ -246,3 +246,25 @@ def test_a_networks_deep_unbudgeted_search_expands_nodes_as_it_reaches_them(worl
     varying = _Network()
     varying.batch_invariant = False  # answers that differ with the batch: prefetched as before, the same numbers
     assert default(planner, varying, Budget())
+
+
+def test_the_myopic_reward_can_be_the_gain_or_the_final_reward(world, veridical, value):
+    state = State(Geometry((Block(1.8, 0.0, 0),)), (1.8, 0.6))
+    rng = np.random.default_rng(0)
+    plain = planner(world, "myopic").plan(state, veridical, value, Budget(), rng)
+    assert overhang(world.successor(state, plain.action).geometry) > 0.9  # extends, standing
+    # gain: an action that does not extend scores 0 whatever its risk; one that extends scores p * gain
+    gain = planner(world, "myopic", reward="gain")
+    after = np.array([1.5, 0.9, 0.6])
+    np.testing.assert_allclose(gain.immediate(state, after), [0.6, 0.0, 0.0])
+    # final: before the last block every action ties at 0, so the choice is uniform over all of them
+    final = planner(world, "myopic", reward="final")
+    np.testing.assert_allclose(final.immediate(state, after), 0.0)
+    chosen = {final.plan(state, veridical, value, Budget(), np.random.default_rng(i)).action for i in range(40)}
+    assert len(chosen) > 10
+    last = State(state.geometry, (0.6,))
+    np.testing.assert_allclose(final.immediate(last, after), after)
+    assert final.plan(last, veridical, value, Budget(), rng).action == \
+        planner(world, "myopic").plan(last, veridical, value, Budget(), rng).action
+    with pytest.raises(Exception, match="unknown myopic reward 'later'; allowed: overhang, gain, final"):
+        planner(world, "myopic", reward="later")

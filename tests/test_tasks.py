@@ -14,6 +14,18 @@ def test_paper20_is_the_seeded_generator_output():
     assert len({tuple(s) for s in expected}) == 20
 
 
+def test_a_draw_is_another_seeded_set_of_the_same_kind():
+    paper = tasks_from_config(compose_config(["tasks=paper20"]).tasks)
+    same = tasks_from_config(compose_config(["tasks=draw", "tasks.generator_seed=2025"]).tasks)
+    assert [t.sequence for t in same] == [t.sequence for t in paper]
+    other = tasks_from_config(compose_config(["tasks=draw", "tasks.generator_seed=7", "tasks.count=30"]).tasks)
+    assert len(other) == 30 and other[0].id == "draw00"
+    assert [t.sequence for t in other[:20]] != [t.sequence for t in paper]
+    assert all(len(t.sequence) == 6 for t in other)
+    with pytest.raises(TaskError, match="tasks.count must be a whole number >= 1, got 0"):
+        tasks_from_config(compose_config(["tasks=draw", "tasks.count=0"]).tasks)
+
+
 def test_example_is_the_papers_figure_3_sequence():
     (task,) = tasks_from_config(compose_config(["tasks=example"]).tasks)
     assert task.sequence == (0.6, 1.8, 1.2, 1.8, 0.6, 1.8)

@@ -17,6 +17,32 @@ from overhang_framework.geometry import Action
 from overhang_framework.interfaces import Predictor, State, World
 
 
+class Calibration:
+    """``p -> sigmoid(logit(p) / temperature + bias)``; the identity at temperature 1 and bias 0."""
+
+    #: Answers are clipped this far from 0 and 1 before the logit (a network's answer can round to 1).
+    EPS = 1e-9
+
+    def __init__(self, temperature: float = 1.0, bias: float = 0.0):
+        for name, value in (("temperature", temperature), ("bias", bias)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise ValueError(f"{name} must be a finite number, got {value!r}")
+        if temperature <= 0:
+            raise ValueError(f"temperature must be a number > 0, got {temperature!r}")
+        self.temperature, self.bias = float(temperature), float(bias)
+        self.identity = self.temperature == 1.0 and self.bias == 0.0
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        if self.identity:
+            return p
+        q = np.clip(np.asarray(p, dtype=float), self.EPS, 1.0 - self.EPS)
+        z = (np.log(q) - np.log1p(-q)) / self.temperature + self.bias
+        return 1.0 / (1.0 + np.exp(-z))
+
+    def one(self, p: float) -> float:
+        return p if self.identity else float(self(np.array([p]))[0])
+
+
 class CNNPredictor(Predictor):
     """Stability probabilities from a trained CNN checkpoint.
 
@@ -37,7 +63,10 @@ class CNNPredictor(Predictor):
     only, and marks the predictor :attr:`batched`: score tables then ask for
     the towers of many states in one call; ``false`` is the network as
     trained, run by torch and asked state by state (the reference for tests
-    and benchmarks). ``lazy`` lets a search ask only for the towers whose answer can change its result,
+    and benchmarks). ``temperature`` and ``bias`` recalibrate every answer on the logit scale,
+    ``p' = sigmoid(logit(p) / temperature + bias)``: a temperature below 1 makes the network more
+    confident and above 1 less; a positive bias makes it judge towers standing more often (1 and 0, the
+    defaults, leave the answers as trained). The cache keeps the network's own answers. ``lazy`` lets a search ask only for the towers whose answer can change its result,
     ``settle_batch`` at a time (docs/planners.md, "Lazy answers"); the scores are the same, and it needs
     ONNX Runtime, whose answer for a tower does not depend on the batch. The predictor is deterministic:
     ``rng`` is not used.
@@ -48,7 +77,7 @@ class CNNPredictor(Predictor):
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
                  threads: Optional[int] = 1, batch_size: int = 64, cache_size: int = 200_000,
                  mirror="auto", fused: bool = True, runtime: str = "onnxruntime", lazy: bool = False,
-                 settle_batch: int = 16):
+                 settle_batch: int = 16, temperature: float = 1.0, bias: float = 0.0):
         from overhang_framework.cnn.model import StabilityModel
 
         if isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0:
@@ -57,6 +86,7 @@ class CNNPredictor(Predictor):
             raise ValueError(f"lazy must be true or false, got {lazy!r}")
         if isinstance(settle_batch, bool) or not isinstance(settle_batch, int) or settle_batch < 1:
             raise ValueError(f"settle_batch must be a whole number >= 1, got {settle_batch!r}")
+        self.calibration = Calibration(temperature, bias)
         self.world = world
         self.lazy = lazy
         self.settle_batch = settle_batch
@@ -77,8 +107,12 @@ class CNNPredictor(Predictor):
         self.counts = {"towers": 0, "cache_hits": 0, "images": 0}
 
     def probabilities(self, geometries) -> np.ndarray:
-        """Stability probability of each geometry (cached by canonical key; a tower listed twice in one
-        call is scored once when the cache is on)."""
+        """Stability probability of each geometry, recalibrated by ``temperature`` and ``bias``."""
+        return self.calibration(self.raw_probabilities(geometries))
+
+    def raw_probabilities(self, geometries) -> np.ndarray:
+        """The network's own probability for each geometry (cached by canonical key; a tower listed twice
+        in one call is scored once when the cache is on)."""
         out = np.empty(len(geometries))
         missing: dict = {}  # key -> the indices of the geometries that need it
         for i, g in enumerate(geometries):
@@ -125,7 +159,7 @@ class CNNPredictor(Predictor):
                 for n, i in enumerate(indices):
                     hit = self._cache.get(geometries[i].key)
                     if hit is not None:
-                        out[n] = hit
+                        out[n] = self.calibration.one(hit)
             return out
 
         def settle(indices):
