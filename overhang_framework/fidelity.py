@@ -187,7 +187,7 @@ def level(directory: Path) -> dict:
 
     episodes = [e for job in load_jobs(directory) for e in job.episodes] if directory.exists() else []
     reward, sem, tasks = task_sem(episodes, [e["reward"] for e in episodes])
-    stood = float(np.mean([bool(e.get("success", e["reward"] > 0)) for e in episodes])) if episodes else math.nan
+    stood = float(np.mean([bool(e.get("stable_throughout", e["reward"] > 0)) for e in episodes])) if episodes else math.nan
     wall = directory / "wall.json"
     seconds = json.loads(wall.read_text()).get("seconds") if wall.exists() else None
     return {"reward": reward, "sem": sem, "episodes": len(episodes), "tasks": tasks, "stood": stood,
@@ -251,19 +251,21 @@ def render(points: Sequence[Point], rows: Sequence[dict], title: str) -> str:
     lines = [f"# {title}", "",
              "| point | settings | myopic | D2 | D3 | order | distance (paper SEMs) | match | wall (s) |",
              "|---|---|---|---|---|---|---|---|---|",
-             "| paper | | 0.52 ± 0.12 | 0.912 ± 0.10 | 1.180 ± 0.24 | yes | 0 | | |"]
+             "| **the paper** | | 0.52 ± 0.12 | 0.912 ± 0.10 | 1.180 ± 0.24 | yes | 0 | | |"]
     for r in rows:
         cells = []
         for m in MODELS:
             text = _pm(r[f"{m}_reward"], r[f"{m}_sem"])
+            if np.isfinite(r[f"{m}_stood"]):
+                text += f" ({r[f'{m}_stood']:.0%})"
             cells.append(f"**{text}**" if r[f"{m}_within"] else text)
         seconds = [r[f"{m}_seconds"] for m in MODELS if r[f"{m}_seconds"] is not None]
         wall = f"{sum(seconds):,.0f}" if seconds else ""
         note = "" if r["complete"] else " (unfinished)"
         lines.append(f"| {r['point']}{note} | {changed(by[r['point']])} | {' | '.join(cells)} | "
                      f"{'yes' if r['order'] else 'no'} | {r['distance']:.2f} | {'yes' if r['match'] else ''} | {wall} |")
-    lines += ["", "Terminal reward, mean over episodes ± SEM across tasks; bold: within the paper's SEM of the "
-              "paper's value. Distance: the largest |ours − paper| / paper's SEM of the three models."]
+    lines += ["", "Terminal reward, mean over episodes ± SEM across tasks (in brackets: the share of towers that "
+              "stood to the end); bold: within the paper's SEM of the paper's value. Distance: the largest |ours − paper| / paper's SEM of the three models."]
     done = [r for r in rows if np.isfinite(r["distance"])]
     if done:
         best = min(done, key=lambda r: (not r["order"], r["distance"]))

@@ -78,3 +78,19 @@ def test_a_run_resumes_and_its_report_reads_the_episodes(tmp_path, capsys):
     assert (out / "grid.csv").exists()
     assert fidelity.main(["report", str(out)]) == 0
     assert capsys.readouterr().out.startswith("# two points")
+
+
+def test_the_figure_draws_the_points_that_vary_only_its_two_settings(tmp_path):
+    points = [fidelity.Point("paper"), fidelity.Point("soft", {"choice": "softmax", "beta": 2}),
+              fidelity.Point("biased", {"choice": "softmax", "beta": 2, "cnn_bias": 2}),
+              fidelity.Point("sigma", {"ipe_sigma": 0.1})]
+    rows = []
+    for n, p in enumerate(points):
+        row = {"point": p.name, **{k: p.value(k) for k in fidelity.SETTINGS}}
+        for m in fidelity.MODELS:
+            row[f"{m}_reward"], row[f"{m}_sem"] = 0.5 + 0.1 * n, 0.05
+        rows.append(row)
+    path = fidelity.figure(points, rows, "beta", "cnn_bias", tmp_path / "grid.png")
+    assert path.stat().st_size > 10_000
+    assert fidelity.figure(points[3:], rows[3:], "beta", "cnn_bias", tmp_path / "none.png") is None
+    assert not (tmp_path / "none.png").exists()
