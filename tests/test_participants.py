@@ -241,3 +241,30 @@ def test_a_stopped_run_continues_from_its_finished_participants(tmp_path, defaul
 def test_jobs_must_be_a_whole_number_of_processes(tmp_path):
     proc = _cli(*TINY, "jobs=0", f"hydra.run.dir={tmp_path / 'run'}")
     assert proc.returncode == 2 and "jobs must be a whole number >= 1" in proc.stderr, proc.stderr
+
+
+def test_each_condition_can_draw_from_its_own_distributions_and_time_model(tmp_path):
+    out = simulate_into(tmp_path, "cohort.participants.time_limited=6", "cohort.participants.unconstrained=6",
+                        "cohort.n_tasks=1", *FIXED_BETA,
+                        "+cohort.by_condition.time_limited.parameters.depth={dist: fixed, value: 1}",
+                        "+cohort.by_condition.unconstrained.parameters.depth={dist: fixed, value: 2}",
+                        "+cohort.by_condition.unconstrained.decision_time.t0=9")
+    rows = participants(out)
+    depth = {r["condition"]: {int(x["depth"]) for x in rows if x["condition"] == r["condition"]} for r in rows}
+    assert depth == {"time_limited": {1}, "unconstrained": {2}}
+    assert all(float(r["beta"]) == 7.5 for r in rows)  # the shared distributions still apply
+    df = read_log(out / "log.jsonl")
+    free, limited = df[df.condition == "unconstrained"], df[df.condition == "time_limited"]
+    assert free.decision_time.min() > 9 * 0.2 and limited.decision_time.max() < free.decision_time.max()
+    from overhang_framework.behaviour.participants import cohort_from_config
+    from overhang_framework.errors import ConfigError
+
+    conditions = {"time_limited": {"time_limit": 5.0}, "unconstrained": {}}
+    base = {"name": "c", "participants": {"time_limited": 1, "unconstrained": 1},
+            "decision_time": {"t0": 1, "per_call": 0.1, "noise": 0.1}, "motor": {"sd": 0, "retries": 0}}
+    with pytest.raises(ConfigError, match=r"unknown key 'cohort.by_condition.people'.*keys of cohort.by_condition: "
+                                          r"time_limited, unconstrained"):
+        cohort_from_config({**base, "by_condition": {"people": {}}}, conditions)
+    with pytest.raises(ConfigError, match="cohort.by_condition.unconstrained.parameters.lapse must give a probability"):
+        cohort_from_config({**base, "by_condition": {"unconstrained": {"parameters": {
+            "lapse": {"dist": "fixed", "value": 2}}}}}, conditions)

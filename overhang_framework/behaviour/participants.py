@@ -205,10 +205,25 @@ class Cohort:
     time: TimeModel
     motor_sd: float
     motor_retries: int
+    #: Per condition, the parameters and time model that ``by_condition`` gives it (the shared ones merged in).
+    condition_parameters: Mapping[str, Mapping[str, Optional[Distribution]]] = dataclasses.field(default_factory=dict)
+    condition_time: Mapping[str, TimeModel] = dataclasses.field(default_factory=dict)
 
     @property
     def size(self) -> int:
         return sum(c.n for c in self.conditions)
+
+    def parameters_for(self, condition: str) -> Mapping[str, Optional[Distribution]]:
+        """The distributions the participants of ``condition`` draw from."""
+        return self.condition_parameters.get(condition, self.parameters)
+
+    def time_for(self, condition: str) -> TimeModel:
+        """The decision-time model of ``condition``."""
+        return self.condition_time.get(condition, self.time)
+
+    def draws(self, name: str) -> bool:
+        """Whether participants of some condition draw parameter ``name``."""
+        return any(self.parameters_for(c.name).get(name) is not None for c in self.conditions)
 
 
 def _whole(where: str, value: Any, minimum: int, allow_none: bool = False) -> Optional[int]:
@@ -238,7 +253,7 @@ def _keys(where: str, node: Mapping, allowed: Sequence[str]) -> None:
 
 def cohort_from_config(cohort: Mapping[str, Any], conditions: Mapping[str, Any]) -> Cohort:
     """The checked cohort of the ``cohort`` and ``conditions`` config nodes (plain mappings)."""
-    _keys("cohort", cohort, ("name", "participants", "n_tasks", "parameters", "decision_time", "motor"))
+    _keys("cohort", cohort, ("name", "participants", "n_tasks", "parameters", "by_condition", "decision_time", "motor"))
     counts = cohort.get("participants")
     if not isinstance(counts, Mapping) or not counts:
         raise ConfigError(f"cohort.participants must map condition names to numbers of participants, "
@@ -258,12 +273,53 @@ def cohort_from_config(cohort: Mapping[str, Any], conditions: Mapping[str, Any])
                                    None if limit is None else float(limit), calls))
     if sum(s.n for s in specs) < 1:
         raise ConfigError("cohort.participants adds up to no participant")
-    params = cohort.get("parameters") or {}
-    _keys("cohort.parameters", params, PARAMETERS)
+    _keys("cohort.by_condition", cohort.get("by_condition") or {}, [s.name for s in specs])
+    dists = _distributions("cohort.parameters", cohort.get("parameters") or {})
+    time = _time_model("cohort.decision_time", cohort.get("decision_time") or {})
+    by_params, by_time = {}, {}
+    for name, node in (cohort.get("by_condition") or {}).items():
+        where = f"cohort.by_condition.{name}"
+        if not isinstance(node, Mapping):
+            raise ConfigError(f"{where} must be a mapping with parameters and/or decision_time, got {node!r}")
+        _keys(where, node, ("parameters", "decision_time"))
+        own = node.get("parameters") or {}
+        _keys(f"{where}.parameters", own, PARAMETERS)
+        merged = {k: v for k, v in (cohort.get("parameters") or {}).items()}
+        merged.update(own)
+        by_params[name] = _distributions(f"{where}.parameters", merged)
+        shared_time = dict(cohort.get("decision_time") or {})
+        own_time = node.get("decision_time") or {}
+        _keys(f"{where}.decision_time", own_time, ("t0", "per_call", "noise"))
+        shared_time.update(own_time)
+        by_time[name] = _time_model(f"{where}.decision_time", shared_time)
+    motor = cohort.get("motor") or {}
+    _keys("cohort.motor", motor, ("sd", "retries"))
+    return Cohort(
+        name=str(cohort.get("name")),
+        conditions=tuple(specs),
+        n_tasks=_whole("cohort.n_tasks", cohort.get("n_tasks"), 1, allow_none=True),
+        parameters=dists,
+        time=time,
+        motor_sd=_real("cohort.motor.sd", motor.get("sd")),
+        motor_retries=_whole("cohort.motor.retries", motor.get("retries"), 0),
+        condition_parameters=by_params,
+        condition_time=by_time,
+    )
+
+
+def _time_model(where: str, node: Mapping[str, Any]) -> TimeModel:
+    _keys(where, node, ("t0", "per_call", "noise"))
+    return TimeModel(_real(f"{where}.t0", node.get("t0")), _real(f"{where}.per_call", node.get("per_call")),
+                     _real(f"{where}.noise", node.get("noise")))
+
+
+def _distributions(where_all: str, params: Mapping[str, Any]) -> dict[str, Optional[Distribution]]:
+    """The checked distributions of a ``parameters`` node (None: not drawn)."""
+    _keys(where_all, params, PARAMETERS)
     dists: dict[str, Optional[Distribution]] = {}
     for name in PARAMETERS:
         spec = params.get(name)
-        where = f"cohort.parameters.{name}"
+        where = f"{where_all}.{name}"
         dist = None if spec is None else parse_distribution(where, spec)
         if dist is not None:
             if name == "lapse":
@@ -275,21 +331,7 @@ def cohort_from_config(cohort: Mapping[str, Any], conditions: Mapping[str, Any])
             else:
                 _check_range(where, dist, 0.0, math.inf, "a number >= 0")
         dists[name] = dist
-    time = cohort.get("decision_time") or {}
-    _keys("cohort.decision_time", time, ("t0", "per_call", "noise"))
-    motor = cohort.get("motor") or {}
-    _keys("cohort.motor", motor, ("sd", "retries"))
-    return Cohort(
-        name=str(cohort.get("name")),
-        conditions=tuple(specs),
-        n_tasks=_whole("cohort.n_tasks", cohort.get("n_tasks"), 1, allow_none=True),
-        parameters=dists,
-        time=TimeModel(_real("cohort.decision_time.t0", time.get("t0")),
-                       _real("cohort.decision_time.per_call", time.get("per_call")),
-                       _real("cohort.decision_time.noise", time.get("noise"))),
-        motor_sd=_real("cohort.motor.sd", motor.get("sd")),
-        motor_retries=_whole("cohort.motor.retries", motor.get("retries"), 0),
-    )
+    return dists
 
 
 @dataclass(frozen=True)
@@ -321,7 +363,7 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
             index = len(out)
             rng = participant_rngs(seed, index)[0]
             drawn = {name: (None if dist is None else dist.sample(rng))
-                     for name, dist in cohort.parameters.items()}
+                     for name, dist in cohort.parameters_for(spec.name).items()}
             out.append(Participant(
                 id=f"sim-{spec.code}-{k + 1:03d}", index=index, condition=spec.name,
                 sigma=drawn["sigma"], depth=None if drawn["depth"] is None else int(drawn["depth"]),
@@ -362,14 +404,14 @@ class Agents:
         self.registry, self.world = registry, world
         self.configs = {"predictor": dict(predictor), "planner": dict(planner)}
         for name, (group, key) in TARGETS.items():
-            if cohort.parameters.get(name) is None:
+            if not cohort.draws(name):
                 continue
             config = self.configs[group]
             takes = accepted_parameters(registry.get(group, config["name"]).factory)
             if takes is not None and key not in takes:
                 raise ConfigError(f"{group} {config['name']!r} has no parameter {key}, which "
                                   f"cohort.parameters.{name} draws; set cohort.parameters.{name}=null")
-        if cohort.parameters.get("beta") is not None:
+        if cohort.draws("beta"):
             self.configs["planner"]["choice"] = "softmax"
 
     def build(self, participant: Participant) -> tuple[Any, Any]:
@@ -410,7 +452,7 @@ def simulate_trial(participant: Participant, spec: ConditionSpec, cohort: Cohort
             legal = world.legal_actions(state)
             action = legal[int(rng.integers(len(legal)))]
         calls = decision.spend.predictor_calls
-        seconds = cohort.time.sample(calls, rng)
+        seconds = cohort.time_for(spec.name).sample(calls, rng)
         before = [[b.width, b.x, b.layer] for b in state.geometry.blocks]
         record = {
             "log_version": 1, "participant": participant.id, "condition": participant.condition,
