@@ -188,6 +188,7 @@ def test_every_cohort_composes_and_checks():
     cohorts = group_options("cohort")
     assert {"small", "paper", "dual_transition", "null_effect"} <= set(cohorts)
     models = {cohort: words for cohort, words, _ in STUDIES.values()}  # the studies' cohorts name their predictor
+    models["proposal"] = ["predictor=hybrid"]  # the calibration's library draws the hybrid's switch point
     sizes = {}
     for name in cohorts:
         cfg = compose_config([f"cohort={name}", "world.physics=static", *models.get(name, [])],

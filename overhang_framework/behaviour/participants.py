@@ -96,6 +96,32 @@ class Distribution:
         values, p = a
         return values[int(rng.choice(len(values), p=p))]
 
+    def log_density(self, x) -> np.ndarray:
+        """The log of the density (continuous) or probability (discrete) of each value of ``x``; -inf outside
+        the support. A lognormal or normal of spread 0 is a point mass, as ``fixed`` is."""
+        x = np.asarray(x, dtype=float)
+        a = self.args
+        lo, hi = self.support()
+        if self.kind == "fixed" or lo == hi:
+            return np.where(np.isclose(x, lo), 0.0, -np.inf)
+        if self.kind == "categorical":
+            out = np.full(x.shape, -np.inf)
+            for v, q in zip(*a):
+                out = np.where(np.isclose(x, v), np.log(q) if q > 0 else -np.inf, out)
+            return out
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if self.kind == "uniform":
+                return np.where((x >= a[0]) & (x <= a[1]), -math.log(a[1] - a[0]), -np.inf)
+            if self.kind == "normal":
+                return -0.5 * ((x - a[0]) / a[1]) ** 2 - math.log(a[1] * math.sqrt(2 * math.pi))
+            if self.kind == "lognormal":
+                z = (np.log(np.where(x > 0, x, np.nan)) - math.log(a[0])) / a[1]
+                out = -0.5 * z ** 2 - np.log(np.where(x > 0, x, np.nan) * a[1] * math.sqrt(2 * math.pi))
+                return np.where(x > 0, out, -np.inf)
+            from scipy.stats import beta
+
+            return np.where((x >= 0) & (x <= 1), beta.logpdf(x, a[0], a[1]), -np.inf)
+
     def support(self) -> tuple[float, float]:
         """The smallest and largest value a draw can take."""
         a = self.args
@@ -393,7 +419,7 @@ def participants_csv(participants: Sequence[Participant]) -> str:
 class Agents:
     """Builds each participant's predictor and planner from the run's model configs.
 
-    The participant's ``sigma`` replaces the predictor's ``sigma``; ``depth``
+    The participant's ``sigma`` replaces the predictor's ``sigma`` (a hybrid's: its IPE's); ``depth``
     and ``beta`` the planner's, whose ``choice`` becomes ``softmax`` when
     ``beta`` is drawn. A drawn parameter the chosen model does not take is a
     :class:`ConfigError` (set it to null in the cohort).
@@ -403,11 +429,17 @@ class Agents:
                  cohort: Cohort):
         self.registry, self.world = registry, world
         self.configs = {"predictor": dict(predictor), "planner": dict(planner)}
+        #: parameters that go to a predictor nested in the configured one (the hybrid's IPE): name -> params key
+        self.nested: dict[str, str] = {}
         for name, (group, key) in TARGETS.items():
             if not cohort.draws(name):
                 continue
             config = self.configs[group]
             takes = accepted_parameters(registry.get(group, config["name"]).factory)
+            inner = _nested_ipe(config) if group == "predictor" and key == "sigma" else None
+            if inner is not None and (takes is None or key not in takes):
+                self.nested[name] = inner
+                continue
             if takes is not None and key not in takes:
                 raise ConfigError(f"{group} {config['name']!r} has no parameter {key}, which "
                                   f"cohort.parameters.{name} draws; set cohort.parameters.{name}=null")
@@ -422,9 +454,20 @@ class Agents:
             for name, (target, key) in TARGETS.items():
                 value = getattr(participant, name)
                 if target == group and value is not None:
-                    config[key] = value
+                    if name in self.nested:
+                        config[self.nested[name]] = {**dict(config.get(self.nested[name]) or {}), key: value}
+                    else:
+                        config[key] = value
             built[group] = self.registry.create(group, config, world=self.world)
         return built["predictor"], built["planner"]
+
+
+def _nested_ipe(config: Mapping[str, Any]) -> Optional[str]:
+    """The params key of the IPE inside a hybrid predictor config (``early_params`` or ``late_params``), if any."""
+    for side in ("early", "late"):
+        if config.get(side) == "ipe" and f"{side}_params" in config:
+            return f"{side}_params"
+    return None
 
 
 def _legal_x(world: World, state, action: Action, sd: float, retries: int, rng: np.random.Generator) -> float:

@@ -1,0 +1,353 @@
+"""A cohort calibrated to the paper's people, by simulation: a library of simulated participants drawn from
+a wide proposal, reweighted to any candidate cohort, and fitted to Table 1 and Γ per condition.
+
+    python -m overhang_framework.participants cohort=proposal conditions.time_limited.time_limit=null \\
+        world.physics=static predictor=hybrid jobs=2 hydra.run.dir=runs/library          # resumable
+    python -m overhang_framework.behaviour.calibrate library runs/library --out runs/library/trials.csv
+    python -m overhang_framework.behaviour.calibrate fit runs/library/trials.csv --out runs/calibration
+
+**The library.** Every participant of ``cohort=proposal`` draws its depth, σ, β, lapse and switch point
+from wide distributions and does every task. It runs without the time limit (the time-limited condition
+keeps its budget of predictor calls, which changes how its searches go), so no trial ends on a timeout:
+timeouts are applied afterwards, exactly, from the calls of each decision. ``library`` turns the log
+into one row per trial: the participant's parameters, the reward, whether the tower stood, Γ of the
+completed tower, and the predictor calls of each decision.
+
+**A candidate cohort** gives each condition a depth distribution over 1, 2 and 3, lognormal σ and β
+around medians of their own, a beta lapse around a mean of its own, and a decision-time model
+``(t0 + per_call * calls) * exp(noise * z)``. Its Table 1 and Γ are predicted without simulating
+anything new: each library participant is weighted by the candidate's density of its parameters over the
+proposal's (self-normalised importance sampling; the effective sample size says how far that can be
+trusted), and the decision times, timeouts and their effect on rewards follow from the lognormal time
+model in closed form.
+
+**The fit** matches, per condition, the paper's reward per trial, stable proportion, average overhang,
+decision time and Γ, each in units of the paper's SEM: a global search (SciPy's differential evolution,
+seeded) for the best candidate, and an approximate Bayesian computation that keeps every candidate of a
+seeded uniform draw whose five measures all lie within one SEM of the paper's (the paper's SEMs as
+tolerances), as the region the data allow.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+import pandas as pd
+from scipy.special import expit, logit
+from scipy.stats import norm
+
+from overhang_framework.behaviour.participants import Distribution, TimeModel
+from overhang_framework.errors import ConfigError
+
+#: The measures the fit matches, per condition: the paper's (mean, SEM) (Table 1; Γ from Fig. 3b).
+TARGETS = {
+    "time_limited": {"reward_per_trial": (18.25 / 20, 0.57 / 20), "stable_pct": (70.2, 2.5),
+                     "avg_overhang": (1.321, 0.023), "decision_time": (2.47, 0.07), "gamma": (0.15, 0.02)},
+    "unconstrained": {"reward_per_trial": (19.57 / 20, 0.56 / 20), "stable_pct": (67.8, 2.1),
+                      "avg_overhang": (1.460, 0.029), "decision_time": (7.27, 0.88), "gamma": (0.24, 0.03)},
+}
+METRICS = ("reward_per_trial", "stable_pct", "avg_overhang", "decision_time", "gamma")
+#: The paper's time limit of the time-limited condition, seconds.
+TIME_LIMITS = {"time_limited": 5.0, "unconstrained": None}
+#: A candidate's free numbers per condition, with the box the search stays in.
+FREE = (("depth2", -4.0, 4.0), ("depth3", -4.0, 4.0), ("log_sigma", math.log(0.01), math.log(0.2)),
+        ("log_beta", math.log(0.5), math.log(30.0)), ("logit_lapse", logit(0.005), logit(0.25)),
+        ("t0", 0.3, 6.0), ("per_call", 0.0, 0.2))
+#: Fixed spreads of a candidate's distributions (the paper's cohort's): σ and β lognormal, lapse beta.
+SIGMA_SPREAD, BETA_SPREAD, LAPSE_CONCENTRATION = 0.3, 0.5, 31.0
+PARAMS = ("sigma", "depth", "beta", "lapse")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One condition's distributions: depth probabilities over 1, 2, 3, medians of σ and β, mean lapse, time model."""
+
+    depth_p: tuple[float, float, float]
+    sigma: float
+    beta: float
+    lapse: float
+    t0: float
+    per_call: float
+    noise: float = 0.3
+
+    @classmethod
+    def from_vector(cls, v: Sequence[float], noise: float = 0.3) -> "Candidate":
+        z = np.array([0.0, v[0], v[1]])
+        p = np.exp(z - z.max())
+        p /= p.sum()
+        return cls(tuple(float(x) for x in p), float(math.exp(v[2])), float(math.exp(v[3])), float(expit(v[4])),
+                   float(v[5]), float(v[6]), noise)
+
+    def distributions(self) -> dict[str, Distribution]:
+        k = LAPSE_CONCENTRATION
+        return {"depth": Distribution("categorical", ((1, 2, 3), self.depth_p)),
+                "sigma": Distribution("lognormal", (self.sigma, SIGMA_SPREAD)),
+                "beta": Distribution("lognormal", (self.beta, BETA_SPREAD)),
+                "lapse": Distribution("beta", (self.lapse * k, (1 - self.lapse) * k))}
+
+    @property
+    def time(self) -> TimeModel:
+        return TimeModel(self.t0, self.per_call, self.noise)
+
+    @property
+    def mean_depth(self) -> float:
+        return float(np.dot(self.depth_p, (1, 2, 3)))
+
+    def config(self) -> dict:
+        """The ``cohort.by_condition.<condition>`` node of this candidate."""
+        k = LAPSE_CONCENTRATION
+        return {"parameters": {
+            "depth": {"dist": "categorical", "values": [1, 2, 3], "p": [round(p, 4) for p in self.depth_p[:2]]
+                      + [round(1 - round(self.depth_p[0], 4) - round(self.depth_p[1], 4), 4)]},
+            "sigma": {"dist": "lognormal", "median": round(self.sigma, 5), "sigma": SIGMA_SPREAD},
+            "beta": {"dist": "lognormal", "median": round(self.beta, 4), "sigma": BETA_SPREAD},
+            "lapse": {"dist": "beta", "a": round(self.lapse * k, 4), "b": round((1 - self.lapse) * k, 4)}},
+            "decision_time": {"t0": round(self.t0, 4), "per_call": round(self.per_call, 5), "noise": self.noise}}
+
+
+# ----------------------------------------------------------------------------------------------- library
+
+def library_trials(run_dir: Path, world_overrides: Sequence[str] = ("world.physics=static",)) -> pd.DataFrame:
+    """One row per trial of a participants run: the participant's parameters, reward, stood, Γ of the completed
+    tower (NaN otherwise) and the calls of each decision (a JSON list)."""
+    from overhang_framework.behaviour import read_log
+    from overhang_framework.behaviour.analysis import build_world, with_groups
+    from overhang_framework.behaviour.gamma import trial_towers, with_gammas
+    from overhang_framework.behaviour.log import in_step_order
+
+    run_dir = Path(run_dir)
+    for name in ("log.jsonl", "participants.csv"):
+        if not (run_dir / name).exists():
+            raise ConfigError(f"{run_dir} has no {name}: give the directory of a finished participants run")
+    df = with_groups(read_log(run_dir / "log.jsonl"))
+    if df["timed_out"].fillna(False).any():
+        raise ConfigError(f"{run_dir}: its log has timeouts; run the library with "
+                          "conditions.time_limited.time_limit=null (timeouts are applied afterwards)")
+    towers = with_gammas(trial_towers(df), build_world(list(world_overrides)))
+    ordered = in_step_order(df)
+    calls = ordered.groupby(["participant", "trial"], sort=False)["predictor_calls"].agg(lambda s: [int(c) for c in s])
+    rewards = ordered.groupby(["participant", "trial"], sort=False)["reward"].agg(lambda s: float(s.dropna().iloc[-1]))
+    rows = towers[["participant", "task_id", "trial", "completed", "gamma"]].copy()
+    key = list(zip(rows["participant"], rows["trial"]))
+    rows["reward"] = [rewards[k] for k in key]
+    rows["stood"] = rows.pop("completed").astype(bool)
+    rows["gamma"] = np.where(rows["stood"], rows["gamma"], np.nan)
+    rows["calls"] = [json.dumps(calls[k]) for k in key]
+    people = pd.read_csv(run_dir / "participants.csv").rename(columns={"id": "participant"})
+    out = rows.merge(people, on="participant", how="left", validate="many_to_one")
+    return out.sort_values(["participant", "trial"]).reset_index(drop=True)
+
+
+class Library:
+    """The trials of one condition of the library, as arrays, with the proposal they were drawn from."""
+
+    def __init__(self, trials: pd.DataFrame, proposal: Mapping[str, Distribution], condition: str):
+        t = trials[trials["condition"] == condition].sort_values(["participant", "trial"])
+        if t.empty:
+            raise ConfigError(f"the library has no trial of condition {condition!r}")
+        self.condition = condition
+        people = t.drop_duplicates("participant")
+        self.people = list(people["participant"])
+        index = {p: i for i, p in enumerate(self.people)}
+        self.who = np.array([index[p] for p in t["participant"]])
+        self.theta = {name: people[name].to_numpy(dtype=float) for name in PARAMS if name in people}
+        missing = [name for name in PARAMS if name not in self.theta or np.isnan(self.theta[name]).any()]
+        if missing:
+            raise ConfigError(f"the library's participants do not all draw {', '.join(missing)}; the proposal "
+                              "must draw sigma, depth, beta and lapse")
+        self.log_q = sum(proposal[name].log_density(self.theta[name]) for name in PARAMS)
+        self.reward = t["reward"].to_numpy(dtype=float)
+        self.stood = t["stood"].to_numpy(dtype=bool).astype(float)
+        self.gamma = t["gamma"].to_numpy(dtype=float)
+        lists = [json.loads(c) for c in t["calls"]]
+        width = max(len(c) for c in lists)
+        self.calls = np.full((len(lists), width), np.nan)
+        for i, c in enumerate(lists):
+            self.calls[i, :len(c)] = c
+
+    def weights(self, candidate: Candidate) -> np.ndarray:
+        dists = candidate.distributions()
+        log_p = sum(dists[name].log_density(self.theta[name]) for name in PARAMS)
+        log_w = log_p - self.log_q
+        if not np.isfinite(log_w).any():
+            return np.zeros_like(log_w)
+        w = np.exp(log_w - np.nanmax(log_w[np.isfinite(log_w)]))
+        return np.where(np.isfinite(w), w, 0.0)
+
+    def predict(self, candidate: Candidate, time_limit: Optional[float]) -> dict:
+        """The candidate cohort's Table 1 measures and Γ in this condition, with the effective sample size."""
+        m = candidate.t0 + candidate.per_call * self.calls  # median time of each decision
+        s = max(candidate.noise, 1e-9)
+        present = ~np.isnan(self.calls)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if time_limit is None:
+                ok = np.ones_like(m)
+                mean_time = m * math.exp(s * s / 2)
+            else:
+                ok = norm.cdf((math.log(time_limit) - np.log(m)) / s)
+                mean_time = m * math.exp(s * s / 2) * norm.cdf((math.log(time_limit) - np.log(m) - s * s) / s) \
+                    + time_limit * (1 - ok)
+        ok = np.where(present, ok, 1.0)
+        reach = np.concatenate([np.ones((len(m), 1)), np.cumprod(ok, axis=1)[:, :-1]], axis=1) * present
+        finished = np.prod(ok, axis=1)  # no decision of the trial timed out
+        records = reach.sum(axis=1)
+        seconds = np.nansum(np.where(present, reach * mean_time, 0.0), axis=1)
+        n = len(self.people)
+
+        def per_person(values):
+            return np.bincount(self.who, weights=values, minlength=n)
+
+        trials = per_person(np.ones_like(self.reward))
+        reward = per_person(self.reward * finished) / trials
+        stood = per_person(self.stood * finished)
+        overhang = per_person(self.reward * self.stood * finished) / np.where(stood > 0, stood, np.nan)
+        has_gamma = ~np.isnan(self.gamma)
+        g_weight = per_person(np.where(has_gamma, self.stood * finished, 0.0))
+        gamma = per_person(np.where(has_gamma, self.gamma * self.stood * finished, 0.0)) / \
+            np.where(g_weight > 0, g_weight, np.nan)
+        time = per_person(seconds) / per_person(records)
+        w = self.weights(candidate)
+        total = w.sum()
+        out = {"ess": float(total ** 2 / (w ** 2).sum()) if total > 0 else 0.0}
+        for name, values in (("reward_per_trial", reward), ("stable_pct", 100 * stood / trials),
+                             ("avg_overhang", overhang), ("decision_time", time), ("gamma", gamma)):
+            ok_v = ~np.isnan(values) & (w > 0)
+            out[name] = float(np.dot(w[ok_v], values[ok_v]) / w[ok_v].sum()) if ok_v.any() else math.nan
+        return out
+
+
+def distances(predicted: Mapping[str, float], targets: Mapping[str, tuple[float, float]]) -> dict[str, float]:
+    """Each measure's distance from its target in the target's SEMs (signed: above the target is positive)."""
+    return {k: (predicted[k] - mean) / sem for k, (mean, sem) in targets.items()}
+
+
+def loss(vector: Sequence[float], library: Library, targets: Mapping[str, tuple[float, float]],
+         time_limit: Optional[float], min_ess: float = 10.0, noise: float = 0.3) -> float:
+    cand = Candidate.from_vector(vector, noise)
+    got = library.predict(cand, time_limit)
+    z = distances(got, targets)
+    if any(not np.isfinite(v) for v in z.values()):
+        return 1e6
+    penalty = 0.0 if got["ess"] >= min_ess else 100.0 * (min_ess - got["ess"]) / min_ess
+    return float(sum(v * v for v in z.values()) + penalty)
+
+
+def fit_condition(library: Library, targets: Optional[Mapping[str, tuple[float, float]]] = None,
+                  time_limit: Optional[float] = math.nan, seed: int = 0, maxiter: int = 200, min_ess: float = 10.0,
+                  abc_draws: int = 20_000) -> dict:
+    """The best candidate of one condition (differential evolution) and the ABC region: the candidates of a
+    seeded uniform draw whose measures all lie within one SEM of the targets (default: the paper's, with the
+    paper's time limit of the library's condition)."""
+    from scipy.optimize import differential_evolution
+
+    targets = dict(targets or TARGETS[library.condition])
+    if time_limit is not None and math.isnan(time_limit):
+        time_limit = TIME_LIMITS.get(library.condition)
+    bounds = [(lo, hi) for _, lo, hi in FREE]
+    best = differential_evolution(loss, bounds, args=(library, targets, time_limit, min_ess), seed=seed,
+                                  maxiter=maxiter, tol=1e-8, polish=True, updating="immediate")
+    cand = Candidate.from_vector(best.x)
+    predicted = library.predict(cand, time_limit)
+    rng = np.random.default_rng(seed)
+    draws = rng.uniform([lo for lo, _ in bounds], [hi for _, hi in bounds], size=(abc_draws, len(bounds)))
+    accepted = []
+    for v in draws:
+        c = Candidate.from_vector(v)
+        got = library.predict(c, time_limit)
+        z = distances(got, targets)
+        if got["ess"] >= min_ess and all(np.isfinite(x) and abs(x) <= 1 for x in z.values()):
+            accepted.append(c)
+    region = {}
+    if accepted:
+        for name, values in (("mean_depth", [c.mean_depth for c in accepted]), ("sigma", [c.sigma for c in accepted]),
+                             ("beta", [c.beta for c in accepted]), ("lapse", [c.lapse for c in accepted])):
+            region[name] = [float(np.quantile(values, q)) for q in (0.05, 0.5, 0.95)]
+    return {"candidate": cand, "loss": float(best.fun), "predicted": predicted,
+            "z": distances(predicted, targets), "accepted": len(accepted), "draws": abc_draws,
+            "region": region}
+
+
+def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Distribution]:
+    """The proposal's distributions, from the shipped cohort config."""
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, check_config
+
+    checked = check_config(compose_config([f"cohort={cohort_name}", "world.physics=static", "predictor=hybrid",
+                                           "conditions.time_limited.time_limit=null"], config_name=CONFIG_NAME))
+    return dict(checked.cohort.parameters)
+
+
+def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_draws: int = 20_000,
+        proposal: Optional[Mapping[str, Distribution]] = None) -> dict:
+    """Fit both conditions; write ``calibration.json`` and ``paper_calibrated.yaml`` (a cohort config) to ``out``."""
+    import yaml
+
+    from overhang_framework.results import atomic_write_json, atomic_write_text
+
+    proposal = dict(proposal or proposal_distributions())
+    results = {}
+    for condition in TARGETS:
+        results[condition] = fit_condition(Library(trials, proposal, condition), seed=seed, maxiter=maxiter,
+                                           abc_draws=abc_draws)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {c: {"candidate": r["candidate"].config(), "mean_depth": r["candidate"].mean_depth,
+                   "loss": r["loss"], "predicted": r["predicted"], "z": r["z"], "paper": TARGETS[c],
+                   "abc": {"accepted": r["accepted"], "draws": r["draws"], "region": r["region"]}}
+               for c, r in results.items()}
+    atomic_write_json(out / "calibration.json", summary)
+    cohort = {"name": "paper_calibrated", "participants": {"time_limited": 43, "unconstrained": 38},
+              "n_tasks": None, "parameters": {"switch": {"dist": "categorical", "values": [3, 4, 5],
+                                                          "p": [0.25, 0.5, 0.25]}},
+              "by_condition": {c: r["candidate"].config() for c, r in results.items()},
+              "decision_time": {"t0": 2.0, "per_call": 0.07, "noise": 0.3}, "motor": {"sd": 0.02, "retries": 5}}
+    atomic_write_text(out / "paper_calibrated.yaml", yaml.safe_dump(cohort, sort_keys=False))
+    return summary
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m overhang_framework.behaviour.calibrate",
+                                     description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    lib = sub.add_parser("library", help="one row per trial of a participants run (the library)")
+    lib.add_argument("run_dir", type=Path)
+    lib.add_argument("--out", required=True, type=Path)
+    lib.add_argument("--world", nargs="*", default=["world.physics=static"], help="world overrides for Γ")
+    f = sub.add_parser("fit", help="fit both conditions to the paper's Table 1 and Γ")
+    f.add_argument("trials", type=Path)
+    f.add_argument("--out", required=True, type=Path)
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--maxiter", type=int, default=200)
+    f.add_argument("--abc-draws", type=int, default=20_000)
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "library":
+            from overhang_framework.results import atomic_output
+
+            table = library_trials(args.run_dir, args.world)
+            with atomic_output(args.out) as tmp:
+                table.to_csv(tmp, index=False)
+            print(f"{args.out}: {len(table)} trials of {table['participant'].nunique()} participants")
+            return 0
+        if not args.trials.exists():
+            raise ConfigError(f"{args.trials}: no such file (make it with the library command)")
+        summary = fit(pd.read_csv(args.trials), args.out, args.seed, args.maxiter, args.abc_draws)
+        for condition, r in summary.items():
+            z = ", ".join(f"{k} {v:+.2f}" for k, v in r["z"].items())
+            print(f"{condition}: mean depth {r['mean_depth']:.2f}; distance from the paper in its SEMs: {z}; "
+                  f"ABC kept {r['abc']['accepted']} of {r['abc']['draws']}")
+        print(f"written: {args.out / 'calibration.json'}, {args.out / 'paper_calibrated.yaml'}")
+        return 0
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

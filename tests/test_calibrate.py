@@ -1,0 +1,134 @@
+"""Calibrating a cohort by reweighting a library: closed-form timeouts, importance weights, the fit, the library."""
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from overhang_framework.behaviour import calibrate
+from overhang_framework.behaviour.participants import Distribution
+
+PROPOSAL = {"sigma": Distribution("lognormal", (0.04, 0.8)),
+            "depth": Distribution("categorical", ((1, 2, 3), (1 / 3, 1 / 3, 1 / 3))),
+            "beta": Distribution("lognormal", (3.0, 1.2)), "lapse": Distribution("uniform", (0.0, 0.3))}
+
+
+def synthetic_people(dists, n, rng, condition="time_limited"):
+    return pd.DataFrame({"participant": [f"{condition}-{i}" for i in range(n)], "condition": condition,
+                         **{k: [d.sample(rng) for _ in range(n)] for k, d in dists.items()}})
+
+
+def synthetic_trials(people, rng, trials=20):
+    """A known world: deeper and less lapsing participants stand more and reach further; Γ grows with depth."""
+    rows = []
+    for p in people.itertuples():
+        for t in range(trials):
+            stood = rng.random() < min(0.95, 0.45 + 0.15 * p.depth - p.lapse)
+            steps = 5 if stood else int(rng.integers(1, 6))
+            calls = [int(4 ** p.depth)] * steps
+            rows.append({"participant": p.participant, "condition": p.condition, "trial": t + 1,
+                         "reward": (1.0 + 0.15 * p.depth + 0.05 * rng.standard_normal()) if stood else 0.0,
+                         "stood": stood, "gamma": 0.08 * p.depth if stood else np.nan, "calls": json.dumps(calls),
+                         "sigma": p.sigma, "depth": p.depth, "beta": p.beta, "lapse": p.lapse})
+    return pd.DataFrame(rows)
+
+
+@pytest.fixture(scope="module")
+def library():
+    rng = np.random.default_rng(0)
+    trials = synthetic_trials(synthetic_people(PROPOSAL, 900, rng), rng)
+    return calibrate.Library(trials, PROPOSAL, "time_limited")
+
+
+CANDIDATE = calibrate.Candidate((0.2, 0.5, 0.3), sigma=0.03, beta=4.0, lapse=0.05, t0=1.5, per_call=0.06)
+
+
+def test_timeouts_in_closed_form_equal_those_of_drawn_decision_times(library):
+    got = library.predict(CANDIDATE, time_limit=5.0)
+    # the same library and weights, with every decision's time drawn and a trial ended at its first timeout
+    rng = np.random.default_rng(1)
+    reps, n = 400, len(library.people)
+    m = CANDIDATE.t0 + CANDIDATE.per_call * library.calls
+    present = ~np.isnan(library.calls)
+    times = m[None] * np.exp(CANDIDATE.noise * rng.standard_normal((reps,) + m.shape))
+    over = (times > 5.0) & present[None]
+    first = np.where(over.any(axis=2), over.argmax(axis=2), m.shape[1])
+    steps = np.arange(m.shape[1])
+    happens = (steps[None, None] <= first[..., None]) & present[None]
+    seconds = np.where(happens, np.minimum(times, 5.0), 0.0).sum(axis=2)
+    finished = ~over.any(axis=2)
+
+    def per(values):
+        return np.bincount(library.who, weights=values.sum(axis=0), minlength=n)
+
+    reward = per(library.reward * finished) / per(np.ones_like(finished, dtype=float))
+    stood = per(library.stood * finished)
+    time = per(seconds) / per(happens.sum(axis=2).astype(float))
+    w = library.weights(CANDIDATE)
+    drawn = {"reward_per_trial": np.dot(w, reward) / w.sum(), "decision_time": np.dot(w, time) / w.sum(),
+             "stable_pct": 100 * np.dot(w, stood / per(np.ones_like(finished, dtype=float))) / w.sum()}
+    assert 0.05 < 1 - got["stable_pct"] / library.predict(CANDIDATE, None)["stable_pct"] < 0.9  # timeouts bite
+    for key, value in drawn.items():
+        assert got[key] == pytest.approx(value, rel=0.01), key
+
+
+def test_reweighting_the_library_predicts_a_cohort_simulated_directly(library):
+    rng = np.random.default_rng(2)
+    direct_people = synthetic_people(CANDIDATE.distributions(), 3000, rng)
+    direct = calibrate.Library(synthetic_trials(direct_people, rng), CANDIDATE.distributions(), "time_limited")
+    truth = direct.predict(CANDIDATE, None)  # its own proposal: every weight 1
+    assert truth["ess"] == pytest.approx(3000)
+    got = library.predict(CANDIDATE, None)
+    assert 30 < got["ess"] < 900
+    for key in ("reward_per_trial", "stable_pct", "avg_overhang", "gamma"):
+        assert got[key] == pytest.approx(truth[key], rel=0.04), key
+
+
+def test_the_fit_recovers_a_planted_cohort_and_the_abc_region_holds_it():
+    rng = np.random.default_rng(4)
+    library = calibrate.Library(synthetic_trials(synthetic_people(PROPOSAL, 400, rng), rng, trials=10), PROPOSAL,
+                                "time_limited")
+    planted = library.predict(CANDIDATE, 5.0)
+    targets = {k: (planted[k], 0.02 * abs(planted[k])) for k in calibrate.METRICS}
+    result = calibrate.fit_condition(library, targets, time_limit=5.0, seed=0, maxiter=15, abc_draws=1500)
+    assert all(abs(z) <= 1 for z in result["z"].values()), result["z"]
+    assert result["candidate"].mean_depth == pytest.approx(CANDIDATE.mean_depth, abs=0.25)
+    assert result["candidate"].lapse == pytest.approx(CANDIDATE.lapse, abs=0.04)
+    node = result["candidate"].config()
+    assert sum(node["parameters"]["depth"]["p"]) == pytest.approx(1.0) and set(node) == {"parameters", "decision_time"}
+
+
+def test_a_library_with_timeouts_or_without_drawn_parameters_is_refused(library, tmp_path):
+    from overhang_framework.errors import ConfigError
+
+    rng = np.random.default_rng(3)
+    trials = synthetic_trials(synthetic_people(PROPOSAL, 5, rng), rng).drop(columns=["beta"])
+    with pytest.raises(ConfigError, match="do not all draw beta"):
+        calibrate.Library(trials, PROPOSAL, "time_limited")
+    with pytest.raises(ConfigError, match="no trial of condition 'unconstrained'"):
+        calibrate.Library(trials, PROPOSAL, "unconstrained")
+    with pytest.raises(ConfigError, match="has no log.jsonl"):
+        calibrate.library_trials(tmp_path)
+
+
+def test_the_library_of_a_participants_run(tmp_path):
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, run
+
+    cfg = compose_config(["cohort=proposal", "predictor=hybrid", "world.physics=static", "progress=false",
+                          "conditions.time_limited.time_limit=null", "cohort.participants.time_limited=3",
+                          "cohort.participants.unconstrained=2", "tasks=custom",
+                          "tasks.sequences=[[1.2,0.6,1.2,0.6],[0.6,1.2,0.6,0.6]]",
+                          "+predictor.early_params.K=10"], config_name=CONFIG_NAME)
+    run(cfg, tmp_path / "lib")
+    trials = calibrate.library_trials(tmp_path / "lib")
+    assert len(trials) == 5 * 2 and set(trials["condition"]) == {"time_limited", "unconstrained"}
+    people = pd.read_csv(tmp_path / "lib" / "participants.csv")
+    assert sorted(people["id"]) == sorted(trials["participant"].unique())
+    assert trials.loc[~trials["stood"], "gamma"].isna().all()
+    lengths = [len(json.loads(c)) for c in trials["calls"]]
+    assert all(1 <= n <= 3 for n in lengths) and all(n == 3 for n, s in zip(lengths, trials["stood"]) if s)
+    assert not math.isnan(calibrate.Library(trials, calibrate.proposal_distributions(), "time_limited")
+                          .predict(CANDIDATE, 5.0)["reward_per_trial"])
