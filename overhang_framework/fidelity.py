@@ -146,10 +146,11 @@ def command_for(point: Point, model: str, out: Path, repeats: int, jobs: int, se
 def run(points: Sequence[Point], out: Path, repeats: int, jobs: int, seed: int,
         models: Sequence[str] = MODELS, extra: Sequence[str] = (), only: Optional[Sequence[str]] = None) -> int:
     """Run every point's models that are not finished; returns the number of runs that failed."""
-    wanted = [p for p in points if not only or p.name in only]
-    if only and len(wanted) != len(set(only)):
-        missing = sorted(set(only) - {p.name for p in points})
-        raise ConfigError(f"unknown point {missing[0]!r}; points: {', '.join(p.name for p in points)}")
+    by_name = {p.name: p for p in points}
+    missing = [name for name in only or () if name not in by_name]
+    if missing:
+        raise ConfigError(f"unknown point {missing[0]!r}; points: {', '.join(by_name)}")
+    wanted = [by_name[name] for name in dict.fromkeys(only)] if only else list(points)  # in the order asked
     base = base_point(points)
     todo = [(p, m) for p in wanted for m in models if p is base or base is None or p.touches(m)]
     failed = 0
