@@ -132,3 +132,29 @@ def test_the_library_of_a_participants_run(tmp_path):
     assert all(1 <= n <= 3 for n in lengths) and all(n == 3 for n, s in zip(lengths, trials["stood"]) if s)
     assert not math.isnan(calibrate.Library(trials, calibrate.proposal_distributions(), "time_limited")
                           .predict(CANDIDATE, 5.0)["reward_per_trial"])
+
+
+def test_the_fit_writes_a_cohort_config_that_the_participants_command_accepts(tmp_path):
+    import yaml
+
+    from overhang_framework.behaviour.participants import cohort_from_config
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME
+
+    rng = np.random.default_rng(5)
+    trials = pd.concat([synthetic_trials(synthetic_people(PROPOSAL, 60, rng, condition), rng, trials=5)
+                        for condition in ("time_limited", "unconstrained")])
+    trials.to_csv(tmp_path / "trials.csv", index=False)
+    assert calibrate.main(["fit", str(tmp_path / "trials.csv"), "--out", str(tmp_path / "cal"), "--maxiter", "2",
+                           "--abc-draws", "50"]) == 0
+    summary = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    assert set(summary) == {"time_limited", "unconstrained"}
+    assert set(summary["time_limited"]["z"]) == set(calibrate.METRICS)
+    node = yaml.safe_load((tmp_path / "cal" / "paper_calibrated.yaml").read_text())
+    conditions = compose_config([], config_name=CONFIG_NAME).conditions
+    from omegaconf import OmegaConf
+
+    cohort = cohort_from_config(node, OmegaConf.to_container(conditions))
+    assert {c.name: c.n for c in cohort.conditions} == {"time_limited": 43, "unconstrained": 38}
+    assert cohort.parameters_for("time_limited")["depth"].kind == "categorical"
+    assert calibrate.main(["fit", str(tmp_path / "none.csv"), "--out", str(tmp_path / "x")]) == 2
