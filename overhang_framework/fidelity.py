@@ -228,7 +228,7 @@ def table(points: Sequence[Point], out: Path) -> list[dict]:
         levels = {m: level(run_dir(points, point, m, out)) for m in MODELS}
         row: dict = {"point": point.name, **{k: point.value(k) for k in SETTINGS}}
         for m in MODELS:
-            for key in ("reward", "sem", "stood", "episodes", "seconds"):
+            for key in ("reward", "sem", "stood", "episodes", "seconds", "complete"):
                 row[f"{m}_{key}"] = levels[m][key]
         row.update(assess(levels))
         row["complete"] = all(levels[m]["complete"] for m in MODELS)
@@ -259,6 +259,8 @@ def render(points: Sequence[Point], rows: Sequence[dict], title: str) -> str:
             text = _pm(r[f"{m}_reward"], r[f"{m}_sem"])
             if np.isfinite(r[f"{m}_stood"]):
                 text += f" ({r[f'{m}_stood']:.0%})"
+            if np.isfinite(r[f"{m}_reward"]) and not r[f"{m}_complete"]:
+                text += f", {r[f'{m}_episodes']} episodes so far"
             cells.append(f"**{text}**" if r[f"{m}_within"] else text)
         seconds = [r[f"{m}_seconds"] for m in MODELS if r[f"{m}_seconds"] is not None]
         wall = f"{sum(seconds):,.0f}" if seconds else ""
@@ -293,7 +295,11 @@ def figure(points: Sequence[Point], rows: Sequence[dict], x: str, lines_by: str,
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    from matplotlib.ticker import FixedFormatter, FixedLocator, NullLocator
 
+    from overhang_framework.report.build import COLORS as COLOURS
     from overhang_framework.results import atomic_output
 
     by = {p.name: p for p in points}
@@ -305,31 +311,51 @@ def figure(points: Sequence[Point], rows: Sequence[dict], x: str, lines_by: str,
         return math.inf if r["choice"] == "argmax" and x == "beta" else float(r[x])
 
     finite = sorted({xval(r) for r in use if np.isfinite(xval(r))})
+    argmax = any(not np.isfinite(xval(r)) for r in use)
     edge = (finite[-1] * 1.6 if finite else 1.0)
-    groups = sorted({r[lines_by] for r in use}, key=lambda v: (str(type(v)), v))
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.6), sharey=True)
+    groups = sorted({_plain(r[lines_by]) for r in use}, key=lambda v: (isinstance(v, str), v))
+    colours = {g: COLOURS[i % len(COLOURS)] for i, g in enumerate(groups)}
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.8), sharey=True)
     for ax, m in zip(axes, MODELS):
         mean, sem = PAPER[m]
-        ax.axhspan(mean - sem, mean + sem, color="0.85", zorder=0, label="paper ± SEM")
-        ax.axhline(mean, color="0.4", lw=1, zorder=1)
-        for i, g in enumerate(groups):
+        ax.axhspan(mean - sem, mean + sem, color="0.88", zorder=0)
+        ax.axhline(mean, color="0.45", lw=1, zorder=1)
+        for g in groups:
             pts = sorted((xval(r) if np.isfinite(xval(r)) else edge, r[f"{m}_reward"], r[f"{m}_sem"])
-                         for r in use if r[lines_by] == g and np.isfinite(r[f"{m}_reward"]))
+                         for r in use if _plain(r[lines_by]) == g and np.isfinite(r[f"{m}_reward"])
+                         and r.get(f"{m}_complete", True))
             if pts:
                 xs, ys, es = zip(*pts)
-                ax.errorbar(xs, ys, yerr=es, marker="o", ms=4, capsize=2, label=f"{lines_by} = {g}")
+                ax.errorbar(xs, ys, yerr=es, marker="o", ms=4, capsize=2, color=colours[g])
         ax.set_title(LABELS[m], fontsize=10)
-        ax.set_xlabel(x + (" (argmax at the right)" if x == "beta" and any(not np.isfinite(xval(r)) for r in use)
-                           else ""))
         if x == "beta":
             ax.set_xscale("log")
+        shown: list = []  # tick labels that do not overlap: each at least 18% beyond the last
+        for t in finite:
+            if not shown or t / shown[-1] >= 1.18:
+                shown.append(t)
+        ticks = shown + ([edge] if argmax and x == "beta" else [])
+        ax.xaxis.set_major_locator(FixedLocator(ticks))
+        ax.xaxis.set_major_formatter(FixedFormatter([f"{t:g}" for t in shown] + (["argmax"] if len(ticks) > len(shown)
+                                                                                  else [])))
+        ax.xaxis.set_minor_locator(NullLocator())
+        ax.tick_params(axis="x", labelsize=8)
+        ax.set_xlabel(x)
+    handles = [Patch(color="0.88", label="paper ± SEM")] + [Line2D([], [], color=colours[g], marker="o", ms=4,
+                                                                   label=f"{lines_by} = {g:g}" if isinstance(g, (int, float)) else f"{lines_by} = {g}")
+                                                            for g in groups]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
     axes[0].set_ylabel("terminal reward (paper20)")
-    axes[-1].legend(fontsize=8, loc="best")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=130, format="png")
     plt.close(fig)
     return path
+
+
+def _plain(value):
+    """A setting's value for grouping: numbers as floats (1 and 1.0 are one group), anything else as is."""
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
 
 
 def report(out: Path, source: str, x: Optional[str] = None, lines_by: Optional[str] = None) -> str:
