@@ -94,3 +94,42 @@ def test_the_figure_draws_the_points_that_vary_only_its_two_settings(tmp_path):
     assert path.stat().st_size > 10_000
     assert fidelity.figure(points[3:], rows[3:], "beta", "cnn_bias", tmp_path / "none.png") is None
     assert not (tmp_path / "none.png").exists()
+
+
+def test_the_paper_levels_config_makes_every_model_choose_by_softmax():
+    from overhang_framework.config import compose_config
+
+    for model in fidelity.MODELS:
+        cfg = compose_config(["experiment=table2_paper_levels", f"model={model}"], return_hydra_config=True)
+        assert cfg.planner.choice == "softmax" and cfg.planner.beta == 2.4
+        assert cfg.predictor.name == "hybrid" and cfg.tasks.name == "paper20" and cfg.repeats == 40
+
+
+def _levels(tmp_path, models):
+    """Run experiment=table2_paper_levels as the grid did (3 runs per task, seed 0) and read each model's level."""
+    import subprocess
+    import sys
+
+    levels = {}
+    for model in models:
+        out = tmp_path / model
+        proc = subprocess.run([sys.executable, "-m", "overhang_framework", "experiment=table2_paper_levels",
+                               f"model={model}", "repeats=3", "jobs=1", "seed=0", "progress=false",
+                               f"hydra.sweep.dir={out}"], capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        levels[model] = fidelity.level(out)
+    return levels
+
+
+def test_the_paper_levels_config_puts_the_myopic_model_at_the_papers_level(tmp_path):
+    (got,) = _levels(tmp_path, ["myopic"]).values()
+    mean, sem = fidelity.PAPER["myopic"]
+    assert got["episodes"] == 60 and abs(got["reward"] - mean) <= sem, got
+    assert got["stood"] < 0.6  # most myopic towers fall, as the paper's level implies
+
+
+@pytest.mark.slow
+def test_the_paper_levels_config_puts_all_three_models_at_the_papers_levels_in_order(tmp_path):
+    levels = _levels(tmp_path, list(fidelity.MODELS))
+    verdict = fidelity.assess(levels)
+    assert verdict["match"], {m: levels[m]["reward"] for m in fidelity.MODELS}
