@@ -226,6 +226,9 @@ def table(points: Sequence[Point], out: Path) -> list[dict]:
     rows = []
     for point in points:
         levels = {m: level(run_dir(points, point, m, out)) for m in MODELS}
+        for m in MODELS:  # a shared run's time is the point's that ran it
+            if run_dir(points, point, m, out) != out / point.name / m:
+                levels[m]["seconds"] = None
         row: dict = {"point": point.name, **{k: point.value(k) for k in SETTINGS}}
         for m in MODELS:
             for key in ("reward", "sem", "stood", "episodes", "seconds", "complete"):
