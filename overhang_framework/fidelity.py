@@ -241,7 +241,7 @@ def table(points: Sequence[Point], out: Path) -> list[dict]:
 
 def _pm(mean: float, sem: float) -> str:
     if not np.isfinite(mean):
-        return "—"
+        return "not run"
     return f"{mean:.3f} ± {sem:.3f}" if np.isfinite(sem) else f"{mean:.3f}"
 
 
@@ -267,7 +267,8 @@ def render(points: Sequence[Point], rows: Sequence[dict], title: str) -> str:
             cells.append(f"**{text}**" if r[f"{m}_within"] else text)
         seconds = [r[f"{m}_seconds"] for m in MODELS if r[f"{m}_seconds"] is not None]
         wall = f"{sum(seconds):,.0f}" if seconds else ""
-        note = "" if r["complete"] else " (unfinished)"
+        partial = any(r[f"{m}_episodes"] and not r[f"{m}_complete"] for m in MODELS)
+        note = " (unfinished)" if partial else ""
         lines.append(f"| {r['point']}{note} | {changed(by[r['point']])} | {' | '.join(cells)} | "
                      f"{'yes' if r['order'] else 'no'} | {r['distance']:.2f} | {'yes' if r['match'] else ''} | {wall} |")
     lines += ["", "Terminal reward, mean over episodes ± SEM across tasks (in brackets: the share of towers that "
