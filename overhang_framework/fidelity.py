@@ -269,8 +269,11 @@ def render(points: Sequence[Point], rows: Sequence[dict], title: str) -> str:
         wall = f"{sum(seconds):,.0f}" if seconds else ""
         partial = any(r[f"{m}_episodes"] and not r[f"{m}_complete"] for m in MODELS)
         note = " (unfinished)" if partial else ""
+        known = np.isfinite(r["distance"])
+        order = ("yes" if r["order"] else "no") if known else "—"
+        distance = f"{r['distance']:.2f}" if known else "—"
         lines.append(f"| {r['point']}{note} | {changed(by[r['point']])} | {' | '.join(cells)} | "
-                     f"{'yes' if r['order'] else 'no'} | {r['distance']:.2f} | {'yes' if r['match'] else ''} | {wall} |")
+                     f"{order} | {distance} | {'yes' if r['match'] else ''} | {wall} |")
     lines += ["", "Terminal reward, mean over episodes ± SEM across tasks (in brackets: the share of towers that "
               "stood to the end); bold: within the paper's SEM of the paper's value. Distance: the largest |ours − paper| / paper's SEM of the three models."]
     done = [r for r in rows if np.isfinite(r["distance"])]
