@@ -386,6 +386,14 @@ def test_leaderboard_rows_carry_their_command_and_provenance_and_replace_their_o
     assert leaderboard.main(["add", str(out), "--file", str(board)]) == 0  # the same agent and split: replaced
     rows = leaderboard.load(board)
     assert len(rows) == 1
+    ladder = dict(leaderboard.row_of(out), curve="[[1.0, 0.5], [4.0, 0.6]]")
+    leaderboard.add([ladder], board)  # the same agent and split with a budget ladder: a row of its own
+    assert len(leaderboard.load(board)) == 2
+    leaderboard.add([leaderboard.row_of(out)], board)  # the run without a ladder replaces only its own row
+    assert sorted(bool(c) for c in leaderboard.load(board)["curve"]) == [False, True]
+    leaderboard.add([ladder], board)
+    rows = leaderboard.load(board)
+    rows = rows[rows["curve"] == ""]
     row = rows.iloc[0]
     assert row["agent"] == "myopic + veridical" and row["split"] == "ids"
     assert row["command"].startswith("python -m overhang_framework.benchmark ") and "seeds=1" in row["command"]

@@ -9,7 +9,8 @@ framework's version and commit and the date the row was scored::
     python -m overhang_framework.benchmark.leaderboard show                      # the table, in Markdown
     python -m overhang_framework.benchmark.leaderboard figure --out docs/figures/benchmark.png
 
-A row is replaced when a run of the same agent and split is added again.
+A row is replaced when a run of the same agent and split is added again (a run with a budget ladder and
+one without are different rows).
 """
 
 from __future__ import annotations
@@ -80,15 +81,17 @@ def load(path: Path | str | None = None):
 
 
 def add(rows: Sequence[dict], path: Path | str | None = None) -> None:
-    """Put ``rows`` into the leaderboard, replacing rows of the same agent and split; sorted by split, score."""
+    """Put ``rows`` into the leaderboard, replacing rows of the same agent, split and kind (with a budget ladder
+    or without); sorted by split, score."""
     import pandas as pd
 
     from overhang_framework.results import atomic_write_text
 
     path = Path(DATA_FILE if path is None else path)
     board = load(path)
-    keys = {(r["agent"], r["split"]) for r in rows}
-    board = board[[(a, s) not in keys for a, s in zip(board["agent"], board["split"])]] if len(board) else board
+    keys = {(r["agent"], r["split"], bool(r.get("curve"))) for r in rows}
+    board = board[[(a, s, bool(c)) not in keys for a, s, c in zip(board["agent"], board["split"], board["curve"])]] \
+        if len(board) else board
     board = pd.concat([board, pd.DataFrame(rows, columns=list(COLUMNS))], ignore_index=True)
     board["score"] = board["score"].astype(float)
     order = {s: k for k, s in enumerate(("test", "cross", "paper20", "train"))}
