@@ -410,8 +410,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 raise ConfigError("--repeats and --jobs must be whole numbers >= 1")
             points, _ = load_points(args.points)
             args.out.mkdir(parents=True, exist_ok=True)
-            (args.out / "points.txt").write_text(str(Path(args.points).resolve()) if Path(args.points).exists()
-                                                 else args.points)
+            from overhang_framework.results import atomic_write_text
+
+            atomic_write_text(args.out / "points.txt", str(Path(args.points).resolve()) if Path(args.points).exists()
+                              else args.points)
             failed = run(points, args.out, args.repeats, args.jobs, args.seed, args.models, args.override, args.only)
             print(report(args.out, (args.out / "points.txt").read_text()))
             return 1 if failed else 0
