@@ -195,7 +195,7 @@ def test_bad_arguments_are_refused_in_one_line():
                             ({"sequences": [1.8, 1.0]}, "illegal block width 1.0"),
                             ({"tasks": "paper20", "max_blocks": 4}, "max_blocks >= 6"),
                             ({"render_mode": "human"}, "unknown render_mode 'human'"),
-                            ({"tasks": "bogus"}, "unknown task set 'bogus'; allowed: example, paper20, random"),
+                            ({"tasks": "bogus"}, "unknown task set 'bogus'; allowed: draw, example, paper20, random"),
                             ({"sequences": [0.6] * 14}, "has 14 blocks; at most 13 fit the grid"),
                             ({"world": {"physics": "tiered"}}, "not inside world"),
                             ({"reward": "shaped", "failure_penalty": -1}, "failure_penalty must be a finite number >= 0"),
