@@ -181,13 +181,27 @@ class ScoreCache:
         self._db = None
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            try:
-                self._db = sqlite3.connect(str(self.path), timeout=120, isolation_level=None)
-                self._db.execute("PRAGMA journal_mode=WAL")
-                self._db.execute("CREATE TABLE IF NOT EXISTS scores (key TEXT PRIMARY KEY, n INTEGER, scores BLOB)")
-            except sqlite3.DatabaseError as err:
-                raise ValueError(f"score cache {self.path} is not a usable SQLite file ({err}); "
-                                 "move it away or give another fit.cache") from None
+            # Switching a new file to WAL takes a lock that SQLite does not wait for: two shards opening
+            # one cache at once retry it (for as long as the connection's own timeout) instead of failing.
+            deadline = time.monotonic() + 120
+            while True:
+                try:
+                    self._db = sqlite3.connect(str(self.path), timeout=120, isolation_level=None)
+                    self._db.execute("PRAGMA journal_mode=WAL")
+                    self._db.execute("CREATE TABLE IF NOT EXISTS scores (key TEXT PRIMARY KEY, n INTEGER, scores BLOB)")
+                    break
+                except sqlite3.OperationalError as err:
+                    if "locked" in str(err) and time.monotonic() < deadline:
+                        if self._db is not None:
+                            self._db.close()
+                            self._db = None
+                        time.sleep(0.05)
+                        continue
+                    raise ValueError(f"score cache {self.path} is not a usable SQLite file ({err}); "
+                                     "move it away or give another fit.cache") from None
+                except sqlite3.DatabaseError as err:
+                    raise ValueError(f"score cache {self.path} is not a usable SQLite file ({err}); "
+                                     "move it away or give another fit.cache") from None
 
     @staticmethod
     def entry(model_key: str, state: State) -> str:
