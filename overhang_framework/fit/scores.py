@@ -190,16 +190,14 @@ class ScoreCache:
                     self._db.execute("PRAGMA journal_mode=WAL")
                     self._db.execute("CREATE TABLE IF NOT EXISTS scores (key TEXT PRIMARY KEY, n INTEGER, scores BLOB)")
                     break
-                except sqlite3.OperationalError as err:
-                    if "locked" in str(err) and time.monotonic() < deadline:
+                except sqlite3.DatabaseError as err:
+                    if isinstance(err, sqlite3.OperationalError) and "locked" in str(err) \
+                            and time.monotonic() < deadline:
                         if self._db is not None:
                             self._db.close()
                             self._db = None
                         time.sleep(0.05)
                         continue
-                    raise ValueError(f"score cache {self.path} is not a usable SQLite file ({err}); "
-                                     "move it away or give another fit.cache") from None
-                except sqlite3.DatabaseError as err:
                     raise ValueError(f"score cache {self.path} is not a usable SQLite file ({err}); "
                                      "move it away or give another fit.cache") from None
 
