@@ -123,3 +123,26 @@ def test_readme_error_examples_print_what_the_readme_shows(tmp_path, command, ex
     proc = subprocess.run([sys.executable, *words], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [expected.replace("runs/main", str(tmp_path))]
+
+
+def test_the_test_command_summary_lists_failures_errors_and_skips(tmp_path):
+    """The project's pytest options name every failed, erroring and skipped test in the short summary."""
+    (tmp_path / "test_outcomes.py").write_text(
+        "import pytest\n\n"
+        "@pytest.fixture\n"
+        "def broken():\n"
+        "    raise RuntimeError('fixture fails')\n\n"
+        "def test_fails():\n"
+        "    assert False\n\n"
+        "def test_errors(broken):\n"
+        "    pass\n\n"
+        "def test_skipped():\n"
+        "    pytest.skip('not here')\n")
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           "-c", str(ROOT / "pyproject.toml"), "--rootdir", str(tmp_path),
+                           str(tmp_path / "test_outcomes.py")],
+                          cwd=tmp_path, capture_output=True, text=True)
+    summary = proc.stdout.split("short test summary info", 1)[-1]
+    assert re.search(r"^FAILED .*test_fails", summary, flags=re.M), proc.stdout
+    assert re.search(r"^ERROR .*test_errors", summary, flags=re.M), proc.stdout
+    assert re.search(r"^SKIPPED .*not here", summary, flags=re.M), proc.stdout
