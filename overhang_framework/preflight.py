@@ -408,11 +408,13 @@ def _exists(key: str, words: Sequence[str]) -> bool:
     return OmegaConf.select(_base(words), key, default=None) is not None
 
 
-def check_writable(directory: str | os.PathLike) -> None:
+def check_writable(directory: str | os.PathLike,
+                   choose: str = "hydra.run.dir=DIR (hydra.sweep.dir=DIR with -m)") -> None:
     """Raise unless ``directory`` exists as a writable directory or can be created.
 
     Nothing is left behind: the check writes into the nearest existing
-    ancestor and removes what it wrote.
+    ancestor and removes what it wrote. ``choose`` says how the command
+    takes another directory.
     """
     path = Path(directory).expanduser().absolute()
     probe = path
@@ -428,7 +430,7 @@ def check_writable(directory: str | os.PathLike) -> None:
     except OSError as err:
         reason = err.strerror or str(err)
         raise OverhangError(f"cannot write the output directory '{path}' ({reason}); "
-                            "choose another with hydra.run.dir=DIR (hydra.sweep.dir=DIR with -m)") from None
+                            f"choose another with {choose}") from None
 
 
 def check_command_line(args: Sequence[str], check_config: Optional[Callable] = None) -> None:

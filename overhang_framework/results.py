@@ -6,6 +6,7 @@ import contextlib
 import json
 import math
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
@@ -66,6 +67,26 @@ def atomic_write_text(path: Path | str, text: str) -> None:
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
+
+
+@contextlib.contextmanager
+def staged_files(directory: Path | str) -> Iterator[Path]:
+    """Yield a temporary directory beside ``directory``; when the block succeeds, move the files written
+    into it to ``directory`` (made if need be), each by a rename.
+
+    A command that writes several files leaves all of them or none: a failure
+    half-way leaves ``directory`` as it was.
+    """
+    directory = Path(directory)
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}."))
+    try:
+        yield staging
+        directory.mkdir(exist_ok=True)
+        for path in sorted(staging.iterdir()):
+            os.replace(path, directory / path.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def atomic_write_json(path: Path | str, data: Any) -> None:

@@ -254,6 +254,43 @@ def test_unreadable_log_is_one_line(tmp_path, capsys):
     assert "unknown predictor 'vertical'" in capsys.readouterr().err
 
 
+def test_empty_log_is_one_line_and_writes_nothing(tmp_path, capsys):
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text("")
+    out = tmp_path / "o"
+    assert main([str(empty), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {empty}: no records") and err.count("\n") == 1
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["empty.jsonl"]
+
+
+def test_unwritable_out_is_one_line(tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert main([str(people_log(tmp_path)), "--out", str(blocker / "o"), "--only", "table1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: cannot write the output directory '{blocker / 'o'}'") and err.count("\n") == 1
+    assert "choose another with --out DIR" in err
+
+
+def test_an_analysis_that_fails_leaves_no_files_of_the_others(tmp_path, capsys, monkeypatch):
+    def fails(*args, **kwargs):
+        raise OverhangError("gamma refuses")
+
+    monkeypatch.setattr(gamma, "section", fails)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "kept.txt").write_text("from before")
+    assert main([str(people_log(tmp_path)), "--out", str(out), "--world", "world.physics=static",
+                 "--only", "table1,gamma", "--n-resamples", "100", "--quiet"]) == 2
+    assert "gamma refuses" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["kept.txt"]       # table1's CSVs were not left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "people.jsonl"]
+    assert main([str(tmp_path / "people.jsonl"), "--out", str(out), "--only", "table1", "--n-resamples", "100",
+                 "--quiet"]) == 0
+    assert {"kept.txt", "table1.csv", "report.md"} <= {p.name for p in out.iterdir()}
+
+
 def test_models_and_people_side_by_side(tmp_path):
     run = tmp_path / "run"
     subprocess.run([sys.executable, "-m", "overhang_framework", "tasks=custom",

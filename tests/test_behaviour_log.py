@@ -355,6 +355,16 @@ def test_a_real_run_converts_into_records_that_agree_with_its_episodes(run_dir):
     assert df.groupby(["participant", "trial"])["reward"].count().eq(1).all()
 
 
+def test_a_runs_episodes_read_as_a_log_point_to_the_convert_command(run_dir, tmp_path):
+    episodes = run_dir / "episodes.jsonl"
+    with pytest.raises(LogError, match=r"episodes\.jsonl line 1: an episode of a model run.*behaviour\.convert RUN_DIR"):
+        read_log(episodes)
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(episodes), "--out",
+                           str(tmp_path / "fit")], capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "python -m overhang_framework.behaviour.convert" in proc.stderr and not (tmp_path / "fit").exists()
+
+
 def test_the_convert_command_writes_a_log_and_its_csv(run_dir, tmp_path):
     command = [sys.executable, "-m", "overhang_framework.behaviour.convert", str(run_dir)]
     for out in ("log.jsonl", "log.csv"):

@@ -133,6 +133,21 @@ def _cli(*args):
     return subprocess.run([sys.executable, "-m", "overhang_framework.fit", *args], capture_output=True, text=True)
 
 
+def test_an_empty_log_or_an_unwritable_out_is_one_line(tmp_path):
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text("\n")
+    proc = _cli(str(empty), "--out", str(tmp_path / "out"))
+    assert proc.returncode == 2 and proc.stderr == f"error: {empty}: no records; give a behaviour log with at least " \
+                                                   "one placement\n", proc.stderr
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    proc = _cli(str(empty), "--out", str(blocker / "out"))
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert proc.stderr.startswith(f"error: cannot write the output directory '{blocker / 'out'}'")
+    assert "choose another with --out DIR" in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file", "empty.jsonl"]
+
+
 def test_a_malformed_or_unusable_log_fails_with_one_line(tmp_path):
     bad = tmp_path / "bad.jsonl"
     bad.write_text('{"log_version": 1, "participant": "p"}\n')

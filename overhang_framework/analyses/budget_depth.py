@@ -151,7 +151,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     try:
         check_command_line([*overrides, "--cfg", "job"])
-        check_writable(args.out)
+        check_writable(args.out, "--out DIR")
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -145,9 +145,9 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     from overhang_framework.preflight import check_writable
 
     try:
-        check_writable(args.out)
+        check_writable(args.out, "--out DIR")
     except OverhangError as err:
-        ap.error(str(err).replace("; choose another with hydra.run.dir=DIR (hydra.sweep.dir=DIR with -m)", ""))
+        ap.error(str(err))
     return args
 
 

@@ -32,7 +32,7 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from overhang_framework.results import atomic_output, atomic_write_text
+from overhang_framework.results import atomic_output, atomic_write_text, staged_files
 
 ANALYSES = ("table1", "gamma", "flows", "prediction")
 #: Which towers Γ counts (:attr:`Settings.gamma_towers`), the default first.
@@ -364,7 +364,7 @@ def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
 
     Returns the sections by analysis name; ``report.md`` holds them all.
     """
-    from overhang_framework.behaviour.log import in_step_order, read_log
+    from overhang_framework.behaviour.log import in_step_order, read_log, require_records
 
     started = time.perf_counter()
     if settings.gamma_towers not in GAMMA_TOWERS:
@@ -372,9 +372,10 @@ def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
 
         raise OverhangError(f"--gamma-towers: unknown reading {settings.gamma_towers!r}; "
                             f"readings: {', '.join(GAMMA_TOWERS)}")
-    df = with_groups(in_step_order(read_log(list(paths))))
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    from overhang_framework.preflight import check_writable
+
+    df = with_groups(in_step_order(require_records(read_log(list(paths)), paths)))
+    check_writable(out, "--out DIR")
     groups = list(df["group"].unique())
     compare = settings.compare or default_compare(groups)
     if settings.compare:
@@ -396,36 +397,37 @@ def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
             from overhang_framework.errors import OverhangError
 
             raise OverhangError(f"--world: {' '.join(str(exc).split()) or type(exc).__name__}") from None
-    try:
-        for name in ANALYSES:
-            if name not in settings.only:
-                continue
-            t0 = time.perf_counter()
-            log(f"{name}...")
-            if name == "table1":
-                from overhang_framework.behaviour import table1
+    with staged_files(out) as staging:  # every file or none
+        try:
+            for name in ANALYSES:
+                if name not in settings.only:
+                    continue
+                t0 = time.perf_counter()
+                log(f"{name}...")
+                if name == "table1":
+                    from overhang_framework.behaviour import table1
 
-                sec = table1.section(df, out, order, compare, settings)
-            elif name == "gamma":
-                from overhang_framework.behaviour import gamma
+                    sec = table1.section(df, staging, order, compare, settings)
+                elif name == "gamma":
+                    from overhang_framework.behaviour import gamma
 
-                sec = gamma.section(df, out, order, compare, settings, world)
-            elif name == "flows":
-                from overhang_framework.behaviour import flows
+                    sec = gamma.section(df, staging, order, compare, settings, world)
+                elif name == "flows":
+                    from overhang_framework.behaviour import flows
 
-                sec = flows.section(df, out, order, settings, world)
-            else:
-                from overhang_framework.behaviour import prediction
+                    sec = flows.section(df, staging, order, settings, world)
+                else:
+                    from overhang_framework.behaviour import prediction
 
-                sec = prediction.section(df, out, order, compare, settings, world)
-            sec.seconds = time.perf_counter() - t0
-            sections[name] = sec
-            log(f"{name}: {sec.seconds:.1f} s")
-    finally:
-        close = getattr(getattr(world, "backend", None), "close", None)
-        if close is not None:
-            close()
-    write_report(df, out, order, compare, settings, sections, paths, time.perf_counter() - started)
+                    sec = prediction.section(df, staging, order, compare, settings, world)
+                sec.seconds = time.perf_counter() - t0
+                sections[name] = sec
+                log(f"{name}: {sec.seconds:.1f} s")
+        finally:
+            close = getattr(getattr(world, "backend", None), "close", None)
+            if close is not None:
+                close()
+        write_report(df, staging, order, compare, settings, sections, paths, time.perf_counter() - started)
     return sections
 
 

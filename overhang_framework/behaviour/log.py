@@ -293,6 +293,9 @@ def check_record(obj: Any) -> dict:
 
 
 def _checked(where: str, obj: Any) -> dict:
+    if isinstance(obj, Mapping) and "steps" in obj and "task_index" in obj and "participant" not in obj:
+        raise LogError(where, None, "an episode of a model run, not a behaviour log record; convert the run first: "
+                                    "python -m overhang_framework.behaviour.convert RUN_DIR --out LOG")
     try:
         return check_record(obj)
     except _Bad as bad:
@@ -538,6 +541,15 @@ def read_log(paths: Union[PathLike, Sequence[PathLike]]) -> pd.DataFrame:
         except (OSError, UnicodeDecodeError) as exc:
             raise LogError(str(path), None, f"cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
     return _frame(_in_order(check_log(entries)))
+
+
+def require_records(df: pd.DataFrame, paths: Union[PathLike, Sequence[PathLike]]) -> pd.DataFrame:
+    """``df``, the log read from ``paths``; :class:`LogError` when it holds no record."""
+    if df.empty:
+        files = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+        raise LogError(", ".join(str(p) for p in files), None,
+                       "no records; give a behaviour log with at least one placement")
+    return df
 
 
 def _count(n: int, noun: str) -> str:

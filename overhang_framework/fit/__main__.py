@@ -58,10 +58,11 @@ def _whole(cfg, key: str, minimum: int) -> int:
 
 def check_config(cfg: DictConfig) -> dict:
     """Every value of ``cfg`` checked, the logs read and the models built (nothing fitted)."""
-    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.behaviour.log import read_log, require_records
     from overhang_framework.fit.compare import read_truth
     from overhang_framework.fit.space import model_space
     from overhang_framework.plugins import Registry
+    from overhang_framework.preflight import check_writable
 
     extra = [k for k in cfg if k not in TOP and k != "hydra"]
     if extra:
@@ -73,6 +74,7 @@ def check_config(cfg: DictConfig) -> dict:
         raise ConfigError("no behaviour log given: python -m overhang_framework.fit LOG [LOG ...] --out DIR")
     if not cfg.get("out"):
         raise ConfigError("no results directory given: add --out DIR")
+    check_writable(cfg.out, "--out DIR")
     shard, shards = _whole(cfg, "shard", 0), _whole(cfg, "shards", 1)
     _whole(cfg, "jobs", 1)
     cv = cfg.get("cv")
@@ -93,7 +95,7 @@ def check_config(cfg: DictConfig) -> dict:
     model_space(_plain(cfg.models) or {}, depths, check_only=True)  # a bad setting stops the command here
     truth = truth_files(_plain(cfg.get("truth")), logs)
     read_truth(truth, {})  # a file that is not a participants.csv stops the command here
-    df = read_log([str(p) for p in logs])
+    df = require_records(read_log([str(p) for p in logs]), logs)
     blocks = max((len(s) for s in df["sequence"]), default=None) if len(df) else None
     space = model_space(_plain(cfg.models) or {}, depths, blocks)
     registry = Registry()
