@@ -1,4 +1,4 @@
-"""Planted and null studies: ``python -m overhang_framework.study {dual_transition,null} --out DIR``.
+"""Planted and null studies: ``python -m overhang_framework.study {dual_transition,null,paper_calibrated} --out DIR``.
 
 Can the whole pipeline find the paper's dual transition where it is present, and not find it where
 it is absent? A study simulates a cohort of known participants, analyses their log as a lab would
@@ -10,6 +10,11 @@ analyse people's, fits the models, checks the fits, and reports the paper's find
   ones. Each finding below should be there.
 * ``null`` (``cohort=null_effect``, ``predictor=ipe``): one predictor family, no switch, and the same
   myopic search in both conditions, which the budget never truncates. None should be there, beyond chance.
+* ``paper_calibrated`` (``cohort=paper_calibrated``, ``predictor=hybrid``): people like the paper's, each
+  condition's distributions of depth, σ, β, lapse and decision time fitted to the paper's Table 1 and Γ
+  (:mod:`overhang_framework.behaviour.calibrate`). Its power is the power of the paper's own design.
+  A fit of one family (``--fit 'models={hybrid: {predictor: hybrid, switch: all}}'``) leaves the family
+  finding untested, and says so.
 
 The steps, each continued where it stopped when the command is run again with the same settings:
 ``sim/`` (:mod:`overhang_framework.participants`), ``analysis/`` (Table 1, Γ, Fig. 4 of
@@ -71,7 +76,8 @@ from overhang_framework.results import atomic_write_json, atomic_write_text
 
 #: Study name -> (cohort config, participants overrides, planted).
 STUDIES = {"dual_transition": ("dual_transition", ["predictor=hybrid"], True),
-           "null": ("null_effect", ["predictor=ipe"], False)}
+           "null": ("null_effect", ["predictor=ipe"], False),
+           "paper_calibrated": ("paper_calibrated", ["predictor=hybrid"], True)}
 ALPHA = 0.05
 #: Towers of at most EARLY blocks are early, of at least LATE blocks late (Fig. 4's crossover).
 EARLY, LATE = 3, 5
@@ -208,9 +214,13 @@ def evaluate(df: pd.DataFrame, permutations: int = 10_000, seed: int = 0) -> dic
     compare("depth", "fitted_depth")
     pxp = family_pxp(df, seed)
     top = max(pxp, key=lambda k: (pxp[k] if np.isfinite(pxp[k]) else -1)) if pxp else None
-    out["hybrid"] = {"statistic": ", ".join(f"{k} {v:.2f}" for k, v in sorted(pxp.items())) + " (PXP)",
-                     "p": float("nan"), "holds": bool(pxp.get("hybrid", 0) > PXP), "effect": pxp.get("hybrid"),
-                     "top": top}
+    if len(pxp) < 2:  # a fit of one family cannot tell families apart
+        out["hybrid"] = {"statistic": f"not tested: the fit has {'only the ' + next(iter(pxp)) + ' family' if pxp else 'no family'}",
+                         "p": float("nan"), "holds": False, "effect": float("nan"), "top": top, "tested": False}
+    else:
+        out["hybrid"] = {"statistic": ", ".join(f"{k} {v:.2f}" for k, v in sorted(pxp.items())) + " (PXP)",
+                         "p": float("nan"), "holds": bool(pxp.get("hybrid", 0) > PXP), "effect": pxp.get("hybrid"),
+                         "top": top}
     hybrid = df[(df["best_family"] == "hybrid") & df.get("true_switch", pd.Series(np.nan, index=df.index)).notna()]
     if "true_switch" in df.columns and len(hybrid):
         error = (hybrid["fitted_switch"] - hybrid["true_switch"]).abs()
@@ -303,12 +313,14 @@ def power(df: pd.DataFrame, sizes: dict[str, int], resamples: int, seed: int,
     """The share of ``resamples`` redrawn studies of ``sizes`` in which each finding holds."""
     rng = np.random.default_rng(seed)
     hits = {f.name: 0 for f in FINDINGS}
+    tested = {f.name: 0 for f in FINDINGS}
     for b in range(resamples):
         found = evaluate(resample(df, sizes, rng), POWER_PERMUTATIONS, seed + b)
         for name in hits:
             hits[name] += int(found[name]["holds"])
+            tested[name] += int(found[name].get("tested", True))
         on_resample()
-    return {name: h / resamples for name, h in hits.items()}
+    return {name: h / resamples if tested[name] else float("nan") for name, h in hits.items()}
 
 
 # --- the command ---------------------------------------------------------------------------------------
@@ -442,7 +454,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     larger: dict[str, Optional[float]] = {}
     if planted and resamples:
         for f in FINDINGS:
-            if f.name in ("stable",) or rates.get(f.name, 1.0) >= TARGET_POWER:
+            if f.name in ("stable",) or not rates.get(f.name, 1.0) < TARGET_POWER:
                 continue
             larger[f.name] = None
         for multiple in MULTIPLES:
@@ -457,7 +469,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     for f in FINDINGS:
         got = found[f.name]
         rows.append({"finding": f.name, "text": f.text, "statistic": got["statistic"], "p": got["p"],
-                     "holds": got["holds"], "expected": expected(f.name, planted),
+                     "holds": got["holds"], "tested": got.get("tested", True), "expected": expected(f.name, planted),
                      "rate": rates.get(f.name), "size_for_power": _size(larger.get(f.name, "n/a"), sizes),
                      "paper": f.paper})
     table = pd.DataFrame(rows)
@@ -528,6 +540,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
     why = why or {}
     n = sum(sizes.values())
     shown = table[table["finding"] != "switch"] if not planted else table
+    untested = shown[~shown["tested"]] if "tested" in shown.columns else shown.iloc[:0]
+    shown = shown.drop(untested.index)
     holds = shown[shown["holds"] & (shown["finding"] != "stable")]
     kind = "planted" if planted else "null"
     expected = "each finding" if planted else \
@@ -584,6 +598,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
                     f"{r.finding} ({r.rate:.0%}" + (f"; {why[r.finding]}" if r.finding in why else "") + ")"
                     for r in high.itertuples()) + ". Redrawn studies share participants, so a rate shows the "
                     "simulated cohort's own difference as well as chance.")
+    if len(untested):
+        lines.append("- **Not tested:** " + "; ".join(f"{r.finding} ({r.statistic})" for r in untested.itertuples()) + ".")
     if check_line:
         lines.append(f"- **Predictive check** (`fit/check/check.md`, the study's own participants): {check_line}")
     lines += ["", "## Findings", ""]
@@ -591,7 +607,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
     for r in table.itertuples():
         if not planted and r.finding == "switch":
             continue
-        body.append([r.text, r.statistic, "–" if not np.isfinite(r.p) else fmt_p(r.p), "yes" if r.holds else "no",
+        found = "not tested" if not getattr(r, "tested", True) else "yes" if r.holds else "no"
+        body.append([r.text, r.statistic, "–" if not np.isfinite(r.p) else fmt_p(r.p), found,
                      "yes" if r.expected else "no",
                      "–" if r.rate is None or (isinstance(r.rate, float) and math.isnan(r.rate)) else f"{r.rate:.0%}",
                      r.size_for_power or "", r.paper])

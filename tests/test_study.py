@@ -111,6 +111,31 @@ def test_power_redraws_studies_of_the_given_size_from_the_participants():
     assert weak["overhang"] < strong["overhang"]
 
 
+def test_a_fit_of_one_family_leaves_the_family_finding_untested_and_says_so():
+    from pathlib import Path
+
+    from overhang_framework.study import Steps, report
+
+    people = _people(True, n=20).drop(columns=["evidence_ipe", "evidence_cnn"])
+    found = evaluate(people, permutations=500)
+    assert not found["hybrid"]["tested"] and not found["hybrid"]["holds"]
+    assert found["hybrid"]["statistic"] == "not tested: the fit has only the hybrid family"
+    assert found["depth"]["holds"] and found["switch"]["holds"]  # what one family can show is still tested
+    rates = power(people, {"time_limited": 20, "unconstrained": 20}, 5, 0)
+    assert np.isnan(rates["hybrid"]) and rates["overhang"] == 1.0
+    table = pd.DataFrame([{"finding": f.name, "text": f.text, **{k: found[f.name][k] for k in ("statistic", "p", "holds")},
+                           "tested": found[f.name].get("tested", True), "expected": True, "rate": rates[f.name],
+                           "size_for_power": "", "paper": f.paper} for f in FINDINGS])
+    sizes = {"time_limited": 20, "unconstrained": 20}
+    text = report("paper_calibrated", table, Steps(Path("/nonexistent")), sizes, sizes, None, 5, True, [1, 2], 1.0)
+    lines = text.splitlines()
+    assert next(x for x in lines if x.startswith("- **Found:**")).startswith("- **Found:** 6 of 6 effects")
+    assert "- **Not tested:** hybrid (not tested: the fit has only the hybrid family)." in lines
+    assert not any(x.startswith("- **Not found:**") for x in lines)
+    row = next(x for x in lines if x.startswith("| the hybrid family wins"))
+    assert "| not tested |" in row
+
+
 # the planted study (124 s on a busy machine) runs with the slow tests; the null study runs the same pipeline
 @pytest.mark.parametrize("study", [pytest.param("dual_transition", marks=pytest.mark.slow), "null"])
 def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
