@@ -258,6 +258,9 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
         print(f"note: {note}", file=sys.stderr)
     rundir = RunDir(out_dir)
     done = finished_jobs(rundir.prepare(result_config(_params(cfg)), overwrite=checked.overwrite))
+    for note in rundir.notes:
+        log.warning("note: %s", note)
+        print(f"note: {note}", file=sys.stderr)
     resumed = len(done)
     jobs = [(i, task, rep) for i, task in enumerate(tasks) for rep in range(repeats)]
     header = {g: cfg[g].get("name") for g in ("world", "predictor", "planner", "value", "condition")}

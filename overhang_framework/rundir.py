@@ -85,8 +85,9 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     return diffs
 
 
-def _read_records(path: Path) -> list[dict]:
-    """Complete JSON lines of ``path``; an incomplete last line (a write cut short) is cut off the file."""
+def _read_records(path: Path, notes: Optional[list[str]] = None) -> list[dict]:
+    """Complete JSON lines of ``path``; an incomplete last line (a write cut short) is cut off the file,
+    and a note saying so is added to ``notes``."""
     records, good_end = [], 0
     with open(path, "rb") as fh:
         data = fh.read()
@@ -100,6 +101,9 @@ def _read_records(path: Path) -> list[dict]:
             if good_end + len(raw) == len(data):
                 with open(path, "r+b") as fh:
                     fh.truncate(good_end)
+                if notes is not None:
+                    notes.append(f"{path} line {len(records) + 1} was cut short (the run stopped while writing "
+                                 f"it); dropped it, and its episode runs again")
                 break
             raise RunDirError(f"{path} line {len(records) + 1} is not a JSON episode record; "
                               "move the file away or rerun with overwrite=true") from None
@@ -112,6 +116,8 @@ class RunDir:
 
     def __init__(self, path: Path | str):
         self.path = Path(path)
+        #: What :meth:`prepare` changed in the results it found, one sentence each.
+        self.notes: list[str] = []
 
     @property
     def episodes(self) -> Path:
@@ -214,7 +220,7 @@ class RunDir:
         if not run_file.exists():
             (self.path / "metrics.json").unlink(missing_ok=True)
             atomic_write_json(run_file, {"config": dict(config)})
-        return _read_records(existing) if existing is not None else []
+        return _read_records(existing, self.notes) if existing is not None else []
 
     def reopen(self) -> None:
         """Continue an earlier run's episode file: a finished ``episodes.jsonl`` becomes the

@@ -133,6 +133,23 @@ def test_a_line_cut_short_by_a_crash_is_dropped_and_the_rest_kept(tmp_path):
     (tmp_path / "episodes.jsonl.partial").write_text(good + '{"task_index": 1, "rep')
     assert rundir.prepare({"seed": 0}) == [json.loads(good)]
     assert (tmp_path / "episodes.jsonl.partial").read_text() == good
+    assert len(rundir.notes) == 1 and "episodes.jsonl.partial line 2 was cut short" in rundir.notes[0]
+
+
+def test_resuming_after_a_cut_line_says_it_was_dropped(tmp_path):
+    out = tmp_path / "run"
+    assert run(*FAST, f"hydra.run.dir={out}").returncode == 0
+    lines = (out / "episodes.jsonl").read_text().splitlines(keepends=True)
+    (out / "episodes.jsonl").unlink()
+    (out / "episodes.jsonl.partial").write_text(lines[0] + lines[1][: len(lines[1]) // 2])
+    (out / "metrics.json").unlink()
+    resumed = run(*FAST, f"hydra.run.dir={out}")
+    assert resumed.returncode == 0, resumed.stderr
+    notes = [line for line in resumed.stderr.splitlines() if "cut short" in line]
+    assert notes == [f"note: {out / 'episodes.jsonl.partial'} line 2 was cut short (the run stopped while writing "
+                     "it); dropped it, and its episode runs again"]
+    assert [without_timing(json.loads(line)) for line in (out / "episodes.jsonl").read_text().splitlines()] == \
+        [without_timing(json.loads(line)) for line in lines]
 
 
 def test_a_corrupt_line_in_the_middle_is_reported_with_its_number(tmp_path):
