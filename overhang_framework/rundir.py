@@ -128,8 +128,9 @@ class RunDir:
         return self.path / (EPISODES + ".partial")
 
     @contextlib.contextmanager
-    def lock(self) -> Iterator[None]:
-        """Hold the directory for this run; a second run into it at the same time is refused.
+    def lock(self, busy: Optional[str] = None) -> Iterator[None]:
+        """Hold the directory for this run; a second run into it at the same time is refused (with
+        ``busy`` as the message, when given).
 
         The lock file exists only while a run holds it: it is removed, still
         locked, when the run ends. A run that opened the file just before it
@@ -140,7 +141,7 @@ class RunDir:
         while True:
             fh = open(lock_file, "a")
             try:
-                self._take(fh)
+                self._take(fh, busy)
             except BaseException:
                 fh.close()
                 raise
@@ -155,12 +156,12 @@ class RunDir:
             fcntl.flock(fh, fcntl.LOCK_UN)
             fh.close()
 
-    def _take(self, fh) -> None:
+    def _take(self, fh, busy: Optional[str] = None) -> None:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            raise RunDirError(f"another run is writing to {self.path}; wait for it to end, "
-                              "or use another hydra.run.dir") from None
+            raise RunDirError(busy or f"another run is writing to {self.path}; wait for it to end, "
+                                      "or use another hydra.run.dir") from None
 
     def existing_file(self) -> Optional[Path]:
         """The episode file already there (``episodes.jsonl`` or its ``.partial``), if any."""

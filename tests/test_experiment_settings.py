@@ -165,3 +165,108 @@ def test_the_command_serves_the_page_and_the_api_with_its_default_processes(tmp_
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def _built_front_end(tmp_path):
+    web = tmp_path / "web"
+    web.mkdir()
+    (web / "index.html").write_text("<html></html>")
+    return web
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_command_checks_run_dir_and_port_before_it_prints_or_writes_anything(tmp_path, capsys):
+    import socket
+
+    from overhang_framework.experiment.__main__ import main
+
+    serve = ["admin_token=long-enough", f"web_dir={_built_front_end(tmp_path)}"]
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert main([f"run_dir={blocker / 'run'}", *serve]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: cannot write the output directory '{blocker / 'run'}' ({blocker} is not a directory); "
+        "choose another with run_dir=DIR"]
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main([f"run_dir={tmp_path / 'run'}", f"port={port}", *serve]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: cannot listen on 127.0.0.1:{port} ("), err
+    assert "choose another port=P" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_second_server_on_the_same_run_dir_is_refused(tmp_path, capsys, monkeypatch):
+    import uvicorn
+
+    from overhang_framework.experiment.__main__ import SETTINGS_ENV, main
+
+    monkeypatch.setenv(SETTINGS_ENV, "")
+    serve = ["admin_token=long-enough", f"web_dir={_built_front_end(tmp_path)}", "workers=2"]
+    seen = []
+
+    def listening(*args, **kwargs):  # while the first server runs, a second is started
+        if not seen:
+            assert capsys.readouterr().err.startswith("experiment: http://127.0.0.1:")
+            seen.append(main([f"run_dir={tmp_path / 'run'}", f"port={_free_port()}", *serve]))
+            seen.append(capsys.readouterr().err.splitlines())
+            seen.append(main([f"run_dir={tmp_path / 'other'}", f"port={_free_port()}", *serve]))
+
+    monkeypatch.setattr(uvicorn, "run", listening)
+    assert main([f"run_dir={tmp_path / 'run'}", f"port={_free_port()}", *serve]) == 0
+    refused, err, elsewhere = seen
+    assert refused == 2 and err == [f"error: another server is serving the study in {tmp_path / 'run'}; stop it "
+                                    "first, or give this one another run_dir=DIR"]
+    assert elsewhere == 0
+    assert main([f"run_dir={tmp_path / 'run'}", f"port={_free_port()}", *serve]) == 0  # the first one has stopped
+
+
+def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_out(tmp_path, capsys):
+    from fastapi.testclient import TestClient
+
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.experiment.__main__ import main
+    from overhang_framework.experiment.api import create_app
+
+    overrides = [f"run_dir={tmp_path}", "tasks.only=[paper03,paper00]", "conditions=[time_limited]",
+                 "physics_processes=0"]
+    settings = load_settings([*overrides, "admin_token=long-enough"])
+    now = [1_000_000.0]
+    client = TestClient(create_app(settings, clock=lambda: now[0]))
+    s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
+    h = {"Authorization": f"Bearer {s['token']}"}
+
+    def step(phase, trial, k, x, layer, seconds=1.0):
+        body = {"phase": phase, "trial": trial, "step": k}
+        client.post("/api/steps/start", json=body, headers=h)
+        now[0] += seconds
+        timed_out = x is None
+        reply = client.post("/api/placements", json={**body, "x": x, "layer": layer, "timed_out": timed_out,
+                                                     "decision_time": min(seconds, 5.0)}, headers=h)
+        assert reply.status_code == 200, reply.text
+
+    for k, pt in enumerate(settings.practice, 1):
+        for j, (_, x, layer) in enumerate(pt.shown_tower[1:], 1):
+            step("practice", k, j, x, layer)
+    step("main", 1, 1, 0.0, 1)
+    step("main", 1, 2, None, None, seconds=6.0)         # a timeout ends the first trial
+    step("main", 2, 1, None, None, seconds=6.0)         # and the second
+    out = tmp_path / "log.jsonl"
+    assert main(["export", "--out", str(out), *overrides]) == 0
+    log = read_log(out)
+    assert (len(log), int(log.timed_out.sum())) == (3, 2)
+    assert capsys.readouterr().err == f"wrote {out}: 1 placement and 2 timeouts\n"
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert main(["export", "--out", str(blocker / "log.jsonl"), *overrides]) == 2
+    assert capsys.readouterr().err == (f"error: cannot write the output directory '{blocker}' ({blocker} is not a "
+                                       "directory); choose another with another --out FILE\n")

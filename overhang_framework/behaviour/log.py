@@ -552,7 +552,8 @@ def require_records(df: pd.DataFrame, paths: Union[PathLike, Sequence[PathLike]]
     return df
 
 
-def _count(n: int, noun: str) -> str:
+def count_noun(n: int, noun: str) -> str:
+    """``1 trial``, ``2 trials``."""
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
@@ -560,8 +561,8 @@ def describe(df: pd.DataFrame) -> str:
     """One line about a log: records, participants, trials and conditions."""
     trials = len(df.drop_duplicates(["participant", "trial"]))
     conditions = ", ".join(sorted(df["condition"].unique()))
-    return (f"{_count(len(df), 'record')}: {_count(df['participant'].nunique(), 'participant')}, "
-            f"{_count(trials, 'trial')}" + (f" (conditions: {conditions})" if conditions else ""))
+    return (f"{count_noun(len(df), 'record')}: {count_noun(df['participant'].nunique(), 'participant')}, "
+            f"{count_noun(trials, 'trial')}" + (f" (conditions: {conditions})" if conditions else ""))
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

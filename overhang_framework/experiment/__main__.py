@@ -14,6 +14,7 @@ one stops working) and prints the link that resumes their session in any browser
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
@@ -24,7 +25,6 @@ SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
 
 
 def _serve(overrides: Sequence[str]) -> int:
-    import json
     import os
 
     import uvicorn
@@ -33,30 +33,54 @@ def _serve(overrides: Sequence[str]) -> int:
     from overhang_framework.experiment.settings import load_settings
     from overhang_framework.experiment.store import Store
     from overhang_framework.experiment.web import ensure_built
+    from overhang_framework.preflight import check_writable
+    from overhang_framework.rundir import RunDir
 
     settings = load_settings(overrides)
+    check_writable(settings.run_dir, "run_dir=DIR")
+    _check_port(settings.host, settings.port)
     web_dir = ensure_built(settings.web_dir)
-    settings.run_dir.mkdir(parents=True, exist_ok=True)
-    Store(settings.database).close()  # the tables, made once before the server processes open the database
-    db = settings.database.split("://")[0]
-    print(f"experiment: http://{settings.host}:{settings.port}/?participant=P1  (database {db}, "
-          f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)}, "
-          f"{settings.workers} server process(es))", file=sys.stderr)
-    options = dict(host=settings.host, port=settings.port, log_level="warning",
-                   timeout_keep_alive=int(settings.keep_alive))
-    if settings.workers == 1:
-        settings.web_dir = web_dir
-        uvicorn.run(create_app(settings), **options)
-    else:
-        os.environ[SETTINGS_ENV] = json.dumps([*overrides, f"web_dir={web_dir}"])
-        uvicorn.run("overhang_framework.experiment.__main__:app_factory", factory=True, workers=settings.workers,
-                    **options)
+    # one server a run_dir: a second would share the database with other settings, and balance the
+    # conditions and hand out the session tokens of its own
+    busy = (f"another server is serving the study in {settings.run_dir}; stop it first, or give this one "
+            "another run_dir=DIR")
+    with RunDir(settings.run_dir).lock(busy):
+        Store(settings.database).close()  # the tables, made once before the server processes open the database
+        db = settings.database.split("://")[0]
+        print(f"experiment: http://{settings.host}:{settings.port}/?participant=P1  (database {db}, "
+              f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)}, "
+              f"{settings.workers} server process(es))", file=sys.stderr)
+        options = dict(host=settings.host, port=settings.port, log_level="warning",
+                       timeout_keep_alive=int(settings.keep_alive))
+        if settings.workers == 1:
+            settings.web_dir = web_dir
+            uvicorn.run(create_app(settings), **options)
+        else:
+            os.environ[SETTINGS_ENV] = json.dumps([*overrides, f"web_dir={web_dir}"])
+            uvicorn.run("overhang_framework.experiment.__main__:app_factory", factory=True,
+                        workers=settings.workers, **options)
     return 0
+
+
+def _check_port(host: str, port: int) -> None:
+    """Raise unless the server can listen on ``host``:``port`` (another program holds it, say)."""
+    import socket
+
+    from overhang_framework.errors import ConfigError
+
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server sets it
+            probe.bind(address)
+    except OSError as err:
+        raise ConfigError(f"cannot listen on {host}:{port} ({err.strerror or err}); another program (another "
+                          "server?) uses the port: stop it, or choose another port=P") from None
 
 
 def app_factory():
     """The app of one server process, from the settings the command line gave (in :data:`SETTINGS_ENV`)."""
-    import json
     import os
 
     from overhang_framework.experiment.api import create_app
@@ -93,11 +117,14 @@ def _ask_server(args, method: str, path: str, timeout: float):
 
 
 def _export(args) -> int:
+    from overhang_framework.behaviour.log import count_noun
+    from overhang_framework.preflight import check_writable
     from overhang_framework.results import atomic_write_text
 
     if args.url and args.include_screened_out:
         print("error: --include-screened-out reads the database; leave out --url", file=sys.stderr)
         return 2
+    check_writable(Path(args.out).absolute().parent, "another --out FILE")
     if args.url:
         reply = _ask_server(args, "GET", "/api/admin/export", timeout=120)
         if reply is None:
@@ -114,9 +141,11 @@ def _export(args) -> int:
         text, unfinished = export_jsonl(store, include_screened_out=args.include_screened_out)
         store.close()
     atomic_write_text(args.out, text)
-    lines = text.count("\n")
+    timeouts = sum(bool(json.loads(line).get("timed_out")) for line in text.splitlines() if line.strip())
+    placements = sum(1 for line in text.splitlines() if line.strip()) - timeouts
     extra = "" if not unfinished else f"; {unfinished} unfinished trial(s) left out"
-    print(f"wrote {args.out}: {lines} placements{extra}", file=sys.stderr)
+    print(f"wrote {args.out}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}",
+          file=sys.stderr)
     return 0
 
 
