@@ -112,10 +112,13 @@ def _read_records(path: Path, notes: Optional[list[str]] = None) -> list[dict]:
 
 
 class RunDir:
-    """The results of one run in ``path``: what is already finished and what config it belongs to."""
+    """The results of one run in ``path``: what is already finished and what config it belongs to.
 
-    def __init__(self, path: Path | str):
-        self.path = Path(path)
+    ``busy`` replaces the message that refuses a second holder of :meth:`lock`.
+    """
+
+    def __init__(self, path: Path | str, busy: Optional[str] = None):
+        self.path, self.busy = Path(path), busy
         #: What :meth:`prepare` changed in the results it found, one sentence each.
         self.notes: list[str] = []
 
@@ -128,9 +131,8 @@ class RunDir:
         return self.path / (EPISODES + ".partial")
 
     @contextlib.contextmanager
-    def lock(self, busy: Optional[str] = None) -> Iterator[None]:
-        """Hold the directory for this run; a second run into it at the same time is refused (with
-        ``busy`` as the message, when given).
+    def lock(self) -> Iterator[None]:
+        """Hold the directory for this run; a second run into it at the same time is refused.
 
         The lock file exists only while a run holds it: it is removed, still
         locked, when the run ends. A run that opened the file just before it
@@ -141,7 +143,7 @@ class RunDir:
         while True:
             fh = open(lock_file, "a")
             try:
-                self._take(fh, busy)
+                self._take(fh)
             except BaseException:
                 fh.close()
                 raise
@@ -156,12 +158,12 @@ class RunDir:
             fcntl.flock(fh, fcntl.LOCK_UN)
             fh.close()
 
-    def _take(self, fh, busy: Optional[str] = None) -> None:
+    def _take(self, fh) -> None:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            raise RunDirError(busy or f"another run is writing to {self.path}; wait for it to end, "
-                                      "or use another hydra.run.dir") from None
+            raise RunDirError(self.busy or f"another run is writing to {self.path}; wait for it to end, "
+                                           "or use another hydra.run.dir") from None
 
     def existing_file(self) -> Optional[Path]:
         """The episode file already there (``episodes.jsonl`` or its ``.partial``), if any."""

@@ -44,7 +44,7 @@ def _serve(overrides: Sequence[str]) -> int:
     # conditions and hand out the session tokens of its own
     busy = (f"another server is serving the study in {settings.run_dir}; stop it first, or give this one "
             "another run_dir=DIR")
-    with RunDir(settings.run_dir).lock(busy):
+    with RunDir(settings.run_dir, busy).lock():
         Store(settings.database).close()  # the tables, made once before the server processes open the database
         db = settings.database.split("://")[0]
         print(f"experiment: http://{settings.host}:{settings.port}/?participant=P1  (database {db}, "
