@@ -722,3 +722,83 @@ def test_the_cnn_can_be_made_over_or_underconfident_on_the_logit_scale():
                          ({"bias": "high"}, "bias must be a finite number")):
         with pytest.raises(ConfigError, match=allowed):
             Registry().create("predictor", {"name": "cnn", "device": "cpu", **bad}, world=world)
+
+
+# ------------------------------------------------------------------ torch and torchvision that do not match
+
+def test_the_matching_torchvision_is_named_with_its_platform():
+    from overhang_framework.cnn.model import matching_torchvision
+
+    assert matching_torchvision("2.14.1+cpu", None) == (
+        "pip install torch==2.14.1+cpu torchvision==0.29.1+cpu --index-url https://download.pytorch.org/whl/cpu")
+    assert matching_torchvision("2.7.0", "12.6").endswith(
+        "torch==2.7.0+cu126 torchvision==0.22.0+cu126 --index-url https://download.pytorch.org/whl/cu126")
+    assert "torch torchvision --index-url" in matching_torchvision("3.0.0", None)  # no known pairing
+
+
+def test_a_torchvision_that_does_not_load_is_one_error_checked_once(monkeypatch):
+    import overhang_framework.cnn.model as model
+
+    model._torch_problem.cache_clear()
+    # its import fails, as a CUDA build's does beside a CPU torch
+    monkeypatch.setitem(sys.modules, "torchvision", None)
+    try:
+        with pytest.raises(ConfigError, match=r"^torchvision [\d.]+\S* does not work with torch [\d.]+\S* "
+                                              r"\((ModuleNotFound|Import)Error: .*\); install the pair that "
+                                              r"matches: pip install torch==\S+ torchvision==\S+ --index-url "
+                                              r"https://download"):
+            StabilityModel("default", device="cpu")
+        monkeypatch.delitem(sys.modules, "torchvision")
+        with pytest.raises(ConfigError, match="does not work with torch"):  # the answer is kept for the process
+            model.check_torch()
+    finally:
+        model._torch_problem.cache_clear()
+    model.check_torch()
+
+
+MISMATCH_COMMANDS = {
+    "predictor=cnn": ["-m", "overhang_framework", "predictor=cnn", "tasks=custom", "tasks.sequences=[[1.2,0.6]]",
+                      "world.physics=static", "progress=false", "hydra.run.dir={tmp}/run"],
+    "predictor=hybrid": ["-m", "overhang_framework", "predictor=hybrid", "tasks=custom",
+                         "tasks.sequences=[[1.2,0.6]]", "world.physics=static", "progress=false",
+                         "hydra.run.dir={tmp}/run"],
+    "analyze": ["-m", "overhang_framework.analyze", "{log}", "--out", "{tmp}/out", "--world", "world.physics=static",
+                "--only", "prediction", "--predictors", "cnn", "--quiet"],
+    "fit": ["-m", "overhang_framework.fit", "{log}", "--out", "{tmp}/out", "depths=[1]"],
+}
+
+
+@pytest.mark.parametrize("command", list(MISMATCH_COMMANDS))
+def test_a_torchvision_built_for_another_torch_stops_each_command_in_one_line(tmp_path, command):
+    import os
+
+    from overhang_framework.behaviour.log import write_log
+
+    fake = tmp_path / "site" / "torchvision"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text('raise RuntimeError("operator torchvision::nms does not exist")\n')
+    log = tmp_path / "log.jsonl"
+    write_log([{"log_version": 1, "participant": "p", "condition": "unconstrained", "task_id": "t",
+                "sequence": [1.2, 0.6], "trial": 1, "step": 1, "width": 0.6, "x": 0.0, "layer": 1,
+                "tower_before": [[1.2, 0.0, 0]], "stable": True, "overhang": 0.6, "reward": 0.6,
+                "decision_time": 1.0, "timed_out": False, "source": "human"}], log)
+    args = [a.format(tmp=tmp_path, log=log) for a in MISMATCH_COMMANDS[command]]
+    env = dict(os.environ, PYTHONPATH=str(tmp_path / "site"))
+    proc = subprocess.run([sys.executable, *args], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("error: torchvision ") and "does not work with torch" in line
+    assert "RuntimeError: operator torchvision::nms does not exist" in line and " torchvision==0." in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_readmes_cpu_install_pins_a_matching_pair():
+    import re
+
+    from overhang_framework.cnn.model import matching_torchvision
+
+    readme = (ROOT / "README.md").read_text()
+    (pair,) = re.findall(r"pip install torch==(\S+) torchvision==(\S+) --index-url https://download\.pytorch\.org/"
+                         r"whl/cpu", readme)
+    torch_version, torchvision_version = pair
+    assert f"torchvision=={torchvision_version}+cpu" in matching_torchvision(torch_version, None)

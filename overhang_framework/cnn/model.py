@@ -14,11 +14,14 @@ card is ``default.md`` beside it.
 from __future__ import annotations
 
 import contextlib
+import functools
+import re
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import numpy as np
 
+from overhang_framework.errors import ConfigError
 from overhang_framework.results import atomic_output
 
 CHECKPOINT_FORMAT = 1
@@ -28,8 +31,62 @@ DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "default.pt"
 MIN_INPUT_SIDE = {"inception_v4": 75}
 
 
+#: Where PyTorch's wheels for a compute platform are (``cpu``, ``cu126``, ...).
+TORCH_INDEX = "https://download.pytorch.org/whl/{platform}"
+
+
+def check_torch() -> None:
+    """:class:`ConfigError` in one line saying what to install when torch and torchvision do not load
+    together (a CPU torch beside a CUDA torchvision, say: timm imports torchvision). Checked once a process."""
+    problem = _torch_problem()
+    if problem:
+        raise ConfigError(problem)
+
+
+@functools.cache
+def _torch_problem() -> Optional[str]:
+    import importlib
+    from importlib import metadata
+
+    try:
+        torch = importlib.import_module("torch")
+    except Exception as err:
+        return (f"PyTorch does not load ({_first_line(err)}); install torch and torchvision from one index, "
+                f"e.g. without a GPU: pip install torch torchvision --index-url {TORCH_INDEX.format(platform='cpu')}")
+    try:
+        importlib.import_module("torchvision")
+    except Exception as err:
+        try:
+            found = f"torchvision {metadata.version('torchvision')}"
+        except metadata.PackageNotFoundError:
+            found = "torchvision"
+        return (f"{found} does not work with torch {torch.__version__} ({_first_line(err)}); install the pair "
+                f"that matches: {matching_torchvision(torch.__version__, torch.version.cuda)}")
+    return None
+
+
+def matching_torchvision(torch_version: str, cuda: Optional[str]) -> str:
+    """The pip command that installs the torchvision built for ``torch_version`` (``2.14.1+cpu``) and its
+    compute platform (``cuda``: torch.version.cuda, None for a CPU build). The versions carry the platform
+    (``0.29.1+cpu``) so that pip replaces a torchvision of the same number built for another platform."""
+    platform = "cpu" if not cuda else "cu" + cuda.replace(".", "")
+    index = TORCH_INDEX.format(platform=platform)
+    release = re.match(r"2\.(\d+)\.(\d+)", torch_version)
+    if release is None or int(release.group(1)) < 1:  # torchvision 0.(minor + 15) since torch 2.1
+        return f"pip install --force-reinstall torch torchvision --index-url {index}"
+    minor, patch = int(release.group(1)), int(release.group(2))
+    return (f"pip install torch=={release.group(0)}+{platform} torchvision==0.{minor + 15}.{patch}+{platform} "
+            f"--index-url {index}")
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
+
+
 def check_backbone(backbone: str, size) -> None:
     """``ValueError`` when ``backbone`` is not a timm model or ``size`` (h, w) is too small for it."""
+    check_torch()
     import timm
 
     if not isinstance(backbone, str) or not timm.is_model(backbone):
@@ -140,6 +197,7 @@ class StabilityModel:
     def __init__(self, checkpoint: Optional[str] = "default", device: str = "auto",
                  threads: Optional[int] = None, batch_size: int = 64, mirror="auto", fused: bool = True,
                  runtime: str = "onnxruntime"):
+        check_torch()
         import torch
 
         from overhang_framework.render import make_renderer
