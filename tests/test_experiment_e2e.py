@@ -348,6 +348,9 @@ def test_a_participant_who_fails_the_practice_is_screened_out(browser, server):
     assert len(attempts) == 3 and not any(r.passed for r in attempts)
     assert participant.events.count("leave") == 1
     assert not any(r.phase == "main" for r in store.placements("E2E-3"))
+    # the notice comes straight after the last attempt's feedback, without the main part's introduction
+    assert "start-main" not in participant.events
+    assert participant.events[participant.events.index("leave") - 1] == "continue"
 
 
 def test_another_browser_is_told_whom_to_contact_and_a_reissued_link_resumes(browser, server):

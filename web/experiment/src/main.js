@@ -217,17 +217,21 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
     loop_function: () => position.phase === "practice",
   };
 
+  // jsPsych asks a timeline's conditional_function, not a trial's: the screen sits in a timeline of its own,
+  // so that a participant screened out in the practice never sees it
   const mainIntro = {
+    timeline: [{
+      type: HtmlButtonResponsePlugin,
+      stimulus: `<div class="text-page">
+        <h2>The main part</h2>
+        <p>You will now build ${session.trials.length} towers, each from a new sequence of blocks.
+        There is one attempt per tower. Your bonus is ${money(session.bonus_per_unit)} per unit of reward.</p>
+        ${session.time_limit == null ? "" : `<p>You have <b>${session.time_limit} seconds</b> per block.</p>`}
+        </div>`,
+      choices: ["Start"],
+      button_html: button("start-main"),
+    }],
     conditional_function: () => position.phase === "main",
-    type: HtmlButtonResponsePlugin,
-    stimulus: `<div class="text-page">
-      <h2>The main part</h2>
-      <p>You will now build ${session.trials.length} towers, each from a new sequence of blocks.
-      There is one attempt per tower. Your bonus is ${money(session.bonus_per_unit)} per unit of reward.</p>
-      ${session.time_limit == null ? "" : `<p>You have <b>${session.time_limit} seconds</b> per block.</p>`}
-      </div>`,
-    choices: ["Start"],
-    button_html: button("start-main"),
   };
 
   const main = {
@@ -254,7 +258,7 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
     // a step whose clock runs goes on at once; otherwise the participant says when to go on
     ...(session.clock ? [] : [resumeScreen(session)]),
     practice,
-    { timeline: [mainIntro], conditional_function: () => beforeMain && position.phase === "main" },
+    { timeline: [mainIntro], conditional_function: () => beforeMain },
     main,
   ];
 }
