@@ -100,7 +100,10 @@ def test_the_shown_tower_is_what_the_file_holds_and_passing_is_judged_against_it
         assert [b[0] for b in practice.shown_tower] == list(practice.task.sequence)
         assert practice.shown_reward == pytest.approx(overhang(Geometry.from_tuples(practice.shown_tower)))
         assert practice.shown_reward <= practice.optimum + 1e-9
-        assert practice.pass_reward == pytest.approx(settings.practice_threshold * practice.shown_reward)
+        ground = overhang(Geometry.from_tuples(practice.shown_tower[:1]))
+        assert ground < practice.pass_reward < practice.shown_reward  # more than standing, less than the shown tower
+        assert practice.pass_reward == pytest.approx(ground + settings.practice_threshold
+                                                     * (practice.shown_reward - ground))
 
 
 def test_the_optimal_towers_that_are_not_shown_fail_the_check(settings, reference):

@@ -31,7 +31,9 @@ class PracticeTask:
     shown_tower: list
     shown_reward: float  # its overhang
     tolerance: float
-    pass_reward: float  # the reward that passes the trial: practice.threshold x shown_reward
+    # The reward that passes the trial: the ground block's own overhang (what any standing tower reaches)
+    # plus practice.threshold x what the shown tower adds to it.
+    pass_reward: float
 
 
 @dataclass
@@ -86,8 +88,10 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
     """The practice tasks with their optima and shown towers under ``world``'s physics, from the project's files.
 
     A practice task whose optimum, or whose buildable tower at ``practice.tolerance``, is not stored stops the
-    server with the command that computes it. A trial passes at ``practice.threshold`` x the shown tower's
-    reward: a tower a person can build, not the optimum, which may need exact placements.
+    server with the command that computes it. A trial passes when the tower stands and reaches beyond its
+    ground block by at least ``practice.threshold`` x as much as the shown tower does: measured from what the
+    ground block alone reaches, since any tower that stands reaches that, and against a tower a person can
+    build, not the optimum, which may need exact placements.
     """
     from omegaconf import OmegaConf
 
@@ -128,8 +132,10 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
                               f"{tolerance:g}; choose a smaller practice.tolerance or another sequence")
         tower, _ = replay(task, row["actions"])
         shown_tower, shown_reward = replay(task, shown["actions"])
+        _, ground = replay(task, [])
+        pass_reward = ground + float(cfg.practice.threshold) * (shown_reward - ground)
         out.append(PracticeTask(task, float(row["optimum"]), tower, shown_tower, float(shown_reward), tolerance,
-                                float(cfg.practice.threshold) * float(shown_reward)))
+                                float(pass_reward)))
     return out
 
 

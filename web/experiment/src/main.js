@@ -174,6 +174,7 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
       const reward = lastOutcome?.reward ?? 0;
       const shown = lastOutcome?.shown_reward ?? 0;
       const needed = lastOutcome?.pass_reward ?? 0;
+      const ground = (lastOutcome?.shown_tower?.[0]?.[0] ?? 0) / 2;
       const screenedOut = lastOutcome?.position?.phase === "screened_out";
       const timedOut = Boolean(lastOutcome?.timed_out);
       const what = timedOut
@@ -190,8 +191,9 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
         <div class="practice-feedback" data-testid="practice-feedback" data-passed="${passed}"
              data-timed-out="${timedOut}">
           <h2>${passed ? "Passed!" : "Not passed yet"}</h2>
-          <p>${what} A good tower with these blocks reaches <b>${shown.toFixed(2)}</b>; to pass you
-          need at least <b>${needed.toFixed(2)}</b>.</p>
+          <p>${what} The bottom block alone reaches <b>${ground.toFixed(2)}</b> and a good tower with these
+          blocks <b>${shown.toFixed(2)}</b>; to pass, your tower must stand and reach at least
+          <b>${needed.toFixed(2)}</b>.</p>
           <div class="tower-pair">
             <figure><canvas id="practice-yours"></canvas><figcaption>Your tower</figcaption></figure>
             <figure><canvas id="practice-optimal"></canvas><figcaption>A good tower</figcaption></figure>
@@ -268,7 +270,8 @@ function practiceIntro(session) {
     type: HtmlButtonResponsePlugin,
     stimulus: `<div class="text-page">
       <h2>Practice</h2>
-      <p>Now ${session.practice.length} practice towers. After each one you will see a good
+      <p>Now ${session.practice.length} practice towers. A tower that stands is not enough to pass: it
+      must also reach out well beyond its bottom block. After each one you will see a good
       tower beside yours, and the reward you need to pass; if you do not pass, you try the same
       blocks again${session.practice_max_attempts ? ` (up to ${session.practice_max_attempts} attempts per tower)` : ""}.</p></div>`,
     choices: ["Start practice"],
