@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 from overhang_framework.advice import run_notes
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
 from overhang_framework.episode import play_run_episode
-from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.errors import ConfigError, OverhangError, first_line
 from overhang_framework.parallel import merge_stats
 from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework.plugins import Registry
@@ -301,13 +301,14 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
         summary.update({
             "complete": complete,
             "status": "complete" if complete else ("failed" if error is not None else "incomplete"),
-            "error": "" if error is None else _first_line(error),
+            "error": "" if error is None else first_line(error),
             "episodes_expected": len(jobs),
             "episodes_resumed": resumed,
             "wall_time": earlier.get("wall_time", 0.0) + session,
             "wall_time_session": session,
             "config": header,
             "seed": seed,
+            "time_limit": time_limit,
             **run_stats(),
         })
         atomic_write_json(metrics_file, summary)
@@ -376,11 +377,6 @@ def _number(value) -> str:
     return f"{value:.3f}"
 
 
-def _first_line(error: BaseException) -> str:
-    text = str(error).strip().splitlines()
-    return f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
-
-
 def _job_failed(out_dir: Path, error: BaseException) -> None:
     """In a sweep, a job that fails records why in its metrics.json and lets the other jobs run."""
     metrics = out_dir / "metrics.json"
@@ -388,7 +384,7 @@ def _job_failed(out_dir: Path, error: BaseException) -> None:
         summary = json.loads(metrics.read_text()) if metrics.exists() else {}
     except ValueError:
         summary = {}
-    summary.update({"complete": False, "status": "failed", "error": _first_line(error)})
+    summary.update({"complete": False, "status": "failed", "error": first_line(error)})
     atomic_write_json(metrics, summary)
 
 
@@ -418,6 +414,9 @@ def format_summary(summary: dict) -> str:
     if "decision_time_median" in summary:
         lines.append(f"{'decision time median':<24}{_number(summary['decision_time_median']):>10}"
                      f"   (max {_number(summary['decision_time_max'])})")
+    if summary.get("time_limit") is not None:
+        lines.append(f"over the time limit of {summary['time_limit']:g} s: {summary['over_time_limit']} of "
+                     f"{_count(summary['placements'], 'decision')} (each played its best action so far)")
     cache = summary.get("world_stats", {}).get("cache")
     if cache:
         lines.append(f"physics cache: {cache['hits']} hits, {cache['misses']} misses "

@@ -14,6 +14,12 @@ def closest(word: str, choices: Sequence[str]) -> list[str]:
     return [by_lower[m] for m in difflib.get_close_matches(word.lower(), list(by_lower), n=1)]
 
 
+def first_line(error: BaseException) -> str:
+    """``Type: the first line of the message`` of ``error``, for a one-line report."""
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
+
+
 class OverhangError(Exception):
     """Base class of errors caused by input; the CLI prints the message on one line and exits 2."""
 

@@ -43,6 +43,18 @@ def test_main_job_writes_episodes_and_metrics(tmp_path):
     assert not (out / "episodes.jsonl.partial").exists()
 
 
+def test_the_summary_counts_the_decisions_over_the_time_limit(tmp_path):
+    limited = run_cli(*QUICK, "condition=time_limited", "condition.time_limit=1e-9", f"hydra.run.dir={tmp_path / 'a'}")
+    assert limited.returncode == 0, limited.stderr
+    metrics = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert metrics["time_limit"] == 1e-9 and metrics["over_time_limit"] == metrics["placements"] > 0
+    assert (f"over the time limit of 1e-09 s: {metrics['over_time_limit']} of {metrics['placements']} decisions"
+            in limited.stdout)
+    free = run_cli(*QUICK, "condition=unconstrained", f"hydra.run.dir={tmp_path / 'b'}")
+    assert free.returncode == 0 and "time limit" not in free.stdout
+    assert json.loads((tmp_path / "b" / "metrics.json").read_text())["time_limit"] is None
+
+
 def test_same_seed_same_episodes(tmp_path):
     runs = []
     for name in ("a", "b"):

@@ -21,7 +21,7 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from overhang_framework.errors import ConfigError
+from overhang_framework.errors import ConfigError, first_line
 from overhang_framework.results import atomic_output
 
 CHECKPOINT_FORMAT = 1
@@ -51,7 +51,7 @@ def _torch_problem() -> Optional[str]:
     try:
         torch = importlib.import_module("torch")
     except Exception as err:
-        return (f"PyTorch does not load ({_first_line(err)}); install torch and torchvision from one index, "
+        return (f"PyTorch does not load ({first_line(err)}); install torch and torchvision from one index, "
                 f"e.g. without a GPU: pip install torch torchvision --index-url {TORCH_INDEX.format(platform='cpu')}")
     try:
         importlib.import_module("torchvision")
@@ -60,7 +60,7 @@ def _torch_problem() -> Optional[str]:
             found = f"torchvision {metadata.version('torchvision')}"
         except metadata.PackageNotFoundError:
             found = "torchvision"
-        return (f"{found} does not work with torch {torch.__version__} ({_first_line(err)}); install the pair "
+        return (f"{found} does not work with torch {torch.__version__} ({first_line(err)}); install the pair "
                 f"that matches: {matching_torchvision(torch.__version__, torch.version.cuda)}")
     return None
 
@@ -77,11 +77,6 @@ def matching_torchvision(torch_version: str, cuda: Optional[str]) -> str:
     minor, patch = int(release.group(1)), int(release.group(2))
     return (f"pip install torch=={release.group(0)}+{platform} torchvision==0.{minor + 15}.{patch}+{platform} "
             f"--index-url {index}")
-
-
-def _first_line(err: BaseException) -> str:
-    text = str(err).strip().splitlines()
-    return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
 
 
 def check_backbone(backbone: str, size) -> None:
