@@ -9,7 +9,7 @@ The physics is the world of the composed run config, chosen with the usual
 overrides, e.g. ``world.physics=pybullet world.pybullet.early_stop=false`` for
 the full-window reference or ``world.physics=static``. The whole input is
 read and checked before any physics runs; a malformed line stops the command
-with ``error: TOWERS line N: <what is wrong>`` and exit status 2.
+with ``error: FILE line N: <what is wrong>`` (``standard input line N`` for ``-``) and exit status 2.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import sys
 from typing import Any, Callable, Iterable, Optional, Sequence
 
 from overhang_framework.geometry import Block, Geometry, IllegalWidth, check_width
+from overhang_framework.results import json_line
 
 
 class BadTower(ValueError):
@@ -30,9 +31,9 @@ class BadTower(ValueError):
 def parse_tower(text: str) -> Geometry:
     """The tower of one JSON Lines line; :class:`BadTower` says what is wrong."""
     try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise BadTower(f"not JSON ({exc.msg} at column {exc.colno})") from None
+        obj = json_line(text)
+    except ValueError as exc:
+        raise BadTower(str(exc)) from None
     if not isinstance(obj, dict) or "blocks" not in obj:
         raise BadTower('expected an object {"blocks": [[width, x, layer], ...]}')
     rows = obj["blocks"]
@@ -110,9 +111,10 @@ def load(path: str, overrides: Sequence[str]) -> tuple[list[Geometry], Any]:
     """Every tower of the TOWERS file ``path`` (``-``: standard input), then the world of ``overrides``.
 
     The whole input is read before the world is built; any mistake raises
-    :class:`UsageError` with its one-line message (``TOWERS line N: ...``,
-    ``TOWERS: cannot read ...``, or the config's own message).
+    :class:`UsageError` with its one-line message (``FILE line N: ...``,
+    ``FILE: cannot read it ...``, or the config's own message).
     """
+    name = "standard input" if path == "-" else path
     try:
         if path == "-":
             towers = read_towers(sys.stdin)
@@ -120,9 +122,9 @@ def load(path: str, overrides: Sequence[str]) -> tuple[list[Geometry], Any]:
             with open(path, encoding="utf-8") as fh:
                 towers = read_towers(fh)
     except BadTower as exc:
-        raise UsageError(f"TOWERS {exc}") from None
+        raise UsageError(f"{name} {exc}") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise UsageError(f"TOWERS: cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
+        raise UsageError(f"{name}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
     try:
         world = build_world(overrides)
     except Exception as exc:  # a bad override or parameter: one line, as the main job reports it

@@ -142,6 +142,20 @@ def _job_order(line: str) -> tuple:
     return int(record.get("task_index", 0)), int(record.get("repeat", 0))
 
 
+def json_line(text: str) -> Any:
+    """The value of one line of a JSON Lines file; ``ValueError`` with a message naming the column in the line
+    (``not JSON (Expecting ',' delimiter at column 12)``), or saying the line is cut short when it ends
+    before its value does (a write that stopped half-way)."""
+    line = text.rstrip("\r\n")
+    try:
+        return json.loads(line)
+    except json.JSONDecodeError as exc:
+        if exc.pos >= len(line.rstrip()) and line.strip():
+            raise ValueError(f"not JSON: the line ends at column {len(line)} before its value does "
+                             "(cut short?)") from None
+        raise ValueError(f"not JSON ({exc.msg} at column {exc.colno})") from None
+
+
 def read_episodes(path: Path | str) -> list[dict]:
     with open(path) as fh:
         return [json.loads(line) for line in fh if line.strip()]

@@ -44,21 +44,29 @@ def test_standard_input_and_blank_lines():
     ('{"blocks": [[1.8, 0.0, 0], [1.2, "a", 1]]}', "line 2: block 2 must hold three finite numbers"),
     ('{"blocks": [[1.2, 0.2, 1]]}', "line 2: the first block must be the ground block (layer 0)"),
     ('{"towers": []}', 'line 2: expected an object {"blocks"'),
-    ('{"blocks": [[1.8, 0.0, 0]', "line 2: not JSON"),
+    ('{"blocks": [[1.8, 0.0, 0]', "line 2: not JSON: the line ends at column 25 before its value does"),
+    ('{"blocks": [[1.8, 0.0, 0]] x}', "line 2: not JSON (Expecting ',' delimiter at column 28)"),
 ])
-def test_a_malformed_line_fails_with_its_number(tmp_path, line, expected):
+def test_a_malformed_line_fails_with_its_file_and_number(tmp_path, line, expected):
     path = tmp_path / "towers.jsonl"
     path.write_text(json.dumps({"blocks": TOWERS[0]}) + "\n" + line + "\n")
     proc = check([str(path), "world.physics=static"])
     assert proc.returncode == 2
     err = [l for l in proc.stderr.splitlines() if l.strip()]
-    assert err == [f"error: TOWERS {expected}" + err[0][len(f"error: TOWERS {expected}"):]]
+    assert len(err) == 1 and err[0].startswith(f"error: {path} {expected}"), err
     assert proc.stdout == ""
+    cut = tmp_path / "cut.jsonl"  # the same line as the file's last, without its newline
+    cut.write_text(json.dumps({"blocks": TOWERS[0]}) + "\n" + line)
+    assert check([str(cut), "world.physics=static"]).stderr.startswith(f"error: {cut} {expected}")
+    piped = subprocess.run([sys.executable, "-m", "overhang_framework.check", "-", "world.physics=static"],
+                           input=path.read_text(), capture_output=True, text=True)
+    assert piped.returncode == 2 and piped.stderr.startswith(f"error: standard input {expected}")
 
 
 def test_missing_file_and_bad_override(tmp_path):
     proc = check([str(tmp_path / "nope.jsonl")])
-    assert proc.returncode == 2 and proc.stderr.startswith("error: TOWERS: cannot read")
+    assert proc.returncode == 2
+    assert proc.stderr == f"error: {tmp_path / 'nope.jsonl'}: cannot read it (No such file or directory)\n"
     path = tmp_path / "towers.jsonl"
     path.write_text(json.dumps({"blocks": TOWERS[0]}) + "\n")
     proc = check([str(path), "world.physics=nope"])

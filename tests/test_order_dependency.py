@@ -188,11 +188,11 @@ def test_command_writes_one_line_per_tower_in_input_order(tmp_path):
 
 @pytest.mark.parametrize("args, text, expected", [
     (["world.physics=static"], '{"blocks": [[1.8, 0.0, 0], [1.3, 0.2, 1]]}',
-     "error: TOWERS line 2: block 2: illegal block width 1.3"),
+     "error: {path} line 2: block 2: illegal block width 1.3"),
     (["world.physics=static"], '{"blocks": [[1.2, 0.2, 1]]}',
-     "error: TOWERS line 2: the first block must be the ground block (layer 0)"),
+     "error: {path} line 2: the first block must be the ground block (layer 0)"),
     (["world.physics=nope"], '{"blocks": [[1.2, 0.0, 0]]}', "error: "),
-    (["world.physics=static"], None, "error: TOWERS: cannot read"),
+    (["world.physics=static"], None, "error: {path}: cannot read it"),
 ], ids=["width", "ground", "override", "missing"])
 def test_command_errors_are_one_line(tmp_path, args, text, expected):
     path = tmp_path / "towers.jsonl"
@@ -201,7 +201,7 @@ def test_command_errors_are_one_line(tmp_path, args, text, expected):
     proc = run([str(path), *args])
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and proc.stdout == ""
-    assert len(lines) == 1 and lines[0].startswith(expected)
+    assert len(lines) == 1 and lines[0].startswith(expected.format(path=path))
     assert "nope" in lines[0] or "nope" not in args[0]
 
 

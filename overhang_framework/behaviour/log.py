@@ -46,7 +46,7 @@ import pandas as pd
 from overhang_framework.check import BadTower, parse_tower
 from overhang_framework.errors import OverhangError
 from overhang_framework.geometry import MAX_LAYER, WIDTHS, Block, Geometry, IllegalWidth, check_width, overhang
-from overhang_framework.results import atomic_write_text, readable
+from overhang_framework.results import atomic_write_text, json_line, readable
 
 #: The version of the format this module reads and writes.
 LOG_VERSION = 1
@@ -493,9 +493,9 @@ def _read_jsonl(path: Path) -> list[tuple[str, dict]]:
                 continue
             where = f"{path} line {number}"
             try:
-                obj = json.loads(text)
-            except json.JSONDecodeError as exc:
-                raise LogError(where, None, f"not JSON ({exc.msg} at column {exc.colno})") from None
+                obj = json_line(text)
+            except ValueError as exc:
+                raise LogError(where, None, str(exc)) from None
             entries.append((where, _checked(where, obj)))
     return entries
 
