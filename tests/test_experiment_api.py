@@ -679,3 +679,36 @@ def test_a_database_of_an_earlier_schema_is_refused_in_one_line(tmp_path):
         db.execute("CREATE TABLE participants (id VARCHAR(200) PRIMARY KEY, condition VARCHAR(100))")
     with pytest.raises(ConfigError, match="table participants lacks the column"):
         Store(f"sqlite:///{path}")
+
+
+def test_two_server_processes_taking_newcomers_at_once_keep_the_conditions_balanced(database):
+    from overhang_framework.experiment.store import Participant, token_hash
+
+    conditions = ["time_limited", "unconstrained"]
+    first, second = Store(database), Store(database)  # two server processes' connections to one database
+    made = {}
+
+    def newcomer(pid):
+        def make(counts):
+            made[pid] = dict(counts)
+            condition = min(conditions, key=lambda c: counts[c])
+            return Participant(id=pid, token_hash=token_hash(pid), condition=condition, order=[])
+        return make
+
+    def first_newcomer(counts):
+        # the second process takes its newcomer while the first has counted but not yet stored its own
+        late.start()
+        late.join(timeout=1.0)
+        return newcomer("A")(counts)
+
+    stored = {}
+    late = threading.Thread(target=lambda: stored.setdefault("B", second.add_newcomer(conditions, newcomer("B"))))
+    try:
+        stored["A"] = first.add_newcomer(conditions, first_newcomer)
+        late.join()
+        assert {stored["A"].condition, stored["B"].condition} == set(conditions)
+        assert made["B"] == {stored["A"].condition: 1, stored["B"].condition: 0}  # B counted A
+        assert sorted(p.id for p in first.participants()) == ["A", "B"]
+    finally:
+        first.close()
+        second.close()

@@ -127,8 +127,7 @@ def _timed_store(database: str, timings: dict):
     from overhang_framework.experiment.store import Store
 
     store = Store(database)
-    for name in ("by_token", "participant", "find", "placements", "add_placement", "add_participant",
-                 "condition_counts"):
+    for name in ("by_token", "participant", "find", "placements", "add_placement", "add_newcomer"):
         setattr(store, name, _timed(getattr(store, name), f"store.{name}", timings))
     return store
 

@@ -306,16 +306,20 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                               reason="session_elsewhere", contact=settings.contact)
             return JSONResponse(session_payload(known, token), status_code=200)
         token = secrets.token_urlsafe(24)
-        counts = store.condition_counts(settings.conditions)
-        fewest = min(counts.values())
-        tied = [c for c in settings.conditions if counts[c] == fewest]
-        rng = np.random.default_rng([settings.seed, sum(counts.values()), *map(ord, pid)])
-        condition = tied[int(rng.integers(len(tied)))]
-        order = [settings.tasks[i].id for i in rng.permutation(len(settings.tasks))]
-        p = Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
-                        token_hash=token_hash(token), condition=condition, order=order,
-                        time_limit=settings.time_limit if condition == "time_limited" else None)
-        if not store.add_participant(p):
+
+        def newcomer(counts: dict[str, int]) -> Participant:
+            """The participant in a condition with the fewest so far (counted in the transaction that stores them)."""
+            fewest = min(counts.values())
+            tied = [c for c in settings.conditions if counts[c] == fewest]
+            rng = np.random.default_rng([settings.seed, sum(counts.values()), *map(ord, pid)])
+            condition = tied[int(rng.integers(len(tied)))]
+            order = [settings.tasks[i].id for i in rng.permutation(len(settings.tasks))]
+            return Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
+                               token_hash=token_hash(token), condition=condition, order=order,
+                               time_limit=settings.time_limit if condition == "time_limited" else None)
+
+        p = store.add_newcomer(settings.conditions, newcomer)
+        if p is None:
             raise Refused(409, f"participant {pid} was started by another request at the same moment")
         return JSONResponse(session_payload(p, token), status_code=201)
 

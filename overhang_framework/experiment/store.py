@@ -1,6 +1,6 @@
 """The experiment's storage: participants and their placements, in any database SQLAlchemy 2 speaks.
 
-Three tables. ``participants`` holds who took part (the recruitment
+Four tables. ``participants`` holds who took part (the recruitment
 platform's ids, a hash of the session token, the condition, the order of the
 main trials, when they were screened out or finished, and their bonus).
 ``placements`` holds one row per placement, keyed by participant, phase,
@@ -9,7 +9,9 @@ placement twice, and two different requests for the same step cannot both be
 stored. Each row keeps the response that was sent for it, so a retry gets the
 same answer. ``clocks`` holds, under the same key, when the server first
 handed each step out: the start of that step's decision time, which a reload
-of the page cannot move.
+of the page cannot move. ``newcomers`` is one row that every new participant's
+transaction updates first, so that server processes assigning conditions at the
+same moment take turns (:meth:`Store.add_newcomer`).
 
 Where a participant is (which trial, which step, which tower) is derived from
 their placements, never stored apart from them.
@@ -21,10 +23,10 @@ import datetime as dt
 import hashlib
 import json
 from dataclasses import dataclass
-from typing import Any, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Optional, Sequence
 
 from sqlalchemy import (JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, UniqueConstraint, create_engine,
-                        event, func, select)
+                        event, func, select, update)
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -53,6 +55,16 @@ class Participant(Base):
     tokens_issued: Mapped[int] = mapped_column(Integer, default=1)
     total_reward: Mapped[Optional[float]] = mapped_column(Float)
     bonus: Mapped[Optional[float]] = mapped_column(Float)
+
+
+class Newcomers(Base):
+    """One row (id 1) counting the participants assigned a condition; updating it first serialises the
+    assignments of every server process (a row lock in PostgreSQL, the write lock in SQLite)."""
+
+    __tablename__ = "newcomers"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    assigned: Mapped[int] = mapped_column(Integer, default=0)
 
 
 class StepKey:
@@ -146,6 +158,13 @@ class Store:
         Base.metadata.create_all(self.engine)
         _check_columns(self.engine)
         self._session = sessionmaker(self.engine, expire_on_commit=False)
+        with self._session() as s:
+            if s.get(Newcomers, 1) is None:
+                s.add(Newcomers(id=1, assigned=0))
+                try:
+                    s.commit()
+                except IntegrityError:  # another server process made it first
+                    s.rollback()
 
     def close(self) -> None:
         self.engine.dispose()
@@ -159,25 +178,25 @@ class Store:
         with self._session() as s:
             return s.scalars(select(Participant).where(Participant.token_hash == token_hash(token))).first()
 
-    def condition_counts(self, conditions: Sequence[str]) -> dict[str, int]:
-        with self._session() as s:
-            rows = s.execute(select(Participant.condition, func.count()).group_by(Participant.condition)).all()
-        counts = {c: 0 for c in conditions}
-        for condition, n in rows:
-            if condition in counts:
-                counts[condition] = int(n)
-        return counts
+    def add_newcomer(self, conditions: Sequence[str],
+                     make: Callable[[dict[str, int]], Participant]) -> Optional[Participant]:
+        """Store the participant ``make`` builds from the number of participants in each of ``conditions``;
+        None when one with that id was stored first.
 
-    def add_participant(self, participant: Participant) -> bool:
-        """Store a new participant; False when one with that id was stored first."""
+        The counts are read and the participant stored in one transaction that first updates the
+        ``newcomers`` row: a second server process assigning a newcomer at the same moment waits
+        for this one to commit, then counts this participant too, so the conditions stay balanced.
+        """
         with self._session() as s:
+            s.execute(update(Newcomers).where(Newcomers.id == 1).values(assigned=Newcomers.assigned + 1))
+            participant = make(_condition_counts(s, conditions))
             s.add(participant)
             try:
                 s.commit()
             except IntegrityError:
                 s.rollback()
-                return False
-        return True
+                return None
+        return participant
 
     def participants(self) -> list[Participant]:
         with self._session() as s:
@@ -278,6 +297,15 @@ class Store:
         with self._session() as s:
             return {"participants": s.scalar(select(func.count()).select_from(Participant)),
                     "placements": s.scalar(select(func.count()).select_from(Placement))}
+
+
+def _condition_counts(session, conditions: Sequence[str]) -> dict[str, int]:
+    rows = session.execute(select(Participant.condition, func.count()).group_by(Participant.condition)).all()
+    counts = {c: 0 for c in conditions}
+    for condition, n in rows:
+        if condition in counts:
+            counts[condition] = int(n)
+    return counts
 
 
 def _check_columns(engine) -> None:
