@@ -269,4 +269,4 @@ def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_o
     blocker.write_text("")
     assert main(["export", "--out", str(blocker / "log.jsonl"), *overrides]) == 2
     assert capsys.readouterr().err == (f"error: cannot write the output directory '{blocker}' ({blocker} is not a "
-                                       "directory); choose another with another --out FILE\n")
+                                       "directory); choose another with --out FILE\n")

@@ -124,7 +124,7 @@ def _export(args) -> int:
     if args.url and args.include_screened_out:
         print("error: --include-screened-out reads the database; leave out --url", file=sys.stderr)
         return 2
-    check_writable(Path(args.out).absolute().parent, "another --out FILE")
+    check_writable(Path(args.out).absolute().parent, "--out FILE")
     if args.url:
         reply = _ask_server(args, "GET", "/api/admin/export", timeout=120)
         if reply is None:
