@@ -162,3 +162,34 @@ def test_runs_end_to_end_and_records_iterations(tmp_path):
     for step in steps:
         assert step["spend"]["depth_completed"] >= 1
         assert 1 <= step["spend"]["predictor_calls"] <= 21
+
+
+def _references(world) -> int:
+    return world.backend.backend.counts["reference"]  # the tiered physics under the world's cache
+
+
+# about 15 s of one core each: the softmax case (every root answer settled) runs with the slow tests
+@pytest.mark.parametrize("choice", ["argmax", pytest.param("softmax", marks=pytest.mark.slow)])
+def test_settling_only_the_needed_answers_changes_no_choice_and_runs_fewer_references(choice):
+    """With the world's verdicts (tiered physics: a full-window reference run for the towers its static stages
+    cannot judge), the lazy search makes the eager search's decisions, from fewer reference runs."""
+    decisions, references = {}, {}
+    for lazy in (False, True):
+        world = REG.create("world", {"name": "overhang", "physics": "tiered"})
+        veridical = REG.create("predictor", {"name": "veridical"}, world=world)
+        value = REG.create("value", {"name": "overhang"}, world=world)
+        mcts = planner(world, iterations=25, lazy=lazy, choice=choice, beta=5.0)
+        got = []
+        for state in (_counterweight_state(), mid_episode_state(world, placements=2)):
+            d = mcts.plan(state, veridical, value, Budget(), np.random.default_rng(3))
+            got.append((d.action, d.predicted_stability, d.choice_probability, d.choice_rank, d.spend.iterations,
+                        d.spend.predictor_calls,
+                        d.spend.depth_completed))
+        decisions[lazy], references[lazy] = got, _references(world)
+    assert decisions[True] == decisions[False]
+    assert 0 < references[True] < references[False]
+
+
+def test_lazy_must_be_a_boolean(world):
+    with pytest.raises(ValueError, match="lazy must be true or false, got 'yes'"):
+        planner(world, lazy="yes")

@@ -84,6 +84,13 @@ class MCTSPlanner(Planner):
     values are then the exact lookahead scores to the end of the episode and
     the best of them is played, as exhaustive lookahead would.
 
+    **Settling.** Where the predictor leaves some answers unknown until a dear computation settles them
+    (``predictor=veridical``: the world's full-window reference run, for a tower its static stages cannot
+    judge), a node settles a child only when the search needs its exact answer (see :class:`_Node`), and
+    the root all its children only when the choice compares all their values. The choices are the same as with every answer settled when its state
+    is expanded (``+planner.lazy=false``), at a fraction of the reference runs
+    (``python -m overhang_framework.bench.mcts_settle``).
+
     **Choice.** ``argmax`` plays the most-visited root action, ties broken by
     its value ``Q_a`` (the prior for unvisited actions), then uniformly with
     the episode's generator; the recorded rank counts the actions ahead of it
@@ -97,7 +104,7 @@ class MCTSPlanner(Planner):
 
     def __init__(self, world: World, iterations: int = 200, c: float = 0.5, widening: float = 2.0,
                  alpha: float = 0.5, rollout: Optional[str] = None, backup: str = "max",
-                 choice: str = "argmax", beta: float = 10.0):
+                 choice: str = "argmax", beta: float = 10.0, lazy: bool = True):
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
             raise ValueError(f"iterations must be a whole number >= 0, got {iterations!r}")
         if not _number(c) or c < 0:
@@ -117,6 +124,9 @@ class MCTSPlanner(Planner):
         self.alpha = float(alpha)
         self.rollout = rollout
         self.backup = backup
+        if not isinstance(lazy, bool):
+            raise ValueError(f"lazy must be true or false, got {lazy!r}")
+        self.lazy = lazy
         self.rule = ChoiceRule(choice, beta)
 
     def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
@@ -130,7 +140,7 @@ class MCTSPlanner(Planner):
             raise RuntimeError("no legal action in this state")
         done = 0
         exhaustive = self.backup == "max"
-        while len(root.order) and not (exhaustive and root.solved) and done < self.iterations \
+        while len(root.take(1)) and not (exhaustive and root.solved) and done < self.iterations \
                 and not budget.exhausted():
             try:
                 search.simulate(root)
@@ -140,11 +150,14 @@ class MCTSPlanner(Planner):
         index, probability, rank = self._choose(root, rng)
         spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=search.deepest,
                                      iterations=done)
-        return Decision(root.expansion.actions[index], float(root.expansion.p[index]), spend, probability, rank)
+        return Decision(root.expansion.actions[index], root.expansion.p_at(index), spend, probability, rank)
 
     def _choose(self, root: "_Node", rng: np.random.Generator) -> tuple[int, float, int]:
+        by_value = self.rule.rule == "softmax" or (root.solved and self.backup == "max")
+        if by_value or not root.n.any():
+            root.expansion.p  # every root value compared: each answer settled
         q = root.values(self.backup)
-        if self.rule.rule == "softmax" or (root.solved and self.backup == "max"):
+        if by_value:
             # softmax over the values; or argmax of values that an exhausted tree makes exact
             choice = self.rule.choose(q, rng)
             return choice.index, choice.probability, choice.rank
@@ -168,46 +181,133 @@ def _leaf_values(value: Value, expansion: Expansion) -> np.ndarray:
 
 
 class _Node:
-    """An expanded state: its children's stability and priors, and the visit statistics of each action."""
+    """An expanded state: its children's stability and priors, and the visit statistics of each action.
 
-    __slots__ = ("state", "depth", "expansion", "prior", "order", "n", "w", "v", "children", "estimate",
-                 "solved")
+    Where the predictor leaves answers unknown until settled (the world's verdicts: a full-window reference
+    run for a tower its static stages cannot judge), a node settles a child only when the search needs its
+    exact answer: when the child is next in the prior order of progressive widening, or its bound is the
+    node's best estimate. An unknown child counts with the upper bound ``1 * V(c_a)`` until then, and a
+    child whose bound is below what the search compares it with cannot change the result, so the search
+    makes the same choices as with every answer settled at once."""
 
-    def __init__(self, state: State, depth: int, expansion: Expansion, leaf: np.ndarray):
+    __slots__ = ("state", "depth", "expansion", "leaf", "prior", "_order", "_placed", "n", "w", "v",
+                 "children", "estimate", "solved")
+
+    def __init__(self, state: State, depth: int, expansion: Expansion, leaf: np.ndarray, exact: bool = False):
         self.state = state
         self.depth = depth
         self.expansion = expansion
-        self.prior = expansion.p * leaf if len(leaf) else np.zeros(0)
-        self.prior[expansion.p <= 0] = 0.0
-        alive = np.flatnonzero(expansion.p > 0)
-        self.order = alive[np.argsort(-self.prior[alive], kind="stable")]
+        self.leaf = leaf
         size = len(expansion.actions)
+        if exact:
+            expansion.p  # every answer settled at once
+        self.prior = self._bounds()
+        self._order: list[int] = []
+        self._placed = np.zeros(size, dtype=bool)
         self.n = np.zeros(size, dtype=np.int64)
         self.w = np.zeros(size)
         self.v = self.prior.copy()
         self.children: dict[int, _Node] = {}
-        self.estimate = float(self.prior.max()) if size else 0.0
+        self.estimate = self.best(prior=True) if size else 0.0
         self.solved = self._all_known()
+
+    def _bounds(self) -> np.ndarray:
+        """``p_a * V(c_a)`` of every child, with ``p_a``'s upper bound where it is unknown; 0 where it cannot stand."""
+        if not len(self.leaf):
+            return np.zeros(0)
+        upper = self.expansion.upper
+        prior = upper * self.leaf
+        prior[upper <= 0] = 0.0
+        return prior
+
+    def _refresh(self) -> None:
+        """Take up answers settled since the priors were computed (here, or by a node sharing the expansion)."""
+        prior = self._bounds()
+        if not np.array_equal(prior, self.prior):
+            self.prior = prior
+            unvisited = self.n == 0  # a visited child's answer was known before its visit
+            self.v[unvisited] = prior[unvisited]
+
+    def _resolve(self, i: int, scores: np.ndarray) -> None:
+        """Tighten child ``i``'s bound: the cheap first look at every unknown child that could score as much,
+        or, where that look was taken and left it unknown, the full answer."""
+        exp = self.expansion
+        if exp.awaits_settling(i):
+            exp.settle([i])
+        else:
+            exp.look(np.flatnonzero((scores >= scores[i]) & exp.unknown))
+        self._refresh()
+
+    def best(self, prior: bool = False) -> float:
+        """The exact maximum of ``v`` (of the priors with ``prior``): bounds tightened until the top one is
+        known or 0."""
+        while True:
+            self._refresh()
+            array = self.prior if prior else self.v
+            if not len(array):
+                return 0.0
+            i = int(np.argmax(array))
+            if array[i] <= 0 or self.expansion.is_known(i):
+                return float(array[i])
+            self._resolve(i, array)
+
+    def take(self, k: int) -> np.ndarray:
+        """The first ``k`` children that can stand in the order of their priors (ties by index), or all of them."""
+        while len(self._order) < k and self._next():
+            pass
+        return np.asarray(self._order[:k], dtype=np.int64)
+
+    def _next(self) -> bool:
+        """Append the next child of the prior order; False when no child is left."""
+        exp = self.expansion
+        while True:
+            self._refresh()
+            rest = ~self._placed & (exp.upper > 0)
+            if not rest.any():
+                return False
+            bounds = np.where(rest, self.prior, -np.inf)
+            i = int(np.argmax(bounds))  # the first of the largest: a stable sort's order
+            if exp.is_known(i):
+                self._placed[i] = True
+                self._order.append(i)
+                return True
+            self._resolve(i, bounds)
 
     def _all_known(self) -> bool:
         """Whether every child that can stand is terminal or a solved node (the subtree is exhausted)."""
-        for a in self.order:
-            child = self.children.get(int(a))
-            if child is None:
-                if not self.expansion.children[a].done:
+        exp = self.expansion
+        unknown = []
+        for a in range(len(exp.actions)):
+            child = self.children.get(a)
+            if child is not None:
+                if not child.solved:
                     return False
-            elif not child.solved:
+            elif not exp.children[a].done:
+                if not exp.is_known(a):
+                    unknown.append(a)
+                elif exp.upper[a] > 0:
+                    return False
+        if unknown:  # no child that is not terminal is known to stand: the cheap look, then the answers
+            exp.look(unknown)
+            if any(exp.is_known(a) and exp.upper[a] > 0 for a in unknown):
+                self._refresh()
                 return False
+            for a in unknown:
+                if exp.p_at(a) > 0:
+                    self._refresh()
+                    return False
+            self._refresh()
         return True
 
     def values(self, backup: str) -> np.ndarray:
         """``Q_a`` of every action: ``p_a`` times its child's mean return (``mean``) or best
         estimate (``max``), or its prior if unvisited."""
+        self._refresh()
         if backup == "max":
             return self.v.copy()
         q = self.prior.copy()
         seen = self.n > 0
-        q[seen] = self.expansion.p[seen] * self.w[seen] / self.n[seen]
+        q[seen] = self.expansion.upper[seen] * self.w[seen] / self.n[seen]
         return q
 
 
@@ -221,10 +321,10 @@ class _Search:
         self.scale = 0.0
         self._rollouts: dict = {}
 
-    def node(self, state: State, depth: int, force: bool = False) -> _Node:
+    def node(self, state: State, depth: int, force: bool = False, exact: bool = False) -> _Node:
         expansion = self.expander.expand(state, force=force)
         self.deepest = max(self.deepest, depth + 1 if expansion.actions else depth)
-        node = _Node(state, depth, expansion, _leaf_values(self.value, expansion))
+        node = _Node(state, depth, expansion, _leaf_values(self.value, expansion), exact or not self.planner.lazy)
         self.scale = max(self.scale, node.estimate)
         return node
 
@@ -255,23 +355,21 @@ class _Search:
         for parent, a in reversed(path):
             parent.n[a] += 1
             parent.w[a] += ret
-            ret *= float(parent.expansion.p[a])
+            ret *= parent.expansion.p_at(a)
             child = parent.children.get(a)
             if best:
                 if child is not None:
-                    parent.v[a] = parent.expansion.p[a] * child.estimate
-                parent.estimate = float(parent.v.max())
+                    parent.v[a] = parent.expansion.p_at(a) * child.estimate
+                parent.estimate = parent.best()
             if child is not None and child.solved:
                 parent.solved = parent._all_known()
         self.scale = max(self.scale, ret, root.estimate)
 
     def _select(self, node: _Node) -> Optional[int]:
-        order = node.order
-        if not len(order):
-            return None
         visits = int(node.n.sum())
-        admitted = min(len(order), math.ceil(self.planner.widening * max(visits, 1) ** self.planner.alpha))
-        candidates = order[:admitted]
+        candidates = node.take(math.ceil(self.planner.widening * max(visits, 1) ** self.planner.alpha))
+        if not len(candidates):
+            return None
         counts = node.n[candidates]
         fresh = np.flatnonzero(counts == 0)
         if len(fresh):
@@ -279,7 +377,7 @@ class _Search:
         if self.planner.backup == "max":
             q = node.v[candidates]
         else:
-            q = node.expansion.p[candidates] * node.w[candidates] / counts
+            q = node.expansion.upper[candidates] * node.w[candidates] / counts
         scale = self.scale if self.scale > 0 else 1.0
         ucb = q / scale + self.planner.c * np.sqrt(math.log(visits) / counts)
         return int(candidates[int(np.argmax(ucb))])
