@@ -730,10 +730,12 @@ def test_the_matching_torchvision_is_named_with_its_platform():
     from overhang_framework.cnn.model import matching_torchvision
 
     assert matching_torchvision("2.14.1+cpu", None) == (
-        "pip install torch==2.14.1+cpu torchvision==0.29.1+cpu --index-url https://download.pytorch.org/whl/cpu")
-    assert matching_torchvision("2.7.0", "12.6").endswith(
-        "torch==2.7.0+cu126 torchvision==0.22.0+cu126 --index-url https://download.pytorch.org/whl/cu126")
-    assert "torch torchvision --index-url" in matching_torchvision("3.0.0", None)  # no known pairing
+        "pip install torch==2.14.1+cpu torchvision==0.29.1+cpu, with the --index-url that PyTorch's install page "
+        "gives for cpu")
+    assert matching_torchvision("2.7.0", "12.6").startswith(
+        "pip install torch==2.7.0+cu126 torchvision==0.22.0+cu126, with the --index-url that PyTorch's install "
+        "page gives for cu126")
+    assert "--force-reinstall torch torchvision, with" in matching_torchvision("3.0.0", None)  # no known pairing
 
 
 def test_a_torchvision_that_does_not_load_is_one_error_checked_once(monkeypatch):
@@ -745,8 +747,8 @@ def test_a_torchvision_that_does_not_load_is_one_error_checked_once(monkeypatch)
     try:
         with pytest.raises(ConfigError, match=r"^torchvision [\d.]+\S* does not work with torch [\d.]+\S* "
                                               r"\((ModuleNotFound|Import)Error: .*\); install the pair that "
-                                              r"matches: pip install torch==\S+ torchvision==\S+ --index-url "
-                                              r"https://download"):
+                                              r"matches: pip install torch==\S+ torchvision==\S+, with the "
+                                              r"--index-url that PyTorch's install page gives for "):
             StabilityModel("default", device="cpu")
         monkeypatch.delitem(sys.modules, "torchvision")
         with pytest.raises(ConfigError, match="does not work with torch"):  # the answer is kept for the process
@@ -798,7 +800,6 @@ def test_the_readmes_cpu_install_pins_a_matching_pair():
     from overhang_framework.cnn.model import matching_torchvision
 
     readme = (ROOT / "README.md").read_text()
-    (pair,) = re.findall(r"pip install torch==(\S+) torchvision==(\S+) --index-url https://download\.pytorch\.org/"
-                         r"whl/cpu", readme)
+    (pair,) = re.findall(r"pip install torch==(\S+) torchvision==(\S+) --index-url URL", readme)
     torch_version, torchvision_version = pair
     assert f"torchvision=={torchvision_version}+cpu" in matching_torchvision(torch_version, None)

@@ -31,8 +31,8 @@ DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "default.pt"
 MIN_INPUT_SIDE = {"inception_v4": 75}
 
 
-#: Where PyTorch's wheels for a compute platform are (``cpu``, ``cu126``, ...).
-TORCH_INDEX = "https://download.pytorch.org/whl/{platform}"
+#: Where a matching pair comes from: the wheel index PyTorch's install page gives for a compute platform.
+TORCH_INDEX = "the --index-url that PyTorch's install page gives for {platform}"
 
 
 def check_torch() -> None:
@@ -52,7 +52,7 @@ def _torch_problem() -> Optional[str]:
         torch = importlib.import_module("torch")
     except Exception as err:
         return (f"PyTorch does not load ({first_line(err)}); install torch and torchvision from one index, "
-                f"e.g. without a GPU: pip install torch torchvision --index-url {TORCH_INDEX.format(platform='cpu')}")
+                f"e.g. without a GPU: pip install torch torchvision, with {TORCH_INDEX.format(platform='cpu')}")
     try:
         importlib.import_module("torchvision")
     except Exception as err:
@@ -73,10 +73,10 @@ def matching_torchvision(torch_version: str, cuda: Optional[str]) -> str:
     index = TORCH_INDEX.format(platform=platform)
     release = re.match(r"2\.(\d+)\.(\d+)", torch_version)
     if release is None or int(release.group(1)) < 1:  # torchvision 0.(minor + 15) since torch 2.1
-        return f"pip install --force-reinstall torch torchvision --index-url {index}"
+        return f"pip install --force-reinstall torch torchvision, with {index}"
     minor, patch = int(release.group(1)), int(release.group(2))
-    return (f"pip install torch=={release.group(0)}+{platform} torchvision==0.{minor + 15}.{patch}+{platform} "
-            f"--index-url {index}")
+    return (f"pip install torch=={release.group(0)}+{platform} torchvision==0.{minor + 15}.{patch}+{platform}, "
+            f"with {index}")
 
 
 def check_backbone(backbone: str, size) -> None:
