@@ -158,3 +158,39 @@ def test_the_fit_writes_a_cohort_config_that_the_participants_command_accepts(tm
     assert {c.name: c.n for c in cohort.conditions} == {"time_limited": 43, "unconstrained": 38}
     assert cohort.parameters_for("time_limited")["depth"].kind == "categorical"
     assert calibrate.main(["fit", str(tmp_path / "none.csv"), "--out", str(tmp_path / "x")]) == 2
+
+
+def test_the_shipped_cohort_is_the_shipped_library_fit_and_plans_deeper_without_time_pressure():
+    """``cohort=paper_calibrated`` holds the candidates of the shipped calibration; re-predicting them from the
+    shipped library gives the distances its header and calibration.json state."""
+    from pathlib import Path
+
+    import yaml
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME
+
+    data = Path(calibrate.__file__).resolve().parents[1] / "data" / "calibration"
+    shipped = json.loads((data / "calibration.json").read_text())
+    cfg = compose_config(["cohort=paper_calibrated", "predictor=hybrid"], config_name=CONFIG_NAME)
+    from omegaconf import OmegaConf
+
+    by_condition = OmegaConf.to_container(cfg.cohort.by_condition)
+    assert by_condition == {c: r["candidate"] for c, r in shipped.items()}
+    trials = pd.read_csv(data / "library_trials.csv.gz")
+    proposal = calibrate.proposal_distributions()
+    header = (Path(calibrate.__file__).resolve().parents[1] / "conf" / "cohort" / "paper_calibrated.yaml").read_text()
+    depth = {}
+    for condition, r in shipped.items():
+        node = r["candidate"]
+        p = node["parameters"]
+        lapse = p["lapse"]["a"] / (p["lapse"]["a"] + p["lapse"]["b"])
+        cand = calibrate.Candidate(tuple(p["depth"]["p"]), p["sigma"]["median"], p["beta"]["median"], lapse,
+                                   node["decision_time"]["t0"], node["decision_time"]["per_call"])
+        got = calibrate.Library(trials, proposal, condition).predict(cand, calibrate.TIME_LIMITS[condition])
+        z = calibrate.distances(got, calibrate.TARGETS[condition])
+        for k, v in r["z"].items():
+            assert z[k] == pytest.approx(v, abs=0.05), (condition, k)  # the config's rounding only
+        assert f"#   {condition}: " + ", ".join(f"{k} {r['z'][k]:+.2f}" for k in calibrate.METRICS) in header
+        depth[condition] = cand.mean_depth
+    assert depth["time_limited"] < depth["unconstrained"]

@@ -307,7 +307,14 @@ def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_
                                                           "p": [0.25, 0.5, 0.25]}},
               "by_condition": {c: r["candidate"].config() for c, r in results.items()},
               "decision_time": {"t0": 2.0, "per_call": 0.07, "noise": 0.3}, "motor": {"sd": 0.02, "retries": 5}}
-    atomic_write_text(out / "paper_calibrated.yaml", yaml.safe_dump(cohort, sort_keys=False))
+    header = ["# The paper's people, fitted by simulation to the paper's Table 1 and Γ, condition by condition",
+              "# (docs/fidelity.md): python -m overhang_framework.behaviour.calibrate fit TRIALS --out DIR.",
+              "# Each measure's distance from the paper's, in the paper's SEMs (+ above, - below):"]
+    header += [f"#   {c}: " + ", ".join(f"{k} {v:+.2f}" for k, v in r["z"].items()) for c, r in summary.items()]
+    header += ["# Needs predictor=hybrid (its IPE takes each participant's sigma):",
+               "#   python -m overhang_framework.participants cohort=paper_calibrated predictor=hybrid"]
+    atomic_write_text(out / "paper_calibrated.yaml",
+                      "\n".join(header) + "\n" + yaml.safe_dump(cohort, sort_keys=False, default_flow_style=None))
     return summary
 
 
