@@ -135,6 +135,7 @@ def figure(board, out: Path, split: str = "test") -> None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     for k, (_, r) in enumerate(rows.iterrows()):
         colour = plt.cm.tab20(k % 20)
+        shape = "sDv^P"[(k // 20) % 5]  # a colour that comes round again comes with another marker
         counted = str(r["calls_per_decision"]) not in ("", "nan", "None")
         # an agent that counts no predictor calls (a program, random placements) sits at the left edge
         x = max(float(r["calls_per_decision"]), NO_CALLS) if counted else NO_CALLS
@@ -145,8 +146,8 @@ def figure(board, out: Path, split: str = "test") -> None:
         else:
             axes[0].errorbar([x], [float(r["score"])],
                              yerr=[[float(r["score"]) - float(r["ci_low"])], [float(r["ci_high"]) - float(r["score"])]],
-                             marker="s", color=colour, capsize=3, label=r["agent"], ls="none")
-            axes[1].plot([x], [float(r["reward"])], marker="s", color=colour, ls="none")
+                             marker=shape, color=colour, capsize=3, label=r["agent"], ls="none")
+            axes[1].plot([x], [float(r["reward"])], marker=shape, color=colour, ls="none")
     for ax, title in ((axes[0], f"score (reward / optimum) on {split}"), (axes[1], f"mean raw reward on {split}")):
         ax.set_xscale("log")
         ax.set_xlabel(f"predictor calls per decision (spent, or the ladder's budget; {NO_CALLS:g}: counts none)")
