@@ -103,3 +103,19 @@ def test_the_sigma_benchmark_prints_identical_verdicts_and_the_shares(tmp_path, 
     assert sum(figures["changes"].values()) == pytest.approx(1.0)
     assert "one call is" in capsys.readouterr().out
     assert sigma.main(["--placed", "one"]) == 2
+
+
+def test_the_mcts_settling_benchmark_plays_both_ways_and_finds_them_alike(tmp_path, capsys):
+    from overhang_framework.bench import mcts_settle
+
+    out = tmp_path / "settle.json"
+    assert mcts_settle.main(["--tasks", "1", "--iterations", "4", "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    figures = json.loads(lines[-1])
+    written = json.loads(out.read_text())  # the file keeps the figures (its floats rounded)
+    assert written["reference_runs"] == figures["reference_runs"] and written["identical"] is True
+    (row,) = figures["rows"]
+    assert figures["identical"] and row["same"] and lines[1].split()[0] == row["task"]
+    assert 0 <= row["lazy_reference"] <= row["eager_reference"]
+    assert mcts_settle.main(["--tasks", "0"]) == 2
+    assert "--tasks and --iterations must be whole numbers >= 1" in capsys.readouterr().err
