@@ -289,8 +289,9 @@ def diagnostics(df: pd.DataFrame) -> dict[str, str]:
 
 
 def replaced(df: pd.DataFrame, sizes: dict[str, int]) -> bool:
-    """Whether a study of ``sizes`` must draw ``df``'s participants with replacement (a condition has too few)."""
-    return any(n > int((df["condition"] == c).sum()) for c, n in sizes.items())
+    """Whether a study of ``sizes`` must draw ``df``'s participants with replacement: a condition has no more
+    than the study takes (drawn without replacement, a study of all of them would be the same every time)."""
+    return any(n >= int((df["condition"] == c).sum()) for c, n in sizes.items())
 
 
 def resample(df: pd.DataFrame, sizes: dict[str, int], rng: np.random.Generator) -> pd.DataFrame:

@@ -101,8 +101,8 @@ def test_power_redraws_studies_of_the_given_size_from_the_participants():
     drawn = resample(people, {"time_limited": 5, "unconstrained": 7}, np.random.default_rng(0))
     assert drawn["condition"].value_counts().to_dict() == {"time_limited": 5, "unconstrained": 7}
     assert drawn["participant"].is_unique and drawn["who"].is_unique  # without replacement from a larger pool
-    assert not replaced(people, {"time_limited": 30, "unconstrained": 30})
-    assert replaced(people, {"time_limited": 31, "unconstrained": 30})
+    assert not replaced(people, {"time_limited": 29, "unconstrained": 29})
+    assert replaced(people, {"time_limited": 30, "unconstrained": 29})  # all of a condition: a bootstrap
     bigger = resample(people, {"time_limited": 60, "unconstrained": 60}, np.random.default_rng(0))
     assert len(bigger) == 120 and not bigger["who"].is_unique
     strong = power(people, {"time_limited": 30, "unconstrained": 30}, 10, 0)
