@@ -13,8 +13,8 @@ analyse people's, fits the models, checks the fits, and reports the paper's find
 * ``paper_calibrated`` (``cohort=paper_calibrated``, ``predictor=hybrid``): people like the paper's, each
   condition's distributions of depth, σ, β, lapse and decision time fitted to the paper's Table 1 and Γ
   (:mod:`overhang_framework.behaviour.calibrate`). Its power is the power of the paper's own design.
-  A fit of one family (``--fit 'models={hybrid: {predictor: hybrid, switch: all}}'``) leaves the family
-  finding untested, and says so.
+  A fit of one family (the others deleted from the fit's ``models``) leaves the family finding untested,
+  and says so.
 
 The steps, each continued where it stopped when the command is run again with the same settings:
 ``sim/`` (:mod:`overhang_framework.participants`), ``analysis/`` (Table 1, Γ, Fig. 4 of
