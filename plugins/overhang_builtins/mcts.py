@@ -87,9 +87,9 @@ class MCTSPlanner(Planner):
     **Settling.** Where the predictor leaves some answers unknown until a dear computation settles them
     (``predictor=veridical``: the world's full-window reference run, for a tower its static stages cannot
     judge), a node settles a child only when the search needs its exact answer (see :class:`_Node`), and
-    the root all its children only when the choice compares all their values. The choices are the same as with every answer settled when its state
-    is expanded (``+planner.lazy=false``), at a fraction of the reference runs
-    (``python -m overhang_framework.bench.mcts_settle``).
+    the root all its children only when the choice compares all their values. The choices are the same as
+    with every answer settled when its state is expanded (``+planner.lazy=false``), at a fraction of the
+    reference runs (``python -m overhang_framework.bench.mcts_settle``).
 
     **Choice.** ``argmax`` plays the most-visited root action, ties broken by
     its value ``Q_a`` (the prior for unvisited actions), then uniformly with
@@ -190,7 +190,7 @@ class _Node:
     child whose bound is below what the search compares it with cannot change the result, so the search
     makes the same choices as with every answer settled at once."""
 
-    __slots__ = ("state", "depth", "expansion", "leaf", "prior", "_order", "_placed", "n", "w", "v",
+    __slots__ = ("state", "depth", "expansion", "leaf", "prior", "_order", "_placed", "_known", "n", "w", "v",
                  "children", "estimate", "solved")
 
     def __init__(self, state: State, depth: int, expansion: Expansion, leaf: np.ndarray, exact: bool = False):
@@ -201,6 +201,7 @@ class _Node:
         size = len(expansion.actions)
         if exact:
             expansion.p  # every answer settled at once
+        self._known = False  # every answer known and taken up: the priors are final
         self.prior = self._bounds()
         self._order: list[int] = []
         self._placed = np.zeros(size, dtype=bool)
@@ -222,6 +223,9 @@ class _Node:
 
     def _refresh(self) -> None:
         """Take up answers settled since the priors were computed (here, or by a node sharing the expansion)."""
+        if self._known:
+            return
+        self._known = not self.expansion.unknown.any()
         prior = self._bounds()
         if not np.array_equal(prior, self.prior):
             self.prior = prior
