@@ -12,7 +12,7 @@ analyse people's, fits the models, checks the fits, and reports the paper's find
   myopic search in both conditions, which the budget never truncates. None should be there, beyond chance.
 * ``paper_calibrated`` (``cohort=paper_calibrated``, ``predictor=hybrid``): people like the paper's, each
   condition's distributions of depth, σ, β, lapse and decision time fitted to the paper's Table 1 and Γ
-  (:mod:`overhang_framework.behaviour.calibrate`). Its power is the power of the paper's own design.
+  (:mod:`overhang_framework.behaviour.calibrate`; docs/fidelity.md says which it matches and which not).
   A fit of one family (the others deleted from the fit's ``models``) leaves the family finding untested,
   and says so.
 
