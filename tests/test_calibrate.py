@@ -194,3 +194,34 @@ def test_the_shipped_cohort_is_the_shipped_library_fit_and_plans_deeper_without_
         assert f"#   {condition}: " + ", ".join(f"{k} {r['z'][k]:+.2f}" for k in calibrate.METRICS) in header
         depth[condition] = cand.mean_depth
     assert depth["time_limited"] < depth["unconstrained"]
+
+
+@pytest.mark.slow
+def test_a_small_draw_of_the_calibrated_cohort_under_time_pressure_has_the_papers_reward_and_decision_time(tmp_path):
+    """Eight time-limited participants of ``cohort=paper_calibrated`` on ``paper20`` (the default physics), against
+    the paper's Table 1 (5 s): reward per trial and decision time near the paper's, and the two measures the
+    cohort is documented to miss (docs/fidelity.md) missed in the stated direction.
+
+    Tolerances, measured over seeds 1-5 of this draw: reward per trial 0.78-0.96 (SD 0.07 across draws), so
+    within 0.15 (about two SDs) of the paper's 0.913; decision time 2.38-2.40 s, so within 0.15 s of 2.47;
+    stable proportion 50-60%, below the paper's 70.2%; average overhang 1.53-1.61, above the paper's 1.321.
+    """
+    from overhang_framework.behaviour import table1
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, run
+
+    cfg = compose_config(["cohort=paper_calibrated", "predictor=hybrid", "progress=false", "seed=3",
+                          "cohort.participants.time_limited=8", "cohort.participants.unconstrained=0"],
+                         config_name=CONFIG_NAME)
+    run(cfg, tmp_path / "draw")
+    df = read_log(tmp_path / "draw" / "log.jsonl")
+    df["group"] = df["condition"]
+    people = table1.per_participant(df)
+    assert len(people) == 8 and set(people["group"]) == {"time_limited"} and (people["trials"] == 20).all()
+    paper = {k: v[0] for k, v in table1.PAPER.items()}
+    got = people[["reward_per_trial", "stable_pct", "avg_overhang", "decision_time"]].mean()
+    assert got["reward_per_trial"] == pytest.approx(paper["reward_per_trial"], abs=0.15)
+    assert got["decision_time"] == pytest.approx(paper["decision_time"], abs=0.15)
+    assert got["stable_pct"] < paper["stable_pct"]
+    assert got["avg_overhang"] > paper["avg_overhang"] + 4 * table1.PAPER["avg_overhang"][1]
