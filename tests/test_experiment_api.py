@@ -71,9 +71,16 @@ def client(make_client):
     return make_client()
 
 
-def start(client, pid="P1", token=None):
+def start(client, pid="P1", token=None, consent=True):
+    """Start (or resume) a session; ``consent`` then agrees to the consent text the session shows, as the page
+    does when "I agree" is clicked."""
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    return client.post("/api/sessions", json={"params": {"participant": pid}}, headers=headers)
+    reply = client.post("/api/sessions", json={"params": {"participant": pid}}, headers=headers)
+    if consent and reply.status_code in (200, 201):
+        s = reply.json()
+        agreed = client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=auth(s))
+        assert agreed.status_code == 200, agreed.text
+    return reply
 
 
 def auth(session):
@@ -627,7 +634,8 @@ def test_a_participant_keeps_the_time_limit_they_started_with(make_client):
     first = make_client(clock=clock, conditions=["time_limited"])
     s = start(first).json()
     pass_practice(first, s)
-    restarted = make_client(clock=clock, conditions=["time_limited"], time_limit=3.0)  # same database
+    restarted = make_client(clock=clock, conditions=["time_limited"], time_limit=3.0,  # same database
+                            allow_settings_change=True)
     assert restarted.get("/api/session", headers=auth(s)).json()["time_limit"] == 5.0
     assert begin(restarted, s, "main", 1, 1).json()["clock"]["time_left"] == 5.0
     clock.now += 5.3  # within the grace of 5 s, over 3 s
@@ -650,9 +658,9 @@ def test_screening_out_is_recorded_once_and_a_later_setting_moves_nobody(make_cl
     assert out["position"]["phase"] == "screened_out"
     other = start(client, "P2").json()
     pass_practice(client, other)
-    relaxed = make_client(practice_max_attempts=5)  # the same database, a laxer setting
+    relaxed = make_client(practice_max_attempts=5, allow_settings_change=True)  # the same database, a laxer setting
     assert relaxed.get("/api/session", headers=auth(s)).json()["position"]["phase"] == "screened_out"
-    strict = make_client(practice_max_attempts=1)
+    strict = make_client(practice_max_attempts=1, allow_settings_change=True)
     assert strict.get("/api/session", headers=auth(other)).json()["position"]["phase"] == "main"
     assert "screened out" in error(client.post("/api/finish", headers=auth(s)), 409)
 

@@ -78,6 +78,7 @@ def _played(tmp_path):
     client = TestClient(create_app(settings))
     s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
     h = {"Authorization": f"Bearer {s['token']}"}
+    client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h)
 
     def place(phase, trial, step, x, layer):
         body = {"phase": phase, "trial": trial, "step": step}
@@ -244,6 +245,7 @@ def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_o
     client = TestClient(create_app(settings, clock=lambda: now[0]))
     s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
     h = {"Authorization": f"Bearer {s['token']}"}
+    client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h)
 
     def step(phase, trial, k, x, layer, seconds=1.0):
         body = {"phase": phase, "trial": trial, "step": k}
@@ -264,7 +266,8 @@ def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_o
     assert main(["export", "--out", str(out), *overrides]) == 0
     log = read_log(out)
     assert (len(log), int(log.timed_out.sum())) == (3, 2)
-    assert capsys.readouterr().err == f"wrote {out}: 1 placement and 2 timeouts\n"
+    assert capsys.readouterr().err == (f"wrote {out}: 1 placement and 2 timeouts; the study's settings and versions "
+                                       f"in {out.parent / 'study.json'}\n")
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     assert main(["export", "--out", str(blocker / "log.jsonl"), *overrides]) == 2

@@ -459,6 +459,10 @@ class Participant:
         rec.sessions += 1
         s = reply.json()
         token, pos = s["token"], s["position"]
+        reply, lat = await self.post("/api/consent", {"version": s["consent"]["version"]}, token)
+        if reply.status_code != 200:
+            rec.error(f"consent {reply.status_code}", f"{pid}: {reply.text}")
+            return "error"
         limit = s["time_limit"]
         clock, sequence = None, None
         while pos["phase"] != "done":

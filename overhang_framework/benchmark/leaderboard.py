@@ -18,26 +18,17 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import json
-import subprocess
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
+
+from overhang_framework.version import commit
 
 DATA_FILE = Path(__file__).resolve().parent.parent / "data" / "leaderboard.csv"
 NO_CALLS = 0.5
 COLUMNS = ("agent", "split", "score", "ci_low", "ci_high", "stood", "reward", "area", "n_tasks", "seeds",
            "budget_kind", "calls_per_decision", "seconds_per_decision", "curve", "physics", "command", "config",
            "version", "commit", "date")
-
-
-def commit() -> str:
-    """The framework's git commit, when it runs from a git checkout ('' otherwise)."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
-                             text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return ""
-    return out.stdout.strip() if out.returncode == 0 else ""
 
 
 def command_of(run_dir: Path) -> str:

@@ -3,12 +3,15 @@
     python -m overhang_framework.experiment [OVERRIDES...]                  # serve on localhost
     python -m overhang_framework.experiment export --out log.jsonl [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment reissue PARTICIPANT [OVERRIDES...] [--url URL]
+    python -m overhang_framework.experiment withdraw PARTICIPANT --yes [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment build                            # (re)build web/dist
 
 Overrides are keys of ``conf/serve.yaml`` (``port=8080``, ``database=postgresql+psycopg://...``,
 ``'tasks.only=[paper00,paper01]'``). ``export`` reads the database the config names, or with ``--url``
 asks a running server (with the admin token). ``reissue`` gives a participant a new session token (the old
-one stops working) and prints the link that resumes their session in any browser.
+one stops working) and prints the link that resumes their session in any browser. ``withdraw`` deletes a
+participant who withdrew their consent, with everything stored of them; the study keeps only a count.
+``export`` also writes ``study.json`` beside the log: the study's settings, versions and dates.
 """
 
 from __future__ import annotations
@@ -45,9 +48,20 @@ def _serve(overrides: Sequence[str]) -> int:
     busy = (f"another server is serving the study in {settings.run_dir}; stop it first, or give this one "
             "another run_dir=DIR")
     with RunDir(settings.run_dir, busy).lock():
-        Store(settings.database).close()  # the tables, made once before the server processes open the database
+        from overhang_framework.experiment.api import begin_study, public_address
+
+        store = Store(settings.database)  # the tables, made once before the server processes open the database
+        try:
+            study = begin_study(settings, store)  # refused when the study runs with other settings
+            address = public_address(settings, store)
+        finally:
+            store.close()
         db = settings.database.split("://")[0]
-        print(f"experiment: http://{settings.host}:{settings.port}/?participant=P1  (database {db}, "
+        changed = [e for e in study.history if e["what"] == "settings"]
+        if changed and settings.allow_settings_change:
+            print(f"experiment: the study's settings changed ({'; '.join(changed[-1]['changes'])}); recorded "
+                  "with the study", file=sys.stderr)
+        print(f"experiment: {address}/?participant=P1  (database {db}, "
               f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)}, "
               f"{settings.workers} server process(es))", file=sys.stderr)
         options = dict(host=settings.host, port=settings.port, log_level="warning",
@@ -118,6 +132,7 @@ def _ask_server(args, method: str, path: str, timeout: float):
 
 def _export(args) -> int:
     from overhang_framework.behaviour.log import count_noun
+    from overhang_framework.experiment.export import export_jsonl, study_json
     from overhang_framework.preflight import check_writable
     from overhang_framework.results import atomic_write_text
 
@@ -127,25 +142,30 @@ def _export(args) -> int:
     check_writable(Path(args.out).absolute().parent, "--out FILE")
     if args.url:
         reply = _ask_server(args, "GET", "/api/admin/export", timeout=120)
-        if reply is None:
+        study = _ask_server(args, "GET", "/api/admin/study", timeout=60) if reply is not None else None
+        if study is None:
             return 2
-        text, unfinished = reply.text, None
+        text, unfinished, study = reply.text, None, study.json()
     else:
-        from overhang_framework.experiment.export import export_jsonl
         from overhang_framework.experiment.settings import load_settings
 
         settings = load_settings(args.overrides, need_admin_token=False)
         store = _open_store(settings)
         if store is None:
             return 2
-        text, unfinished = export_jsonl(store, include_screened_out=args.include_screened_out)
-        store.close()
+        try:
+            text, unfinished = export_jsonl(store, include_screened_out=args.include_screened_out)
+            study = study_json(store)
+        finally:
+            store.close()
+    sidecar = Path(args.out).absolute().parent / "study.json"
     atomic_write_text(args.out, text)
+    atomic_write_text(sidecar, json.dumps(study, indent=2, sort_keys=True) + "\n")
     timeouts = sum(bool(json.loads(line).get("timed_out")) for line in text.splitlines() if line.strip())
     placements = sum(1 for line in text.splitlines() if line.strip()) - timeouts
     extra = "" if not unfinished else f"; {unfinished} unfinished trial(s) left out"
-    print(f"wrote {args.out}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}",
-          file=sys.stderr)
+    print(f"wrote {args.out}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}; "
+          f"the study's settings and versions in {sidecar}", file=sys.stderr)
     return 0
 
 
@@ -175,6 +195,8 @@ def _reissue(args) -> int:
         store = _open_store(settings)
         if store is None:
             return 2
+        study = store.study()
+        stored_public = study is not None and study.public_url is not None
         try:
             _, link = reissue(settings, store, args.participant)
         except Refused as err:
@@ -182,8 +204,8 @@ def _reissue(args) -> int:
             return 2
         finally:
             store.close()
-        if settings.public_url is None:
-            print(f"note: the link starts with http://{settings.host}:{settings.port}, from host and port; give "
+        if settings.public_url is None and not stored_public:
+            print(f"note: the link starts with {link.split('/?')[0]}, where the server listened; give "
                   "public_url=https://... (the address participants open) when that is not it", file=sys.stderr)
     print(f"participant {args.participant}: a new session token; the old one no longer works. Resume link "
           "(send it to the participant; it resumes where they stopped, in any browser):", file=sys.stderr)
@@ -191,11 +213,43 @@ def _reissue(args) -> int:
     return 0
 
 
+def _withdraw(args) -> int:
+    if not args.yes:
+        print(f"error: withdrawing deletes everything stored of participant {args.participant}, for good; add --yes "
+              "to do it", file=sys.stderr)
+        return 2
+    if args.url:
+        reply = _ask_server(args, "POST", f"/api/admin/participants/{args.participant}/withdraw", timeout=60)
+        if reply is None:
+            return 2
+        done = reply.json()
+    else:
+        from overhang_framework.experiment.api import Refused, withdraw
+        from overhang_framework.experiment.settings import load_settings
+
+        settings = load_settings(args.overrides, need_admin_token=False)
+        store = _open_store(settings)
+        if store is None:
+            return 2
+        try:
+            done = withdraw(store, args.participant)
+        except Refused as err:
+            print(f"error: {err.message}", file=sys.stderr)
+            return 2
+        finally:
+            store.close()
+    deleted = done["deleted"]
+    print(f"withdrew participant {args.participant}: deleted them with {deleted['placements']} placement(s) and "
+          f"{deleted['clocks']} step clock(s); the study keeps only a count ({done['withdrawn']} withdrawn). Copies "
+          "made before (exports, backups) still hold them.", file=sys.stderr)
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from overhang_framework.errors import OverhangError
 
-    commands = ("serve", "export", "reissue", "build")
+    commands = ("serve", "export", "reissue", "withdraw", "build")
     command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
@@ -209,23 +263,27 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 2
     parser = argparse.ArgumentParser(prog=f"python -m overhang_framework.experiment {command}",
                                      description=__doc__.split("\n\n")[0])
-    if command == "reissue":
+    if command in ("reissue", "withdraw"):
         parser.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
+    if command == "withdraw":
+        parser.add_argument("--yes", action="store_true", help="delete them (for good)")
     parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
     if command == "export":
         parser.add_argument("--out", required=True, help="the behaviour log to write (JSON Lines)")
         parser.add_argument("--include-screened-out", action="store_true",
                             help="add the practice attempts of participants screened out in the practice")
-    if command in ("export", "reissue"):
+    if command in ("export", "reissue", "withdraw"):
         parser.add_argument("--url", help="a running server to ask (default: read the database directly)")
     if command == "build":
         parser.add_argument("--force", action="store_true", help="build even when web/dist exists")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # overrides may come before or after the flags
     try:
         if command == "export":
             return _export(args)
         if command == "reissue":
             return _reissue(args)
+        if command == "withdraw":
+            return _withdraw(args)
         if command == "build":
             from overhang_framework.experiment.web import ensure_built
 

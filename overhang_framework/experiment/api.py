@@ -36,7 +36,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from overhang_framework import rules
 from overhang_framework.experiment.outcome import Outcomes
 from overhang_framework.experiment.settings import Settings
-from overhang_framework.experiment.store import Conflict, Participant, Placement, Store, request_hash, token_hash
+from overhang_framework.experiment.store import (Conflict, Participant, Placement, SettingsChanged, Store, request_hash,
+                                                 token_hash, utc_iso)
 from overhang_framework.geometry import MAX_LAYER, Action, Geometry, overhang
 
 PARTICIPANT_ID = re.compile(r"^[A-Za-z0-9_.@:-]{1,200}$")
@@ -58,6 +59,11 @@ class Refused(Exception):
 class SessionIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     params: dict[str, str] = Field(default_factory=dict)
+
+
+class ConsentIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    version: str = Field(max_length=100)
 
 
 class StepIn(BaseModel):
@@ -156,9 +162,38 @@ def main_tasks(settings: Settings, participant: Participant):
     return [by_id[i] for i in participant.order]
 
 
-def resume_link(settings: Settings, participant: Participant, token: str) -> str:
-    """The address that resumes ``participant``'s session with ``token`` in any browser."""
-    base = settings.public_url or f"http://{settings.host}:{settings.port}"
+def public_address(settings: Settings, store: Store) -> str:
+    """The address participants open: ``public_url=`` when given, else the one stored with the study (the
+    ``public_url`` it was served with, else the host and port it last listened on), else host and port."""
+    if settings.public_url:
+        return settings.public_url
+    study = store.study()
+    if study is not None:
+        return study.public_url or study.address
+    return f"http://{settings.host}:{settings.port}"
+
+
+def begin_study(settings: Settings, store: Store):
+    """The study's stored record, made or checked against ``settings`` (:meth:`Store.begin_study`); a change of
+    the settings that is not allowed is one :class:`~overhang_framework.errors.ConfigError` line listing it."""
+    from overhang_framework.errors import ConfigError
+    from overhang_framework.experiment.provenance import hashes, study_settings
+    from overhang_framework.version import versions
+
+    try:
+        return store.begin_study(study_settings(settings), hashes(settings), versions(),
+                                 f"http://{settings.host}:{settings.port}", settings.public_url,
+                                 allow_change=settings.allow_settings_change)
+    except SettingsChanged as err:
+        raise ConfigError(f"the study in this database runs with other settings ({'; '.join(err.changes)}); serve "
+                          "it with the settings it started with, or add allow_settings_change=true to change them "
+                          "(the change is recorded with the study)") from None
+
+
+def resume_link(settings: Settings, participant: Participant, token: str, base: Optional[str] = None) -> str:
+    """The address that resumes ``participant``'s session with ``token`` in any browser (from ``base``, by
+    default ``public_url`` or host and port)."""
+    base = base or settings.public_url or f"http://{settings.host}:{settings.port}"
     if participant.study_id is not None or participant.session_id is not None:
         params = {"PROLIFIC_PID": participant.id, "STUDY_ID": participant.study_id or "",
                   "SESSION_ID": participant.session_id or ""}
@@ -176,7 +211,15 @@ def reissue(settings: Settings, store: Store, pid: str) -> tuple[str, str]:
         raise Refused(404, f"no participant {pid!r}; the study has {len(known)}" + (f": {shown}" if known else ""))
     token = secrets.token_urlsafe(24)
     participant = store.set_token(pid, token)
-    return token, resume_link(settings, participant, token)
+    return token, resume_link(settings, participant, token, public_address(settings, store))
+
+
+def withdraw(store: Store, pid: str) -> dict:
+    """Delete participant ``pid`` and everything stored of them (:meth:`Store.withdraw`); what was deleted."""
+    deleted = store.withdraw(pid)
+    if deleted is None:
+        raise Refused(404, f"no participant {pid!r} (withdrawn already, or never started)")
+    return {"participant": pid, "deleted": deleted, "withdrawn": store.study().withdrawn}
 
 
 def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Optional[Outcomes] = None,
@@ -188,6 +231,10 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     ``settings.web_dir`` is served at ``/`` when given.
     """
     store = store or Store(settings.database)
+    study = begin_study(settings, store)
+    # what every placement stored by this server carries: the code's version and the settings' hashes
+    provenance = {"framework_version": study.framework_version, "commit": study.commit,
+                  "settings_hash": study.settings_hash, "tasks_hash": study.tasks_hash}
     outcomes = outcomes or Outcomes(settings.world, fps=settings.animation_fps, processes=settings.physics_processes)
 
     @asynccontextmanager
@@ -279,6 +326,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             "trials": [{"trial": t} for t in range(1, len(p.order) + 1)],
             "position": asdict(pos), "clock": current_clock(p, pos), "completed": p.completed_at is not None,
             "contact": settings.contact,
+            "consent": {"html": settings.consent_html, "version": settings.consent_version,
+                        "given": p.consented_at is not None},
         }
         if token is not None:
             out["token"] = token
@@ -327,8 +376,22 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     def current(p: Participant = Depends(participant_of)):
         return session_payload(p, None)
 
+    @app.post("/api/consent")
+    def consent(body: ConsentIn, p: Participant = Depends(participant_of)):
+        if p.consented_at is None and body.version != settings.consent_version:
+            raise Refused(409, f"the consent text has changed (version {settings.consent_version}, the page showed "
+                               f"{body.version}); reload the page to read it")
+        p = store.consent(p.id, settings.consent_version)
+        return {"consent_version": p.consent_version, "consented_at": utc_iso(p.consented_at)}
+
+    def consented(p: Participant) -> None:
+        if p.consented_at is None:
+            raise Refused(403, "no consent is recorded for this participant: POST /api/consent first",
+                          reason="no_consent")
+
     @app.post("/api/steps/start")
     def start_step(body: StepIn, p: Participant = Depends(participant_of)):
+        consented(p)
         pos = position(settings, p, store.steps(p.id))
         if pos.phase not in ("practice", "main"):
             raise Refused(409, f"nothing to start: the participant's phase is {pos.phase}")
@@ -353,6 +416,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                 raise Refused(409, f"{body.phase} trial {body.trial} step {body.step} is already stored with a "
                                    "different placement")
             return fresh_clock(p, store.find(p.id, *key).response)
+        consented(p)
         pos = position(settings, p, rows)
         if pos.phase == "done":
             raise Refused(409, "every trial is over; nothing more can be placed")
@@ -419,7 +483,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             late_action=[body.x, body.layer] if late else None,
             trajectory=[list(s) for s in body.trajectory], dwell=[list(d) for d in body.dwell],
             tower_before=pos.tower, stable=stable, overhang=level, reward=reward, trial_over=trial_over,
-            passed=passed, request_hash=digest, response={})
+            passed=passed, request_hash=digest, response={}, **provenance)
         attempts = settings.practice_max_attempts
         if passed is False and attempts is not None and pos.attempt >= attempts:
             after = Position("screened_out", pos.trial, pos.attempt, 0, [], pos.total_reward)
@@ -467,6 +531,16 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
         text, _ = export_jsonl(store)
         return PlainTextResponse(text, media_type="application/x-ndjson")
+
+    @app.get("/api/admin/study", dependencies=[Depends(admin)])
+    def study_record():
+        from overhang_framework.experiment.export import study_json
+
+        return study_json(store)
+
+    @app.post("/api/admin/participants/{pid}/withdraw", dependencies=[Depends(admin)])
+    def withdraw_participant(pid: str):
+        return withdraw(store, pid)
 
     @app.post("/api/admin/participants/{pid}/reissue", dependencies=[Depends(admin)])
     def reissue_token(pid: str):

@@ -14,6 +14,13 @@ when the placement arrived, which a reload of the page cannot restart. In
 whole window, and a placement that arrived within the grace after it took its
 extra time on the network. The page's own measurement is kept beside it as
 ``page_decision_time``, and the server's elapsed time as ``server_time``.
+
+Every record says where it comes from: the framework's version and commit that
+stored it and the hashes of the study's settings and task set it was made under
+(:mod:`~overhang_framework.experiment.provenance`), and the version of the
+consent text the participant agreed to, with when. :func:`study_json` is the
+sidecar ``study.json`` beside an export: the full settings, the versions, the
+recorded changes, and the dates of the first and last participant.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ from __future__ import annotations
 from typing import Optional
 
 from overhang_framework.behaviour.log import LOG_VERSION, log_text
-from overhang_framework.experiment.store import Store
+from overhang_framework.experiment.store import Store, utc_iso
 
 
 def decision_time(row, time_limit: Optional[float]) -> float:
@@ -71,6 +78,10 @@ def log_records(store: Store, include_screened_out: bool = False) -> tuple[list[
                 "page_decision_time": r.decision_time, "server_time": r.server_time, "late_action": r.late_action,
                 "study_id": p.study_id, "session_id": p.session_id,
                 "received_at": r.received_at.isoformat() if r.received_at else None,
+                "consent_version": p.consent_version,
+                "consented_at": utc_iso(p.consented_at),
+                "framework_version": r.framework_version, "commit": r.commit, "settings_hash": r.settings_hash,
+                "tasks_hash": r.tasks_hash,
             })
     return records, unfinished
 
@@ -79,3 +90,30 @@ def export_jsonl(store: Store, include_screened_out: bool = False) -> tuple[str,
     """:func:`log_records` as checked JSON Lines text, and the number of unfinished trials left out."""
     records, unfinished = log_records(store, include_screened_out)
     return log_text(records), unfinished
+
+
+def study_json(store: Store) -> dict:
+    """The sidecar of an export: the study's settings and their hashes, the framework's version and commit
+    that started it and the changes recorded since, the address participants open, the counts of
+    participants (withdrawn ones as a count only) and the dates of the first and last participant."""
+    from overhang_framework.version import versions
+
+    study = store.study()
+    people = store.participants()
+    started = [p.created_at for p in people if p.created_at is not None]
+    out = {
+        "exported_with": versions(),
+        "participants": {"total": len(people), "completed": sum(p.completed_at is not None for p in people),
+                         "screened_out": sum(p.screened_out_at is not None for p in people),
+                         "by_condition": {c: sum(p.condition == c for p in people)
+                                          for c in sorted({p.condition for p in people})},
+                         "withdrawn": study.withdrawn if study is not None else 0},
+        "first_participant": utc_iso(min(started)) if started else None,
+        "last_participant": utc_iso(max(started)) if started else None,
+    }
+    if study is None:
+        return {"study": None, **out}
+    return {"study": {"started_at": utc_iso(study.started_at), "framework_version": study.framework_version,
+                      "commit": study.commit, "settings_hash": study.settings_hash, "tasks_hash": study.tasks_hash,
+                      "public_url": study.public_url, "address": study.address, "history": study.history,
+                      "settings": study.settings}, **out}

@@ -18,6 +18,7 @@ from overhang_framework.errors import ConfigError
 from overhang_framework.interfaces import Task
 
 ADMIN_ENV = "OVERHANG_ADMIN_TOKEN"
+CONSENT_FILE = Path(__file__).resolve().parent / "consent.html"
 REPO_WEB = Path(__file__).resolve().parents[2] / "web"
 
 
@@ -59,6 +60,9 @@ class Settings:
     seed: int
     run_dir: Path
     web_dir: Optional[Path]
+    consent_html: str = ""
+    consent_version: str = ""
+    allow_settings_change: bool = False
     host: str = "127.0.0.1"
     port: int = 8000
     workers: int = 1
@@ -139,6 +143,22 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
     return out
 
 
+def consent_text(path) -> tuple[str, str]:
+    """The consent page's HTML (from ``path``, or the shipped text when None) and its version, ``sha256:`` and
+    the first 16 hex digits of the text's SHA-256."""
+    import hashlib
+
+    file = Path(str(path)) if path else CONSENT_FILE
+    try:
+        text = file.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"consent_file: cannot read {file} ({getattr(err, 'strerror', None) or err}); give an "
+                          "HTML file of the consent text, or null for the shipped one") from None
+    if not text.strip():
+        raise ConfigError(f"consent_file: {file} is empty; give an HTML file of the consent text")
+    return text, "sha256:" + hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
 def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = None,
                   need_admin_token: bool = True) -> Settings:
     """Checked :class:`Settings` of ``conf/serve.yaml`` with ``overrides`` (or of a composed ``cfg``).
@@ -204,7 +224,12 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
             raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
         counts[key] = value
+    consent_html, consent_version = consent_text(cfg.get("consent_file"))
+    allow_change = cfg.get("allow_settings_change")
+    if not isinstance(allow_change, bool):
+        raise ConfigError(f"allow_settings_change must be true or false, got {allow_change!r}")
     return Settings(
+        consent_html=consent_html, consent_version=consent_version, allow_settings_change=allow_change,
         world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold),
         practice_max_attempts=max_attempts, conditions=conditions,
         time_limit=_number(cfg, "time_limit"), time_grace=_number(cfg, "time_grace", strict=False),

@@ -1,10 +1,16 @@
 """The experiment's storage: participants and their placements, in any database SQLAlchemy 2 speaks.
 
-Four tables. ``participants`` holds who took part (the recruitment
+Five tables. ``study`` is one row: the settings the study runs with (what
+participants see and how they are scored, :mod:`~overhang_framework.experiment.provenance`),
+their hashes, the framework's version and commit, the address participants
+open, the recorded changes of any of these, and how many participants withdrew.
+``participants`` holds who took part (the recruitment
 platform's ids, a hash of the session token, the condition, the order of the
-main trials, when they were screened out or finished, and their bonus).
+main trials, when and to which version of the consent text they agreed, when
+they were screened out or finished, and their bonus).
 ``placements`` holds one row per placement, keyed by participant, phase,
-trial, attempt and step: a unique key, so a retried request can never store a
+trial, attempt and step, with the version, commit and settings it was made
+under: a unique key, so a retried request can never store a
 placement twice, and two different requests for the same step cannot both be
 stored. Each row keeps the response that was sent for it, so a retry gets the
 same answer. ``clocks`` holds, under the same key, when the server first
@@ -26,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Optional, Sequence
 
 from sqlalchemy import (JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, UniqueConstraint, create_engine,
-                        event, func, select, update)
+                        delete, event, func, select, update)
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -55,6 +61,26 @@ class Participant(Base):
     tokens_issued: Mapped[int] = mapped_column(Integer, default=1)
     total_reward: Mapped[Optional[float]] = mapped_column(Float)
     bonus: Mapped[Optional[float]] = mapped_column(Float)
+    consent_version: Mapped[Optional[str]] = mapped_column(String(100))
+    consented_at: Mapped[Optional[dt.datetime]] = mapped_column(DateTime(timezone=True))
+
+
+class Study(Base):
+    """The study's one row (id 1): its settings and where its records come from (module docstring)."""
+
+    __tablename__ = "study"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    settings: Mapped[dict] = mapped_column(JSON)
+    settings_hash: Mapped[str] = mapped_column(String(64))
+    tasks_hash: Mapped[str] = mapped_column(String(64))
+    framework_version: Mapped[str] = mapped_column(String(50))
+    commit: Mapped[Optional[str]] = mapped_column(String(60))
+    public_url: Mapped[Optional[str]] = mapped_column(String(500))  # given as public_url=, or null
+    address: Mapped[str] = mapped_column(String(500))  # http://host:port the server last listened on
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
+    history: Mapped[list] = mapped_column(JSON, default=list)  # {"at", "what", "changes"}, oldest first
+    withdrawn: Mapped[int] = mapped_column(Integer, default=0)
 
 
 class Newcomers(Base):
@@ -99,6 +125,10 @@ class Placement(StepKey, Base):
     reward: Mapped[Optional[float]] = mapped_column(Float)
     trial_over: Mapped[bool] = mapped_column(Boolean)
     passed: Mapped[Optional[bool]] = mapped_column(Boolean)
+    framework_version: Mapped[Optional[str]] = mapped_column(String(50))
+    commit: Mapped[Optional[str]] = mapped_column(String(60))
+    settings_hash: Mapped[Optional[str]] = mapped_column(String(64))
+    tasks_hash: Mapped[Optional[str]] = mapped_column(String(64))
     request_hash: Mapped[str] = mapped_column(String(64))
     response: Mapped[dict] = mapped_column(JSON)
     received_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
@@ -111,6 +141,13 @@ class Clock(StepKey, Base):
     __table_args__ = (UniqueConstraint("participant_id", "phase", "trial", "attempt", "step", name="one_clock_per_step"),)
 
     issued_at: Mapped[float] = mapped_column(Float)
+
+
+def utc_iso(when: Optional[dt.datetime]) -> Optional[str]:
+    """``when`` in ISO 8601 with its UTC offset (SQLite gives back naive times, stored in UTC), or None."""
+    if when is None:
+        return None
+    return (when if when.tzinfo is not None else when.replace(tzinfo=dt.timezone.utc)).isoformat()
 
 
 def token_hash(token: str) -> str:
@@ -129,6 +166,14 @@ STEP_COLUMNS = ("phase", "trial", "attempt", "step", "width", "x", "layer", "tim
 
 class Conflict(Exception):
     """A placement for a step that already holds a different one."""
+
+
+class SettingsChanged(Exception):
+    """A server started on a study with settings other than those the study runs with."""
+
+    def __init__(self, changes: list[str]):
+        super().__init__("; ".join(changes))
+        self.changes = changes
 
 
 @dataclass
@@ -247,6 +292,84 @@ class Store:
                 p.completed_at, p.total_reward, p.bonus = _now(), total_reward, bonus
                 s.commit()
             return p
+
+    def consent(self, pid: str, version: str) -> Participant:
+        """Record that a participant agreed to version ``version`` of the consent text (once: a second call
+        keeps the first record)."""
+        with self._session() as s:
+            p = s.get(Participant, pid, with_for_update=True)
+            if p.consented_at is None:
+                p.consented_at, p.consent_version = _now(), version
+                s.commit()
+            return p
+
+    def withdraw(self, pid: str) -> Optional[dict[str, int]]:
+        """Delete a participant and everything stored of them, and count one withdrawal; how many rows of each
+        kind were deleted, or None when there is no such participant."""
+        with self._session() as s:
+            p = s.get(Participant, pid, with_for_update=True)
+            if p is None:
+                return None
+            deleted = {}
+            for kind, model in (("placements", Placement), ("clocks", Clock)):
+                deleted[kind] = s.execute(delete(model).where(model.participant_id == pid)).rowcount
+            s.delete(p)
+            s.execute(update(Study).where(Study.id == 1).values(withdrawn=Study.withdrawn + 1))
+            s.commit()
+        return deleted
+
+    # the study ----------------------------------------------------------------------------------------------
+    def study(self) -> Optional[Study]:
+        with self._session() as s:
+            return s.get(Study, 1)
+
+    def begin_study(self, settings: dict, hashes: dict, versions: dict, address: str, public_url: Optional[str],
+                    allow_change: bool = False) -> Study:
+        """The study's row: made from these when the study is new; otherwise checked against them.
+
+        Settings other than the stored ones raise :class:`SettingsChanged` listing the differences, unless
+        ``allow_change``: then they replace the stored ones and the change is recorded in ``history``, as is a
+        change of the framework's version or commit, or of the address. A ``public_url`` of None keeps the one
+        stored.
+        """
+        from overhang_framework.experiment.provenance import differences
+
+        with self._session() as s:
+            row = s.get(Study, 1, with_for_update=True)
+            if row is None:
+                s.add(Study(id=1, settings=settings, history=[], withdrawn=0, address=address, public_url=public_url,
+                            **hashes, **versions))
+                try:
+                    s.commit()
+                except IntegrityError:  # another server process made it first: check against theirs
+                    s.rollback()
+                    return self.begin_study(settings, hashes, versions, address, public_url, allow_change)
+                return s.get(Study, 1)
+            events = []
+            changed = differences(row.settings, settings)
+            if changed:
+                if not allow_change:
+                    raise SettingsChanged(changed)
+                events.append({"what": "settings", "changes": changed})
+                row.settings = settings
+                for k, v in hashes.items():
+                    setattr(row, k, v)
+            moved = differences({k: getattr(row, k) for k in versions}, versions)
+            if moved:
+                events.append({"what": "version", "changes": moved})
+                for k, v in versions.items():
+                    setattr(row, k, v)
+            where = {"address": address, **({"public_url": public_url} if public_url is not None else {})}
+            relocated = differences({k: getattr(row, k) for k in where}, where)
+            if relocated:
+                events.append({"what": "address", "changes": relocated})
+                for k, v in where.items():
+                    setattr(row, k, v)
+            if events:
+                at = _now().isoformat()
+                row.history = [*(row.history or []), *({"at": at, **e} for e in events)]
+                s.commit()
+            return row
 
     # placements ---------------------------------------------------------------------------------------------
     def placements(self, pid: Optional[str] = None, phase: Optional[str] = None) -> list[Placement]:

@@ -2,6 +2,10 @@
  * The paper's procedure: session, consent, instructions, tutorial, practice until passed, the
  * main trials in the server's order, and the debriefing with the bonus and the completion link.
  *
+ * The consent text comes from the server (the study's `consent_file`), and "I agree" is recorded by
+ * the server with its time and the text's version before anything else happens: the server places
+ * nothing for a participant without it.
+ *
  * The server's `position` drives the practice and main phases: every placement's response carries
  * the next position, and each trial starts from it. A reopened tab therefore continues where the
  * participant stopped. The server also keeps each step's clock: a trial's first step is started
@@ -17,7 +21,7 @@ import InstructionsPlugin from "@jspsych/plugin-instructions";
 import OverhangTowerPlugin, { renderTower } from "@overhang-framework/jspsych-plugin-overhang-tower";
 
 import { ApiError, openSession, post, takeTokenFromUrl } from "./api.js";
-import { CONSENT_HTML, instructionPages } from "./text.js";
+import { instructionPages } from "./text.js";
 import { tutorialTimeline } from "./tutorial.js";
 
 const target = document.getElementById("experiment");
@@ -244,7 +248,6 @@ function buildTimeline(jsPsych, session, state, { animationSpeed }) {
 
   if (isAtStart(session)) {
     return [
-      { type: HtmlButtonResponsePlugin, stimulus: CONSENT_HTML, choices: ["I agree"], button_html: button("agree") },
       { type: InstructionsPlugin, pages: instructionPages(session), show_clickable_nav: true, allow_backward: true },
       ...tutorialTimeline(session, { animationSpeed }),
       practiceIntro(session),
@@ -324,6 +327,32 @@ async function debrief(session) {
   }
 }
 
+/** The consent page until "I agree" is recorded by the server (at once when it was, in an earlier visit). */
+function askConsent(session) {
+  if (session.consent.given) return Promise.resolve();
+  return new Promise((resolve) => {
+    const show = () => {
+      target.innerHTML = session.consent.html;
+      const agree = document.createElement("button");
+      agree.className = "jspsych-btn";
+      agree.dataset.testid = "agree";
+      agree.textContent = "I agree";
+      agree.addEventListener("click", async () => {
+        agree.disabled = true;
+        try {
+          await synced(() => post("api/consent", { version: session.consent.version }, session.token), session);
+          resolve();
+        } catch (error) {
+          showError(error.message, show);
+        }
+      });
+      const page = target.firstElementChild ?? target;
+      page.append(agree);
+    };
+    show();
+  });
+}
+
 async function start() {
   const { params, token } = takeTokenFromUrl();
   target.innerHTML = `<p class="loading">Loading…</p>`;
@@ -338,6 +367,7 @@ async function start() {
   const animationSpeed = Number(params.animation_speed) > 0 ? Number(params.animation_speed) : 1;
   const state = { position: session.position };
   if (!["done", "screened_out"].includes(session.position.phase) && !session.completed) {
+    await askConsent(session);
     target.replaceChildren();
     const jsPsych = initJsPsych({ display_element: target });
     await jsPsych.run(buildTimeline(jsPsych, session, state, { animationSpeed }));

@@ -1,18 +1,7 @@
 /**
- * The experiment's wording that a lab is most likely to adapt: consent and instructions.
+ * The experiment's wording that a lab is most likely to adapt: the instructions. The consent text is
+ * the server's (`consent_file` in conf/serve.yaml), so that its version is stored with each consent.
  */
-
-export const CONSENT_HTML = `
-  <div class="text-page consent">
-    <h2>Consent</h2>
-    <p>In this study you build towers of blocks on the screen. It takes about 30 minutes. You are
-    paid for taking part and earn a bonus that depends on how well you do.</p>
-    <p>We record your placements, how long you take, and the movements of your mouse over the task.
-    The data are stored without your name and used for research only. You may stop at any time by
-    closing this window.</p>
-    <p>By clicking "I agree" you confirm that you are at least 18 years old, have read this
-    information, and agree to take part.</p>
-  </div>`;
 
 export function instructionPages(session) {
   const bonus = `${session.currency}${session.bonus_per_unit.toFixed(2)}`;

@@ -1,0 +1,240 @@
+"""Where the experiment's records come from, consent and withdrawal: the study's stored settings and versions,
+the refusal of a restart with other settings, the consent record, ``withdraw`` and the stored public address."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from overhang_framework.experiment.settings import load_settings
+
+ADMIN = "long-enough"
+
+
+def _serve_app(overrides, clock=None):
+    """A test client of the app the settings ``overrides`` give (what one server process runs)."""
+    from fastapi.testclient import TestClient
+
+    from overhang_framework.experiment.api import create_app
+
+    settings = load_settings([*overrides, f"admin_token={ADMIN}"])
+    client = TestClient(create_app(settings, **({"clock": clock} if clock else {})))
+    client.settings = settings
+    return client
+
+
+def _session(client, pid, consent=True):
+    s = client.post("/api/sessions", json={"params": {"participant": pid}}).json()
+    h = {"Authorization": f"Bearer {s['token']}"}
+    if consent:
+        reply = client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h)
+        assert reply.status_code == 200, reply.text
+    return s, h
+
+
+def _play(client, pid, main_trials=1):
+    """``pid`` consents, passes the practice with the shown towers and builds ``main_trials`` main towers."""
+    s, h = _session(client, pid)
+
+    def place(phase, trial, step, x, layer):
+        body = {"phase": phase, "trial": trial, "step": step}
+        assert client.post("/api/steps/start", json=body, headers=h).status_code == 200
+        reply = client.post("/api/placements", json={**body, "x": x, "layer": layer, "decision_time": 1.0}, headers=h)
+        assert reply.status_code == 200, reply.text
+        return reply.json()
+
+    for k, pt in enumerate(client.settings.practice, 1):
+        for step, (_, x, layer) in enumerate(pt.shown_tower[1:], 1):
+            place("practice", k, step, x, layer)
+    order = client.app.state.store.participant(pid).order
+    by_id = {t.id: t for t in client.settings.tasks}
+    for trial in range(1, main_trials + 1):
+        for step in range(1, len(by_id[order[trial - 1]].sequence)):
+            if place("main", trial, step, 0.0, step)["trial_over"]:
+                break
+    return s, h
+
+
+@pytest.fixture
+def overrides(tmp_path):
+    return [f"run_dir={tmp_path}", "tasks.only=[paper03,paper00]", "physics_processes=0"]
+
+
+def test_every_placement_and_exported_record_carries_the_version_commit_and_settings_hashes(overrides):
+    from overhang_framework.experiment.export import log_records
+    from overhang_framework.experiment.provenance import digest, hashes, study_settings, task_set
+    from overhang_framework.version import versions
+
+    client = _serve_app(overrides)
+    _play(client, "P1")
+    store = client.app.state.store
+    want = {**versions(), **hashes(client.settings)}
+    assert want["settings_hash"] == digest(study_settings(client.settings))
+    assert want["tasks_hash"] == digest(task_set(client.settings))
+    rows = store.placements("P1")
+    assert rows and all({k: getattr(r, k) for k in want} == want for r in rows)
+    records, _ = log_records(store)
+    assert records and all({k: r[k] for k in want} == want for r in records)
+    assert {r["consent_version"] for r in records} == {client.settings.consent_version}
+    assert all(r["consented_at"] for r in records)
+    study = store.study()
+    assert study.settings == json.loads(json.dumps(study_settings(client.settings)))
+    assert (study.settings_hash, study.tasks_hash) == (want["settings_hash"], want["tasks_hash"])
+
+
+def test_a_restart_with_settings_participants_see_is_refused_in_one_line_and_an_allowed_change_is_recorded(
+        overrides, capsys):
+    from overhang_framework.errors import ConfigError
+    from overhang_framework.experiment.__main__ import main
+
+    first = _serve_app(overrides)
+    _play(first, "P1")
+    old_hash = first.app.state.store.study().settings_hash
+    first.app.state.store.close()
+    # where the server listens and how many processes it runs change nothing a participant sees
+    _serve_app([*overrides, "port=8123", "workers=1", "keep_alive=30"]).app.state.store.close()
+    with pytest.raises(ConfigError, match=r"tasks: .* -> .*; time_limit: 5\.0 -> 4\.0\); .*allow_settings_change=true"):
+        _serve_app([*overrides[:1], "tasks.only=[paper03,paper01]", "physics_processes=0", "time_limit=4"])
+    # the command line says it in one line, before it listens
+    assert main([*overrides, "time_limit=4", f"admin_token={ADMIN}", "port=0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: the study in this database runs with other settings "
+                                                   "(time_limit: 5.0 -> 4.0)")
+    changed = _serve_app([*overrides, "time_limit=4", "allow_settings_change=true"])
+    store = changed.app.state.store
+    study = store.study()
+    events = [e for e in study.history if e["what"] == "settings"]
+    assert len(events) == 1 and events[0]["changes"] == ["time_limit: 5.0 -> 4.0"] and events[0]["at"]
+    assert [e["changes"] for e in study.history if e["what"] == "address"] == [
+        ["address: http://127.0.0.1:8000 -> http://127.0.0.1:8123"],
+        ["address: http://127.0.0.1:8123 -> http://127.0.0.1:8000"]]
+    assert study.settings_hash != old_hash and study.settings["time_limit"] == 4.0
+    _play(changed, "P2")
+    hashes = {(r.participant_id, r.settings_hash) for r in store.placements()}
+    assert hashes == {("P1", old_hash), ("P2", study.settings_hash)}
+    # the same changed settings again are no change
+    again = _serve_app([*overrides, "time_limit=4"])
+    assert len(again.app.state.store.study().history) == len(study.history)
+
+
+def test_a_changed_consent_text_is_a_change_of_settings(overrides, tmp_path):
+    from overhang_framework.errors import ConfigError
+
+    _serve_app(overrides).app.state.store.close()
+    text = tmp_path / "consent.html"
+    text.write_text("<p>Other words.</p>")
+    with pytest.raises(ConfigError, match=r"consent_version: sha256:[0-9a-f]{16} -> sha256:[0-9a-f]{16}"):
+        _serve_app([*overrides, f"consent_file={text}"])
+    with pytest.raises(ConfigError, match=r"consent_file: cannot read .*nowhere\.html"):
+        load_settings([*overrides, f"consent_file={tmp_path / 'nowhere.html'}", f"admin_token={ADMIN}"])
+
+
+def test_consent_is_stored_with_its_time_and_version_and_nothing_is_placed_before_it(overrides):
+    client = _serve_app(overrides)
+    s, h = _session(client, "P1", consent=False)
+    assert s["consent"]["html"] == client.settings.consent_html and "I agree" in s["consent"]["html"]
+    assert s["consent"]["given"] is False
+    body = {"phase": "practice", "trial": 1, "step": 1}
+    refused = client.post("/api/steps/start", json=body, headers=h)
+    assert refused.status_code == 403 and refused.json()["reason"] == "no_consent"
+    refused = client.post("/api/placements", json={**body, "x": 0.0, "layer": 1, "decision_time": 1.0}, headers=h)
+    assert refused.status_code == 403 and "POST /api/consent first" in refused.json()["error"]
+    stale = client.post("/api/consent", json={"version": "sha256:0000000000000000"}, headers=h)
+    assert stale.status_code == 409 and "reload the page" in stale.json()["error"]
+    agreed = client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h).json()
+    assert agreed["consent_version"] == client.settings.consent_version
+    p = client.app.state.store.participant("P1")
+    assert p.consent_version == client.settings.consent_version and p.consented_at is not None
+    again = client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h).json()
+    assert again == agreed  # the first record stays
+    assert client.get("/api/session", headers=h).json()["consent"]["given"] is True
+    assert client.post("/api/steps/start", json=body, headers=h).status_code == 200
+
+
+def test_withdraw_deletes_a_participant_from_the_database_and_every_later_export_and_keeps_a_count(
+        overrides, tmp_path, capsys):
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.experiment.__main__ import main
+
+    client = _serve_app(overrides)
+    for pid in ("P1", "P2", "P3"):
+        _play(client, pid)
+    store = client.app.state.store
+    out = tmp_path / "before" / "log.jsonl"
+    out.parent.mkdir()
+    assert main(["export", "--out", str(out), *overrides]) == 0
+    assert set(read_log(out).participant) == {"P1", "P2", "P3"}
+    capsys.readouterr()
+    assert main(["withdraw", "P2", *overrides]) == 2
+    assert "add --yes" in capsys.readouterr().err and store.participant("P2") is not None
+    n = len(store.placements("P2"))
+    assert main(["withdraw", "P2", "--yes", *overrides]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"withdrew participant P2: deleted them with {n} placement(s)") and "1 withdrawn" in err
+    assert store.participant("P2") is None and store.placements("P2") == []
+    assert store.clock("P2", "practice", 1, 1, 1) is None
+    after = tmp_path / "after" / "log.jsonl"
+    after.parent.mkdir()
+    assert main(["export", "--out", str(after), *overrides]) == 0
+    assert set(read_log(after).participant) == {"P1", "P3"}
+    study = json.loads((after.parent / "study.json").read_text())
+    assert study["participants"]["withdrawn"] == 1 and study["participants"]["total"] == 2
+    assert "P2" not in (after.parent / "study.json").read_text()
+    capsys.readouterr()
+    assert main(["withdraw", "P2", "--yes", *overrides]) == 2
+    assert capsys.readouterr().err == "error: no participant 'P2' (withdrawn already, or never started)\n"
+    # through a running server, with the admin token
+    reply = client.post("/api/admin/participants/P3/withdraw", headers={"X-Admin-Token": ADMIN})
+    assert reply.status_code == 200 and reply.json()["withdrawn"] == 2
+    assert client.get("/api/admin/study", headers={"X-Admin-Token": ADMIN}).json()["participants"]["withdrawn"] == 2
+    assert client.post("/api/admin/participants/P3/withdraw").status_code in (401, 403)
+
+
+def test_the_export_sidecar_holds_the_settings_versions_and_the_first_and_last_participant(overrides, tmp_path):
+    from overhang_framework.experiment.__main__ import main
+    from overhang_framework.experiment.provenance import study_settings
+    from overhang_framework.experiment.store import utc_iso
+    from overhang_framework.version import versions
+
+    client = _serve_app(overrides)
+    for pid in ("P1", "P2"):
+        _play(client, pid)
+    people = client.app.state.store.participants()
+    out = tmp_path / "export" / "log.jsonl"
+    out.parent.mkdir()
+    assert main(["export", "--out", str(out), *overrides]) == 0
+    study = json.loads((out.parent / "study.json").read_text())
+    assert study["study"]["settings"] == json.loads(json.dumps(study_settings(client.settings)))
+    assert {k: study["study"][k] for k in ("framework_version", "commit")} == versions()
+    assert study["exported_with"] == versions()
+    created = sorted(utc_iso(p.created_at) for p in people)
+    assert (study["first_participant"], study["last_participant"]) == (created[0], created[-1])
+    assert study["participants"]["by_condition"] == {c: sum(p.condition == c for p in people)
+                                                     for c in {p.condition for p in people}}
+    assert study == client.get("/api/admin/study", headers={"X-Admin-Token": ADMIN}).json()
+
+
+def test_reissue_takes_the_public_address_stored_with_the_study(overrides, capsys):
+    from overhang_framework.experiment.__main__ import main
+
+    client = _serve_app([*overrides, "public_url=https://study.example.org/tower"])
+    _session(client, "P1")
+    client.app.state.store.close()
+    assert main(["reissue", "P1", *overrides]) == 0  # no public_url given: the stored one
+    out = capsys.readouterr()
+    assert out.out.startswith("https://study.example.org/tower/?participant=P1&token=") and "note:" not in out.err
+    assert main(["reissue", "P1", *overrides, "public_url=https://elsewhere.example.org"]) == 0
+    assert capsys.readouterr().out.startswith("https://elsewhere.example.org/?participant=P1&token=")
+
+
+def test_reissue_without_a_public_url_takes_the_address_the_server_listened_on(overrides, capsys):
+    from overhang_framework.experiment.__main__ import main
+
+    client = _serve_app([*overrides, "port=8123"])
+    _session(client, "P1")
+    client.app.state.store.close()
+    assert main(["reissue", "P1", *overrides]) == 0  # the command line's port is 8000: the stored one counts
+    out = capsys.readouterr()
+    assert out.out.startswith("http://127.0.0.1:8123/?participant=P1&token=")
+    assert "note: the link starts with http://127.0.0.1:8123" in out.err
