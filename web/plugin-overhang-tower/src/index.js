@@ -110,9 +110,11 @@ class OverhangTowerPlugin {
   simulate(trial, simulation_mode, simulation_options, load_callback) {
     const participant = new SimulatedParticipant(this.jsPsych, simulation_options?.data?.placements);
     if (simulation_mode === "visual") {
-      new TowerTrial(this.jsPsych, this.jsPsych.getDisplayElement(), trial, participant).start();
-      load_callback();
-      return undefined;
+      // settles only by failing: the trial itself ends with finishTrial
+      return new Promise((_, reject) => {
+        new TowerTrial(this.jsPsych, this.jsPsych.getDisplayElement(), trial, { participant, fail: reject }).start();
+        load_callback();
+      });
     }
     // the planned placements are sent, so the data keeps them as sent (with their pointer paths)
     const { placements, ...overrides } = simulation_options?.data ?? {};
@@ -123,11 +125,13 @@ class OverhangTowerPlugin {
 }
 
 class TowerTrial {
-  constructor(jsPsych, root, params, participant = null) {
+  /** `participant` (with `fail(error)`, called when it cannot go on) plays the trial in a simulation. */
+  constructor(jsPsych, root, params, { participant = null, fail = null } = {}) {
     this.jsPsych = jsPsych;
     this.root = root;
     this.params = params;
     this.participant = participant;
+    this.fail = fail;
     this.grid = { ...DEFAULT_GRID, ...params.grid };
     this.record = new TrialRecord(params);
     this.step = params.step;
@@ -295,9 +299,14 @@ class TowerTrial {
 
   /** The simulated participant's decision, made with the pointer: moves over the canvas, then a click. */
   act(allowed) {
-    const choice = this.participant.decide({
-      tower: this.tower, width: this.sequence[this.step], grid: this.grid, allowed,
-    });
+    let choice;
+    try {
+      choice = this.participant.decide({ tower: this.tower, width: this.sequence[this.step], grid: this.grid, allowed });
+    } catch (error) {
+      this.cleanUp();
+      this.fail(error);
+      return;
+    }
     const point = this.participant.startPoint(this.grid);
     const aim = choice.timed_out ? point : { x: choice.x, z: (choice.layer + 0.5) * this.grid.block_height };
     const ms = choice.decision_time * 1000;

@@ -335,6 +335,14 @@ describe("overhang-tower simulation", () => {
     await expect(run).rejects.toThrow(/placements\[0\].*must rest on a block/);
   });
 
+  test("visual: an illegal planned placement is refused with its reason", async () => {
+    const run = initJsPsych().simulate(
+      [{ type: OverhangTowerPlugin, sequence: SEQUENCE, place: physics(), simulation_options: { data: { placements: [{ x: 0, layer: 2 }] } } }],
+      "visual",
+    );
+    await expect(run).rejects.toThrow(/placements\[0\].*must rest on a block/);
+  });
+
   test("data-only: begin_step's clock is honoured", async () => {
     const place = physics();
     const begin_step = jest.fn(async () => ({ time_left: 0.001, sequence: SEQUENCE }));
