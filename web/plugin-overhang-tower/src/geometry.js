@@ -57,6 +57,18 @@ export function restingPoses(tower, grid = DEFAULT_GRID) {
   return tower.map(([, x, layer]) => [x, (layer + 0.5) * grid.block_height, 0]);
 }
 
+/**
+ * Where the preview of a block of `width` goes for a pointer at task coordinates {x, z}: x kept
+ * inside the grid and rounded to 0.001, the layer under the pointer; null above the grid.
+ */
+export function previewPosition(point, width, grid = DEFAULT_GRID) {
+  if (!point || point.z > grid.height) return null;
+  const limit = grid.half_width - width / 2;
+  const x = Math.round(Math.min(limit, Math.max(-limit, point.x)) * 1000) / 1000;
+  const layer = Math.min(grid.max_layer, Math.max(0, Math.floor(point.z / grid.block_height)));
+  return { x, layer };
+}
+
 export function groundTower(sequence) {
   return [[sequence[0], 0, 0]];
 }

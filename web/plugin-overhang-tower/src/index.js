@@ -1,10 +1,15 @@
 import { ParameterType } from "jspsych";
 
-import { DEFAULT_GRID, groundTower, illegalReason, overhang, restingPoses } from "./geometry.js";
+import { DEFAULT_GRID, illegalReason, overhang, previewPosition, restingPoses } from "./geometry.js";
+import { TrialRecord, framePoses } from "./record.js";
 import { TowerScene, fittingPixelsPerUnit } from "./scene.js";
+import { SimulatedParticipant, simulateData } from "./simulate.js";
 
-export { DEFAULT_GRID, groundTower, illegalReason, isLegal, overhang, restingPoses } from "./geometry.js";
+export {
+  DEFAULT_GRID, groundTower, illegalReason, isLegal, overhang, previewPosition, restingPoses,
+} from "./geometry.js";
 export { COLORS, TowerScene, fittingPixelsPerUnit, renderTower } from "./scene.js";
+export { SimulatedParticipant, choosePlacement } from "./simulate.js";
 
 const info = {
   name: "overhang-tower",
@@ -93,30 +98,58 @@ class OverhangTowerPlugin {
   trial(displayElement, trial) {
     new TowerTrial(this.jsPsych, displayElement, trial).start();
   }
+
+  /**
+   * Runs the trial without a person. `data-only`: a simulated participant's placements go to
+   * `place` (and `begin_step`, when given) as the page would send them, and the trial's data is
+   * built from the outcomes, with `simulation_options.data` laid over it. `visual`: the trial runs
+   * on the page and the simulated participant moves the pointer and clicks. In both modes
+   * `simulation_options.data.placements`, when given, are the decisions made in turn (`{x, layer}`,
+   * `{timed_out: true}`, optionally `decision_time`); later decisions are the participant's own.
+   */
+  simulate(trial, simulation_mode, simulation_options, load_callback) {
+    const participant = new SimulatedParticipant(this.jsPsych, simulation_options?.data?.placements);
+    if (simulation_mode === "visual") {
+      // settles only by failing: the trial itself ends with finishTrial
+      return new Promise((_, reject) => {
+        new TowerTrial(this.jsPsych, this.jsPsych.getDisplayElement(), trial, { participant, fail: reject }).start();
+        load_callback();
+      });
+    }
+    // the planned placements are sent, so the data keeps them as sent (with their pointer paths)
+    const { placements, ...overrides } = simulation_options?.data ?? {};
+    return simulateData(trial, participant).then((data) => {
+      this.jsPsych.finishTrial(this.jsPsych.pluginAPI.mergeSimulationData(data, { data: overrides }));
+    });
+  }
 }
 
 class TowerTrial {
-  constructor(jsPsych, root, params) {
+  /** `participant` (with `fail(error)`, called when it cannot go on) plays the trial in a simulation. */
+  constructor(jsPsych, root, params, { participant = null, fail = null } = {}) {
     this.jsPsych = jsPsych;
     this.root = root;
     this.params = params;
+    this.participant = participant;
+    this.fail = fail;
     this.grid = { ...DEFAULT_GRID, ...params.grid };
-    this.sequence = params.sequence?.length ? params.sequence : null;
-    this.tower = (params.tower?.length ? params.tower : this.sequence ? groundTower(this.sequence) : []).map(
-      (block) => [...block],
-    );
+    this.record = new TrialRecord(params);
     this.step = params.step;
-    this.startStep = params.step;
-    this.startTower = this.tower.map((block) => [...block]);
     this.placedCount = this.tower.length;
     this.shownPoses = null;
-    this.placements = [];
-    this.outcomes = [];
     this.pointer = null;
     this.ghost = null;
     this.decision = null;
     this.timers = new Set();
     this.frameRequest = null;
+  }
+
+  get tower() {
+    return this.record.tower;
+  }
+
+  get sequence() {
+    return this.record.sequence;
   }
 
   start() {
@@ -136,10 +169,7 @@ class TowerTrial {
     const limit = this.params.time_limit;
     if (!this.params.begin_step) return limit;
     const clock = await this.params.begin_step({ step: this.step });
-    if (Array.isArray(clock?.sequence)) {
-      this.sequence = clock.sequence;
-      if (!this.tower.length) this.tower = groundTower(this.sequence);
-    }
+    if (Array.isArray(clock?.sequence)) this.record.setSequence(clock.sequence);
     if (limit == null) return null;
     return typeof clock?.time_left === "number" ? clock.time_left : limit;
   }
@@ -264,6 +294,40 @@ class TowerTrial {
       this.decision.deadline = this.later(() => this.timeOut(), Math.max(0, allowed) * 1000);
       this.showTimeLeft();
     }
+    if (this.participant) this.act(allowed);
+  }
+
+  /** The simulated participant's decision, made with the pointer: moves over the canvas, then a click. */
+  act(allowed) {
+    let choice;
+    try {
+      choice = this.participant.decide({ tower: this.tower, width: this.sequence[this.step], grid: this.grid, allowed });
+    } catch (error) {
+      this.cleanUp();
+      this.fail(error);
+      return;
+    }
+    const point = this.participant.startPoint(this.grid);
+    const aim = choice.timed_out ? point : { x: choice.x, z: (choice.layer + 0.5) * this.grid.block_height };
+    const ms = choice.decision_time * 1000;
+    this.later(() => this.pointAt("pointermove", point), 0);
+    this.later(() => this.pointAt("pointermove", { x: (point.x + aim.x) / 2, z: (point.z + aim.z) / 2 }), ms * 0.3);
+    this.later(() => this.pointAt("pointermove", aim), ms * 0.6);
+    if (!choice.timed_out) this.later(() => this.pointAt("click", aim), ms);
+    else if (allowed == null) this.later(() => this.timeOut(), ms);
+  }
+
+  pointAt(type, { x, z }) {
+    const rect = this.canvas.getBoundingClientRect();
+    const { scene } = this;
+    const Pointer = type !== "click" && typeof PointerEvent === "function" ? PointerEvent : MouseEvent;
+    this.canvas.dispatchEvent(
+      new Pointer(type, {
+        bubbles: true,
+        clientX: rect.left + scene.originX + x * scene.ppu,
+        clientY: rect.top + scene.originY - z * scene.ppu,
+      }),
+    );
   }
 
   elapsed() {
@@ -303,11 +367,10 @@ class TowerTrial {
   /** The preview for the current pointer: x clamped into the grid, the layer under the pointer. */
   ghostAt(point) {
     const { grid } = this;
-    if (!point || point.z > grid.height) return null;
     const width = this.sequence[this.step];
-    const limit = grid.half_width - width / 2;
-    const x = round(Math.min(limit, Math.max(-limit, point.x)));
-    const layer = Math.min(grid.max_layer, Math.max(0, Math.floor(point.z / grid.block_height)));
+    const position = previewPosition(point, width, grid);
+    if (!position) return null;
+    const { x, layer } = position;
     const reason = illegalReason(this.tower, width, x, layer, grid);
     return { width, x, layer, legal: reason === null, reason };
   }
@@ -413,32 +476,23 @@ class TowerTrial {
   }
 
   async applyOutcome(sent, outcome) {
-    // a placement that reached the server after the time ran out counts as a timeout
-    const payload = outcome.timed_out && !sent.timed_out ? { ...sent, x: null, layer: null, timed_out: true, late: true } : sent;
-    this.placements.push(payload);
-    const { frames, ...rest } = outcome;
-    this.outcomes.push({ ...rest, frame_count: frames?.poses?.length ?? 0 });
+    const { payload, placed, stands, trialOver } = this.record.add(sent, outcome);
     if (!payload.timed_out) this.placedCount += 1;
-
-    const placed = payload.timed_out
-      ? this.tower
-      : [...this.tower, [this.sequence[payload.step], payload.x, payload.layer]];
+    const { frames } = outcome;
     const poses = frames?.poses ?? [];
-    const widths = placed.map(([w]) => w);
-    const asBlocks = (frame) => frame.slice(0, widths.length).map((pose, i) => [widths[i], ...pose]);
+    const asBlocks = (frame) => framePoses(placed, frame);
 
     if (poses.length > 1) {
       this.setState("animating");
       await this.animate(poses.map(asBlocks), frames.fps || 30);
     }
-    if (!payload.timed_out && outcome.stable) {
-      this.tower = placed;
+    if (stands) {
+      this.record.keep(placed);
       this.shownPoses = null;
     } else if (poses.length) {
       this.shownPoses = asBlocks(poses.at(-1));
     }
 
-    const trialOver = outcome.trial_over || payload.timed_out || !outcome.stable;
     this.updateScores(outcome.overhang ?? overhang(this.tower), trialOver ? outcome.reward ?? 0 : null);
     if (trialOver) {
       this.finishTask(payload, outcome);
@@ -484,7 +538,8 @@ class TowerTrial {
     this.message.classList.toggle("ot-bad", Boolean(payload.timed_out || !outcome.stable));
     this.stepText.textContent = "Trial over";
     this.timerText.hidden = true;
-    this.addButton(this.params.continue_label, "continue", () => this.end(outcome));
+    const button = this.addButton(this.params.continue_label, "continue", () => this.end(outcome));
+    if (this.participant) this.later(() => button.click(), this.participant.readingTime() * 1000);
   }
 
   addButton(label, testid, onClick) {
@@ -499,24 +554,12 @@ class TowerTrial {
     });
     this.actions.replaceChildren(button);
     button.focus();
+    return button;
   }
 
   end(outcome) {
     this.cleanUp();
-    const last = this.placements.at(-1);
-    this.jsPsych.finishTrial({
-      sequence: this.sequence,
-      start_step: this.startStep,
-      start_tower: this.startTower,
-      placements: this.placements,
-      outcomes: this.outcomes,
-      reward: outcome.reward ?? 0,
-      overhang: outcome.overhang ?? null,
-      stable: this.outcomes.every((o) => o.stable !== false) && !last.timed_out,
-      timed_out: Boolean(last.timed_out),
-      final_tower: this.tower,
-      final_poses: this.shownPoses ?? this.blocksAtRest(),
-    });
+    this.jsPsych.finishTrial(this.record.data(outcome, this.grid, this.shownPoses));
   }
 
   cleanUp() {
