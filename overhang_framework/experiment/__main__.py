@@ -2,6 +2,7 @@
 
     python -m overhang_framework.experiment [OVERRIDES...]                  # serve on localhost
     python -m overhang_framework.experiment export --out log.jsonl [OVERRIDES...] [--url URL]
+    python -m overhang_framework.experiment export --format psych-ds --out DIR [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment reissue PARTICIPANT [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment build                            # (re)build web/dist
 
@@ -118,33 +119,54 @@ def _ask_server(args, method: str, path: str, timeout: float):
 
 def _export(args) -> int:
     from overhang_framework.behaviour.log import count_noun
+    from overhang_framework.experiment.export import FORMATS
     from overhang_framework.preflight import check_writable
-    from overhang_framework.results import atomic_write_text
+    from overhang_framework.results import atomic_write_text, json_line
 
+    if args.format not in FORMATS:
+        print(f"error: --format {args.format}: unknown format; formats: {', '.join(FORMATS)}", file=sys.stderr)
+        return 2
     if args.url and args.include_screened_out:
         print("error: --include-screened-out reads the database; leave out --url", file=sys.stderr)
         return 2
-    check_writable(Path(args.out).absolute().parent, "--out FILE")
+    out = Path(args.out)
+    check_writable(out.absolute().parent, "--out FILE" if args.format == "jsonl" else "--out DIR")
+    if args.format == "psych-ds":
+        from overhang_framework.behaviour.psychds import check_out
+
+        check_out(out)  # before the database is read: an --out that cannot take a dataset is said at once
     if args.url:
         reply = _ask_server(args, "GET", "/api/admin/export", timeout=120)
         if reply is None:
             return 2
         text, unfinished = reply.text, None
+        records = [json_line(line) for line in text.splitlines() if line.strip()]
     else:
-        from overhang_framework.experiment.export import export_jsonl
+        from overhang_framework.experiment.export import log_records
         from overhang_framework.experiment.settings import load_settings
 
         settings = load_settings(args.overrides, need_admin_token=False)
         store = _open_store(settings)
         if store is None:
             return 2
-        text, unfinished = export_jsonl(store, include_screened_out=args.include_screened_out)
-        store.close()
-    atomic_write_text(args.out, text)
-    timeouts = sum(bool(json.loads(line).get("timed_out")) for line in text.splitlines() if line.strip())
-    placements = sum(1 for line in text.splitlines() if line.strip()) - timeouts
+        try:
+            records, unfinished = log_records(store, include_screened_out=args.include_screened_out)
+        finally:
+            store.close()
+    if args.format == "psych-ds":
+        from overhang_framework.experiment.export import write_psychds
+
+        files = write_psychds(records, out)
+        where = f"{args.out} (Psych-DS, {count_noun(len(files), 'data file')})"
+    else:
+        from overhang_framework.behaviour.log import log_text
+
+        atomic_write_text(out, text if args.url else log_text(records))
+        where = args.out
+    timeouts = sum(bool(r.get("timed_out")) for r in records)
+    placements = len(records) - timeouts
     extra = "" if not unfinished else f"; {unfinished} unfinished trial(s) left out"
-    print(f"wrote {args.out}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}",
+    print(f"wrote {where}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}",
           file=sys.stderr)
     return 0
 
@@ -213,7 +235,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         parser.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
     parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
     if command == "export":
-        parser.add_argument("--out", required=True, help="the behaviour log to write (JSON Lines)")
+        parser.add_argument("--out", required=True,
+                            help="the behaviour log to write (JSON Lines), or with --format psych-ds the dataset's "
+                                 "folder (new, empty, or an earlier export, which is replaced)")
+        parser.add_argument("--format", default="jsonl", metavar="|".join(("jsonl", "psych-ds")),
+                            help="jsonl (default): one behaviour-log file; psych-ds: a Psych-DS dataset folder")
         parser.add_argument("--include-screened-out", action="store_true",
                             help="add the practice attempts of participants screened out in the practice")
     if command in ("export", "reissue"):
