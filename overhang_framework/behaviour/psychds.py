@@ -399,6 +399,8 @@ def data_files(root: str | os.PathLike) -> list[Path]:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    from overhang_framework.behaviour.log import count_noun
+
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.behaviour.psychds",
                                  description="Check that folders are valid Psych-DS datasets; print what is wrong.")
     ap.add_argument("datasets", nargs="+", metavar="DIR", help="a dataset's folder (with dataset_description.json)")
@@ -409,7 +411,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         for line in problems:
             print(f"{root}: {line}", file=sys.stderr)
         if not problems:
-            print(f"{root}: a valid Psych-DS dataset ({len(data_files(root))} data files)")
+            print(f"{root}: a valid Psych-DS dataset ({count_noun(len(data_files(root)), 'data file')})")
         bad += bool(problems)
     return 2 if bad else 0
 
