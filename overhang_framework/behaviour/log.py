@@ -528,8 +528,9 @@ def _read_csv(path: Path) -> list[tuple[str, dict]]:
 
 def read_log(paths: Union[PathLike, Sequence[PathLike]]) -> pd.DataFrame:
     """The behaviour log in ``paths`` (one file or several; ``.csv`` files as CSV, folders as Psych-DS
-    datasets (:mod:`~overhang_framework.behaviour.psychds`), others as JSON Lines) as a DataFrame: one row per record, sorted by participant, trial and step (:data:`ORDER`) whatever
-    the order of the lines and files, columns :data:`COLUMNS` (dtypes :data:`DTYPES`) then extra fields.
+    datasets (:mod:`~overhang_framework.behaviour.psychds`), others as JSON Lines) as a DataFrame: one
+    row per record, sorted by participant, trial and step (:data:`ORDER`) whatever the order of the lines
+    and files, columns :data:`COLUMNS` (dtypes :data:`DTYPES`) then extra fields.
     Blank lines are skipped; anything else that is not a valid record raises :class:`LogError` naming
     the file, the line and the field."""
     files = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)

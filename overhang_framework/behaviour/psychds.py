@@ -84,7 +84,8 @@ class Variable:
 #: The unit of each log field that has one (task units: a block is 0.6 high; the grid runs from -4 to 4).
 _UNITS = {"width": "task units", "x": "task units", "overhang": "task units", "reward": "task units",
           "decision_time": "seconds", "sequence": "task units", "tower_before": "task units",
-          "trajectory": "seconds and task units", "dwell": "task units and seconds", "layer": "layers of 0.6 task units"}
+          "trajectory": "seconds and task units", "dwell": "task units and seconds",
+          "layer": "layers of 0.6 task units"}
 _KINDS = {"array": "list", "integer": "integer", "number": "number", "boolean": "boolean", "string": "string"}
 
 
