@@ -470,4 +470,4 @@ def test_the_docs_examples_run_and_print_what_the_docs_show(tmp_path, monkeypatc
             assert all(line in printed for line in shown), (shown, before)
     example = next(code for kind, code in blocks if kind == "json")
     assert example == (tmp_path / "log.jsonl").read_text().splitlines()[0] + "\n"
-    assert sum(kind == "text" for kind, _ in blocks) == 6
+    assert sum(kind == "text" for kind, _ in blocks) == 8

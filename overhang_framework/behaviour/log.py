@@ -6,7 +6,7 @@ was before, what happened after, and how long the decision took (the fields:
 record: ``schema.json`` beside this module). This module reads and writes
 logs and checks them:
 
-* :func:`read_log` reads JSON Lines (``.jsonl``) or CSV (``.csv``) files into
+* :func:`read_log` reads JSON Lines (``.jsonl``) or CSV (``.csv``) files (or Psych-DS folders) into
   a DataFrame, one row per record sorted by :data:`ORDER` (participant, trial,
   step) whatever the order of the lines, columns :data:`COLUMNS` then any extra
   fields in the order they first appear in those sorted records;
@@ -527,12 +527,17 @@ def _read_csv(path: Path) -> list[tuple[str, dict]]:
 
 
 def read_log(paths: Union[PathLike, Sequence[PathLike]]) -> pd.DataFrame:
-    """The behaviour log in ``paths`` (one file or several; ``.csv`` files as CSV, others as JSON Lines)
-    as a DataFrame: one row per record, sorted by participant, trial and step (:data:`ORDER`) whatever
-    the order of the lines and files, columns :data:`COLUMNS` (dtypes :data:`DTYPES`) then extra fields.
+    """The behaviour log in ``paths`` (one file or several; ``.csv`` files as CSV, folders as Psych-DS
+    datasets (:mod:`~overhang_framework.behaviour.psychds`), others as JSON Lines) as a DataFrame: one
+    row per record, sorted by participant, trial and step (:data:`ORDER`) whatever the order of the lines
+    and files, columns :data:`COLUMNS` (dtypes :data:`DTYPES`) then extra fields.
     Blank lines are skipped; anything else that is not a valid record raises :class:`LogError` naming
     the file, the line and the field."""
     files = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    if any(Path(name).is_dir() for name in files):
+        from overhang_framework.behaviour.psychds import data_files
+
+        files = [f for name in files for f in (data_files(name) if Path(name).is_dir() else [name])]
     entries: list[tuple[str, dict]] = []
     for name in files:
         path = Path(name)

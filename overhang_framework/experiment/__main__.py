@@ -2,6 +2,7 @@
 
     python -m overhang_framework.experiment [OVERRIDES...]                  # serve on localhost
     python -m overhang_framework.experiment export --out log.jsonl [OVERRIDES...] [--url URL]
+    python -m overhang_framework.experiment export --format psych-ds --out DIR [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment reissue PARTICIPANT [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment withdraw PARTICIPANT --yes [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment build                            # (re)build web/dist
@@ -42,7 +43,6 @@ def _serve(overrides: Sequence[str]) -> int:
     settings = load_settings(overrides)
     check_writable(settings.run_dir, "run_dir=DIR")
     _check_port(settings.host, settings.port)
-    web_dir = ensure_built(settings.web_dir)
     # one server a run_dir: a second would share the database with other settings, and balance the
     # conditions and hand out the session tokens of its own
     busy = (f"another server is serving the study in {settings.run_dir}; stop it first, or give this one "
@@ -52,15 +52,17 @@ def _serve(overrides: Sequence[str]) -> int:
 
         store = Store(settings.database)  # the tables, made once before the server processes open the database
         try:
+            known = len(getattr(store.study(), "history", None) or [])
             study = begin_study(settings, store)  # refused when the study runs with other settings
             address = public_address(settings, store)
         finally:
             store.close()
+        web_dir = ensure_built(settings.web_dir)
         db = settings.database.split("://")[0]
-        changed = [e for e in study.history if e["what"] == "settings"]
-        if changed and settings.allow_settings_change:
-            print(f"experiment: the study's settings changed ({'; '.join(changed[-1]['changes'])}); recorded "
-                  "with the study", file=sys.stderr)
+        for event in study.history[known:]:
+            if event["what"] == "settings":
+                print(f"experiment: the study's settings changed ({'; '.join(event['changes'])}); recorded with "
+                      "the study", file=sys.stderr)
         print(f"experiment: {address}/?participant=P1  (database {db}, "
               f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)}, "
               f"{settings.workers} server process(es))", file=sys.stderr)
@@ -132,21 +134,31 @@ def _ask_server(args, method: str, path: str, timeout: float):
 
 def _export(args) -> int:
     from overhang_framework.behaviour.log import count_noun
-    from overhang_framework.experiment.export import export_jsonl, study_json
+    from overhang_framework.experiment.export import FORMATS, study_json, study_text
     from overhang_framework.preflight import check_writable
-    from overhang_framework.results import atomic_write_text
+    from overhang_framework.results import atomic_write_text, json_line
 
+    if args.format not in FORMATS:
+        print(f"error: --format {args.format}: unknown format; formats: {', '.join(FORMATS)}", file=sys.stderr)
+        return 2
     if args.url and args.include_screened_out:
         print("error: --include-screened-out reads the database; leave out --url", file=sys.stderr)
         return 2
-    check_writable(Path(args.out).absolute().parent, "--out FILE")
+    out = Path(args.out)
+    check_writable(out.absolute().parent, "--out FILE" if args.format == "jsonl" else "--out DIR")
+    if args.format == "psych-ds":
+        from overhang_framework.behaviour.psychds import check_out
+
+        check_out(out)  # before the database is read: an --out that cannot take a dataset is said at once
     if args.url:
         reply = _ask_server(args, "GET", "/api/admin/export", timeout=120)
         study = _ask_server(args, "GET", "/api/admin/study", timeout=60) if reply is not None else None
         if study is None:
             return 2
         text, unfinished, study = reply.text, None, study.json()
+        records = [json_line(line) for line in text.splitlines() if line.strip()]
     else:
+        from overhang_framework.experiment.export import log_records
         from overhang_framework.experiment.settings import load_settings
 
         settings = load_settings(args.overrides, need_admin_token=False)
@@ -154,17 +166,27 @@ def _export(args) -> int:
         if store is None:
             return 2
         try:
-            text, unfinished = export_jsonl(store, include_screened_out=args.include_screened_out)
+            records, unfinished = log_records(store, include_screened_out=args.include_screened_out)
             study = study_json(store)
         finally:
             store.close()
-    sidecar = Path(args.out).absolute().parent / "study.json"
-    atomic_write_text(args.out, text)
-    atomic_write_text(sidecar, json.dumps(study, indent=2, sort_keys=True) + "\n")
-    timeouts = sum(bool(json.loads(line).get("timed_out")) for line in text.splitlines() if line.strip())
-    placements = sum(1 for line in text.splitlines() if line.strip()) - timeouts
+    if args.format == "psych-ds":
+        from overhang_framework.experiment.export import write_psychds
+
+        files = write_psychds(records, out, study)
+        where = f"{args.out} (Psych-DS, {count_noun(len(files), 'data file')})"
+        sidecar = out / "study.json"
+    else:
+        from overhang_framework.behaviour.log import log_text
+
+        sidecar = out.absolute().parent / "study.json"
+        atomic_write_text(out, text if args.url else log_text(records))
+        atomic_write_text(sidecar, study_text(study))
+        where = args.out
+    timeouts = sum(bool(r.get("timed_out")) for r in records)
+    placements = len(records) - timeouts
     extra = "" if not unfinished else f"; {unfinished} unfinished trial(s) left out"
-    print(f"wrote {args.out}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}; "
+    print(f"wrote {where}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}; "
           f"the study's settings and versions in {sidecar}", file=sys.stderr)
     return 0
 
@@ -269,7 +291,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         parser.add_argument("--yes", action="store_true", help="delete them (for good)")
     parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
     if command == "export":
-        parser.add_argument("--out", required=True, help="the behaviour log to write (JSON Lines)")
+        parser.add_argument("--out", required=True,
+                            help="the behaviour log to write (JSON Lines), or with --format psych-ds the dataset's "
+                                 "folder (new, empty, or an earlier export, which is replaced)")
+        parser.add_argument("--format", default="jsonl", metavar="|".join(("jsonl", "psych-ds")),
+                            help="jsonl (default): one behaviour-log file; psych-ds: a Psych-DS dataset folder")
         parser.add_argument("--include-screened-out", action="store_true",
                             help="add the practice attempts of participants screened out in the practice")
     if command in ("export", "reissue", "withdraw"):

@@ -25,10 +25,54 @@ recorded changes, and the dates of the first and last participant.
 
 from __future__ import annotations
 
-from typing import Optional
+from pathlib import Path
+from typing import Iterable, Mapping, Optional
 
 from overhang_framework.behaviour.log import LOG_VERSION, log_text
+from overhang_framework.behaviour.psychds import Variable, log_variables, write_dataset
 from overhang_framework.experiment.store import Store, utc_iso
+
+#: The export's formats: a behaviour log file (JSON Lines), or a Psych-DS dataset folder.
+FORMATS = ("jsonl", "psych-ds")
+
+#: The fields the export adds to the log's own (:func:`log_records`), described for a Psych-DS
+#: dataset's ``variableMeasured``. Every field a record can have must be here or among the log's own.
+EXPORT_VARIABLES: dict[str, Variable] = {
+    "page_decision_time": Variable(
+        "Seconds from the start of the decision to the placement as the participant's page measured them "
+        "(a reload of the page restarts this clock; decision_time is the server's).", "number", "seconds", 0,
+        optional=False),
+    "server_time": Variable(
+        "Seconds from when the server first handed the step out to when the placement arrived, not capped at the "
+        "time limit.", "number", "seconds", 0),
+    "late_action": Variable(
+        "The placement [x, layer] that arrived after the time limit and its grace, stored as a timeout; empty "
+        "when none did.", "list", "task units and layers"),
+    "study_id": Variable("The recruitment platform's study id (STUDY_ID); empty without one.", "string"),
+    "session_id": Variable("The recruitment platform's session id (SESSION_ID); empty without one.", "string"),
+    "received_at": Variable("When the server received the placement: ISO 8601 date and time, UTC.", "string"),
+    "phase": Variable(
+        "practice on the practice attempts of participants screened out in the practice (exported only when "
+        "asked); empty on the main trials.", "string"),
+    "practice_trial": Variable("The practice trial of the attempt (1 = first); empty on the main trials.",
+                               "integer", None, 1),
+    "attempt": Variable("The attempt at the practice trial (1 = first); empty on the main trials.",
+                        "integer", None, 1),
+    "consent_version": Variable(
+        "The version of the consent text the participant agreed to: sha256: and the first 16 hex digits of the "
+        "text's SHA-256 (the study's consent_file).", "string"),
+    "consented_at": Variable("When the server recorded the participant's consent: ISO 8601 date and time, UTC.",
+                             "string"),
+    "framework_version": Variable("The overhang-framework version of the server that stored the placement.",
+                                  "string"),
+    "commit": Variable("The git commit of the server's code that stored the placement (with -dirty when its files "
+                       "differed from it); empty when it did not run from a git checkout.", "string"),
+    "settings_hash": Variable(
+        "SHA-256 of the study's settings the placement was made under (what participants see and how they are "
+        "scored, the task set included; study.json has them in full).", "string"),
+    "tasks_hash": Variable("SHA-256 of the study's main task set (ids and block widths) the placement was made "
+                           "under.", "string"),
+}
 
 
 def decision_time(row, time_limit: Optional[float]) -> float:
@@ -92,6 +136,13 @@ def export_jsonl(store: Store, include_screened_out: bool = False) -> tuple[str,
     return log_text(records), unfinished
 
 
+def study_text(study: dict) -> str:
+    """:func:`study_json`'s dict as the text of ``study.json``."""
+    import json
+
+    return json.dumps(study, indent=2, sort_keys=True) + "\n"
+
+
 def study_json(store: Store) -> dict:
     """The sidecar of an export: the study's settings and their hashes, the framework's version and commit
     that started it and the changes recorded since, the address participants open, the counts of
@@ -117,3 +168,40 @@ def study_json(store: Store) -> dict:
                       "commit": study.commit, "settings_hash": study.settings_hash, "tasks_hash": study.tasks_hash,
                       "public_url": study.public_url, "address": study.address, "history": study.history,
                       "settings": study.settings}, **out}
+
+
+def variables() -> dict[str, Variable]:
+    """The description of every column the export can write: the log's fields and :data:`EXPORT_VARIABLES`."""
+    return {**log_variables(), **EXPORT_VARIABLES}
+
+
+def write_psychds(records: Iterable[Mapping], out: str | Path, study: Optional[dict] = None) -> list[Path]:
+    """Write the exported ``records`` as a Psych-DS dataset in the folder ``out`` (one data file per
+    participant, :mod:`~overhang_framework.behaviour.psychds`), with ``study`` (:func:`study_json`) as its
+    ``study.json``; the data files written."""
+    records = list(records)
+    people = sorted({r["participant"] for r in records})
+    conditions = sorted({r["condition"] for r in records})
+    days = sorted(str(r["received_at"])[:10] for r in records if r.get("received_at"))
+    practice = any(r.get("phase") == "practice" for r in records)
+    text = ("People building towers in the Overhang Tower task, recorded by the overhang-framework web experiment: "
+            f"{len(people)} participant{'s' * (len(people) != 1)} in the condition(s) {', '.join(conditions)}. "
+            "One data file per participant, one row per placement (a block placed, or a decision that ran out of "
+            "time); the whole main trials"
+            + (", and the practice attempts of participants screened out in the practice (phase: practice)"
+               if practice else "")
+            + ". The columns are the overhang-framework behaviour log (docs/behaviour.md, log_version 1): lists "
+              "are JSON text in their cells, true and false are JSON, an empty cell is a missing value. "
+              "python -m overhang_framework.analyze reads this folder as it is.")
+    return write_dataset(records, out, variables(), name=f"Overhang Tower task: {len(people)} participants",
+                         text=text, keywords=["Overhang Tower", "physical reasoning", "planning", "block stacking"],
+                         temporalCoverage=f"{days[0]}/{days[-1]}" if days else None,
+                         sidecars=None if study is None else {"study.json": study_text(study)})
+
+
+def export_psychds(store: Store, out: str | Path, include_screened_out: bool = False) -> tuple[list[dict], int]:
+    """:func:`log_records` written by :func:`write_psychds` to ``out``; the records and the number of unfinished
+    trials left out."""
+    records, unfinished = log_records(store, include_screened_out)
+    write_psychds(records, out, study_json(store))
+    return records, unfinished

@@ -1,0 +1,432 @@
+"""A behaviour log as a Psych-DS dataset: writing one, checking a directory against the standard, reading it back.
+
+Psych-DS (https://psych-ds.github.io) is a community standard for behavioural data sets:
+a directory with a ``dataset_description.json`` (schema.org ``Dataset`` metadata in JSON-LD,
+whose ``variableMeasured`` names every column of every data file) and a ``data/`` folder of
+CSV files whose names are keyword-value pairs ending ``_data.csv``. A log is written as
+
+    DIR/dataset_description.json
+    DIR/data/study-overhang_subject-P1_data.csv      one file per participant, one row per record
+    DIR/data/study-overhang_subject-P2_data.csv
+
+Every file has the same header, the log's columns (:data:`~overhang_framework.behaviour.log.COLUMNS`
+then any extra fields), so the files can be stacked into one table. Cells are as
+:func:`~overhang_framework.behaviour.log.to_csv` writes them: text as it is, numbers and
+``true``/``false`` as JSON, lists (``sequence``, ``tower_before``, ``trajectory``, ``dwell``) as
+JSON text, and an empty cell for a missing value (null). :func:`read_log` of the directory gives
+back the log that was written.
+
+:func:`check_dataset` lists what breaks the standard's rules (or this package's stricter ones:
+every listed variable is used, no stray file in ``data/``), one line each;
+``python -m overhang_framework.behaviour.psychds DIR`` prints them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import fnmatch
+import json
+import os
+import re
+import shutil
+import sys
+import tempfile
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Optional, Sequence
+
+from overhang_framework.errors import OverhangError
+
+#: The metadata file at a dataset's root.
+DESCRIPTION = "dataset_description.json"
+#: The folder of the data files.
+DATA = "data"
+#: A data file's name: keyword-value pairs (keywords lowercase letters, values letters and digits),
+#: joined by underscores, then ``_data.csv``.
+DATA_FILE = re.compile(r"[a-z]+-[a-zA-Z0-9]+(?:_[a-z]+-[a-zA-Z0-9]+)*_data\.csv")
+#: The JSON-LD context the required fields must be in.
+SCHEMA_ORG = ("https://schema.org", "https://schema.org/", "http://schema.org", "http://schema.org/")
+#: Files (glob patterns, one a line) that the standard's validators pass over.
+IGNORE = ".psychdsignore"
+
+
+class PsychDSError(OverhangError, ValueError):
+    """A directory that is not a Psych-DS dataset this package can read, or an export that cannot be written."""
+
+
+@dataclass(frozen=True)
+class Variable:
+    """One column: what it holds, in which unit, and the kind of its cells (as in ``schema.json``)."""
+
+    description: str
+    kind: str  # integer, number, boolean, string, list
+    unit: Optional[str] = None
+    minimum: Optional[float] = None
+    optional: bool = True  # whether a cell may be empty (a missing value)
+
+    def property_value(self, name: str) -> dict:
+        """The schema.org ``PropertyValue`` describing column ``name``."""
+        what = {"list": "a JSON list", "boolean": "true or false", "integer": "a whole number",
+                "number": "a number", "string": "text"}[self.kind]
+        entry: dict[str, Any] = {"@type": "PropertyValue", "name": name,
+                                 "description": f"{self.description} Each cell: {what}"
+                                                + ("; empty when missing." if self.optional else ".")}
+        if self.unit:
+            entry["unitText"] = self.unit
+        if self.minimum is not None:
+            entry["minValue"] = self.minimum
+        return entry
+
+
+#: The unit of each log field that has one (task units: a block is 0.6 high; the grid runs from -4 to 4).
+_UNITS = {"width": "task units", "x": "task units", "overhang": "task units", "reward": "task units",
+          "decision_time": "seconds", "sequence": "task units", "tower_before": "task units",
+          "trajectory": "seconds and task units", "dwell": "task units and seconds",
+          "layer": "layers of 0.6 task units"}
+_KINDS = {"array": "list", "integer": "integer", "number": "number", "boolean": "boolean", "string": "string"}
+
+
+@lru_cache(maxsize=None)
+def log_variables() -> dict[str, Variable]:
+    """The :class:`Variable` of every named field of the log, described as ``schema.json`` describes it."""
+    from overhang_framework.behaviour.log import FIELDS
+
+    schema = json.loads((Path(__file__).with_name("schema.json")).read_text(encoding="utf-8"))["properties"]
+    out = {}
+    for field in FIELDS:
+        spec = schema[field.name]
+        kind = _KINDS[next(t for t in field.types if t != "null")]
+        out[field.name] = Variable(spec["description"], kind, _UNITS.get(field.name), spec.get("minimum"),
+                                   optional=not field.required or "null" in field.types)
+    return out
+
+
+def subject_label(participant: str) -> str:
+    """A participant's id as the value of a file name's ``subject-`` keyword: its letters and digits."""
+    return re.sub(r"[^a-zA-Z0-9]", "", participant)
+
+
+def _file_names(participants: Sequence[str], study: str) -> dict[str, str]:
+    """Each participant's data file name: ``subject-`` their id's letters and digits, with a number after it
+    (``n2``, ``n3``, ...) when that label is taken already."""
+    names, used = {}, set()
+    for p in participants:
+        label = base = subject_label(p) or "x"
+        k = 1
+        while label in used:
+            k += 1
+            label = f"{base}n{k}"
+        used.add(label)
+        names[p] = f"study-{study}_subject-{label}_data.csv"
+    return names
+
+
+def description(columns: Sequence[str], variables: Mapping[str, Variable], name: str, text: str,
+                **fields: Any) -> dict:
+    """``dataset_description.json`` of data files with ``columns``; :class:`PsychDSError` when a column has
+    no :class:`Variable` in ``variables`` (the description would not say what it holds)."""
+    missing = [c for c in columns if c not in variables]
+    if missing:
+        raise PsychDSError(f"no description of the column(s) {', '.join(map(repr, missing))}: add them to the "
+                           "variables the export describes")
+    return {"@context": "https://schema.org/", "@type": "Dataset", "name": name, "description": text,
+            **{k: v for k, v in fields.items() if v is not None},
+            "variableMeasured": [variables[c].property_value(c) for c in columns]}
+
+
+#: Files beside ``dataset_description.json`` that a dataset written here may hold (:func:`write_dataset`'s
+#: ``sidecars``): replaced with it by a later export.
+SIDECARS = ("study.json",)
+
+
+def write_dataset(records: Iterable[Mapping[str, Any]], out: str | os.PathLike, variables: Mapping[str, Variable],
+                  name: str, text: str, study: str = "overhang", sidecars: Optional[Mapping[str, str]] = None,
+                  **fields: Any) -> list[Path]:
+    """Write the log ``records`` (checked first) as a Psych-DS dataset in ``out``; the data files written.
+
+    ``variables`` describes every column (:func:`log_variables` and those of any extra field);
+    ``name`` and ``text`` are the dataset's name and description, ``fields`` further schema.org
+    ``Dataset`` properties (None left out), ``sidecars`` texts of files at the dataset's root, by name
+    (from :data:`SIDECARS`). The dataset is built in a folder beside ``out`` and
+    renamed into place: ``out`` may be new, an empty folder, or an earlier dataset written here
+    (:func:`replaceable`), which it replaces; anything else is refused before a file is written.
+    """
+    from overhang_framework.behaviour.log import to_csv, to_frame
+    from overhang_framework.results import readable
+
+    out = Path(out)
+    check_out(out)
+    df = to_frame([readable(dict(r)) for r in records])
+    if df.empty:
+        raise PsychDSError("no records to write: a Psych-DS dataset needs at least one data file")
+    columns = [str(c) for c in df.columns]
+    meta = description(columns, variables, name, text, dateCreated=dt.date.today().isoformat(), **fields)
+    participants = list(dict.fromkeys(df["participant"]))
+    files = _file_names(participants, study)
+    out.absolute().parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=out.absolute().parent, prefix=f".{out.name}."))
+    try:
+        (staging / DATA).mkdir()
+        for p in participants:
+            to_csv(df[df["participant"] == p], staging / DATA / files[p])
+        (staging / DESCRIPTION).write_text(json.dumps(meta, indent=2, ensure_ascii=False, allow_nan=False) + "\n",
+                                           encoding="utf-8")
+        for sidecar, content in (sidecars or {}).items():
+            if sidecar not in SIDECARS:
+                raise ValueError(f"sidecar {sidecar!r}: a dataset's root takes {', '.join(SIDECARS)}")
+            (staging / sidecar).write_text(content, encoding="utf-8")
+        problems = check_dataset(staging)
+        if problems:  # what this module writes must pass its own check
+            raise PsychDSError(f"the dataset written is not valid Psych-DS: {problems[0]}")
+        os.chmod(staging, 0o777 & ~_umask())
+        _put_in_place(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return [out / DATA / files[p] for p in participants]
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _put_in_place(staging: Path, out: Path) -> None:
+    """Rename ``staging`` to ``out``; an earlier dataset there is moved aside first and removed after."""
+    check_out(out)
+    if out.exists() and any(out.iterdir()):
+        old = Path(tempfile.mkdtemp(dir=out.absolute().parent, prefix=f".{out.name}.old."))
+        os.replace(out, old / "dataset")
+        try:
+            os.replace(staging, out)
+        except OSError:
+            os.replace(old / "dataset", out)
+            raise
+        finally:
+            shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(staging, out)  # over an empty folder too
+
+
+def replaceable(out: Path) -> bool:
+    """Whether ``out`` holds only what :func:`write_dataset` writes: ``dataset_description.json`` and
+    ``data/`` with data files in it, and the :data:`SIDECARS`; nothing else."""
+    if not (out / DESCRIPTION).is_file() or not (out / DATA).is_dir():
+        return False
+    if not {p.name for p in out.iterdir()} <= {DESCRIPTION, DATA, *SIDECARS}:
+        return False
+    return all(p.is_file() and DATA_FILE.fullmatch(p.name) for p in (out / DATA).iterdir())
+
+
+def check_out(out: Path) -> None:
+    """Raise :class:`PsychDSError` unless ``out`` may take a dataset: it is new, an empty folder, or an
+    earlier dataset (:func:`replaceable`)."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise PsychDSError(f"{out} is a file; a Psych-DS dataset is a folder: give a new or empty folder")
+    if any(out.iterdir()) and not replaceable(out):
+        raise PsychDSError(f"{out} is not empty and not an earlier Psych-DS export (only {DESCRIPTION}, "
+                           f"{', '.join(SIDECARS)} and {DATA}/*_data.csv); give a new or empty folder")
+
+
+# checking --------------------------------------------------------------------------------------------------------
+def _ignored(root: Path) -> list[str]:
+    path = root / IGNORE
+    if not path.is_file():
+        return []
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    return [line.strip().rstrip("/") for line in lines if line.strip() and not line.startswith("#")]
+
+
+def _is_ignored(relative: str, patterns: Sequence[str]) -> bool:
+    parts = relative.split("/")
+    return any(fnmatch.fnmatch(relative, p) or any(fnmatch.fnmatch(part, p) for part in parts) for p in patterns)
+
+
+def _variable_names(meta: dict, problems: list[str]) -> Optional[list[str]]:
+    listed = meta.get("variableMeasured")
+    if not isinstance(listed, list) or not listed:
+        problems.append(f"{DESCRIPTION}: variableMeasured must be a non-empty list of the data files' column names")
+        return None
+    names = []
+    for k, item in enumerate(listed, 1):
+        if isinstance(item, str) and item:
+            names.append(item)
+        elif isinstance(item, dict):
+            kind = item.get("@type", item.get("type"))
+            if kind not in ("PropertyValue", "https://schema.org/PropertyValue"):
+                problems.append(f"{DESCRIPTION}: variableMeasured item {k}: an object must have @type "
+                                f"PropertyValue, got {kind!r}")
+            elif not isinstance(item.get("name"), str) or not item["name"]:
+                problems.append(f"{DESCRIPTION}: variableMeasured item {k}: a PropertyValue needs a name (the column)")
+            else:
+                names.append(item["name"])
+        else:
+            problems.append(f"{DESCRIPTION}: variableMeasured item {k}: expected a column name or a PropertyValue "
+                            f"object, got {json.dumps(item)}")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        problems.append(f"{DESCRIPTION}: variableMeasured lists {twice[0]!r} twice")
+    return names
+
+
+def _check_description(root: Path, problems: list[str]) -> Optional[list[str]]:
+    """The column names ``dataset_description.json`` lists (None when it cannot say); problems appended."""
+    path = root / DESCRIPTION
+    if not path.is_file():
+        problems.append(f"no {DESCRIPTION} at the dataset's root (the metadata every Psych-DS dataset has)")
+        return None
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        problems.append(f"{DESCRIPTION}: not UTF-8 text")
+        return None
+    except json.JSONDecodeError as exc:
+        problems.append(f"{DESCRIPTION}: not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno})")
+        return None
+    if not isinstance(meta, dict):
+        problems.append(f"{DESCRIPTION}: expected a JSON object, got {type(meta).__name__}")
+        return None
+    context = meta.get("@context")
+    if context not in SCHEMA_ORG:
+        problems.append(f"{DESCRIPTION}: @context must be schema.org (\"https://schema.org/\"), got {context!r}")
+    kind = meta.get("@type", meta.get("type"))
+    if kind not in ("Dataset", "https://schema.org/Dataset"):
+        problems.append(f"{DESCRIPTION}: @type must be Dataset, got {kind!r}")
+    for key in ("name", "description"):
+        if not isinstance(meta.get(key), str) or not meta[key].strip():
+            problems.append(f"{DESCRIPTION}: {key} must be a non-empty string (a required field)")
+    return _variable_names(meta, problems)
+
+
+def _check_csv(path: Path, where: str, problems: list[str]) -> Optional[list[str]]:
+    """The header of the data file ``path`` (None when it has none); its problems appended."""
+    try:
+        with open(path, encoding="utf-8", newline="") as fh:
+            reader = csv.reader(fh, strict=True)
+            header = next(reader, None)
+            if not header or not any(header):
+                problems.append(f"{where}: no header row (the first row names the columns)")
+                return None
+            twice = sorted({n for n in header if header.count(n) > 1})
+            if twice:
+                problems.append(f"{where}: the header names column {twice[0]!r} twice")
+            if "" in header:
+                problems.append(f"{where}: the header has an empty column name")
+            ids, row_id = set(), header.index("row_id") if "row_id" in header else None
+            for row in reader:
+                if len(row) != len(header):
+                    problems.append(f"{where} line {reader.line_num}: {len(row)} cells, but the header names "
+                                    f"{len(header)} columns")
+                    break
+                if row_id is not None:
+                    if row[row_id] in ids:
+                        problems.append(f"{where} line {reader.line_num}: row_id {row[row_id]!r} again (row_id "
+                                        "must be unique)")
+                        break
+                    ids.add(row[row_id])
+            return header
+    except UnicodeDecodeError:
+        problems.append(f"{where}: not UTF-8 text")
+    except csv.Error as exc:
+        problems.append(f"{where}: not valid CSV ({exc})")
+    return None
+
+
+def check_dataset(root: str | os.PathLike) -> list[str]:
+    """What makes ``root`` no valid Psych-DS dataset, one line each (empty when it is valid).
+
+    The standard's rules: ``dataset_description.json`` at the root, valid JSON with ``@context``
+    schema.org, ``@type`` Dataset and non-empty ``name``, ``description`` and ``variableMeasured``
+    (column names or ``PropertyValue`` objects with a name); a ``data/`` folder holding at least one
+    data file; data file names keyword-value pairs ending ``_data.csv``; data files UTF-8 CSV with a
+    header row, no column named twice, every row as many cells as the header, ``row_id`` unique; every
+    column listed in ``variableMeasured``. And this package's: every listed variable is a column of
+    some data file, and ``data/`` holds data files only (besides what ``.psychdsignore`` lists and
+    hidden files): a sidecar or folder metadata file, which this reader would not apply, is refused.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        return [f"{root} is not a folder (a Psych-DS dataset is a folder with {DESCRIPTION} and {DATA}/)"]
+    problems: list[str] = []
+    listed = _check_description(root, problems)
+    data = root / DATA
+    if not data.is_dir():
+        problems.append(f"no {DATA}/ folder (the data files go in it)")
+        return problems
+    patterns = _ignored(root)
+    columns: dict[str, str] = {}
+    files = 0
+    for path in sorted(data.rglob("*")):
+        relative = path.relative_to(root).as_posix()
+        if path.is_dir() or any(part.startswith(".") for part in path.relative_to(data).parts):
+            continue
+        if _is_ignored(relative, patterns):
+            continue
+        if path.name.endswith("_data.json") or path.name == "directory_metadata.json":
+            problems.append(f"{relative}: metadata for part of the data, which this reader does not apply; move "
+                            f"what it says into {DESCRIPTION}")
+            continue
+        if not path.name.endswith(".csv"):
+            problems.append(f"{relative}: not a data file (data files are CSV, named ..._data.csv); remove it, "
+                            f"or list it in {IGNORE}")
+            continue
+        if not DATA_FILE.fullmatch(path.name):
+            problems.append(f"{relative}: a data file's name must be keyword-value pairs ending _data.csv, e.g. "
+                            "study-overhang_subject-P1_data.csv (keywords a-z, values letters and digits)")
+            continue
+        files += 1
+        for column in _check_csv(path, relative, problems) or []:
+            columns.setdefault(column, relative)
+    if not files:
+        problems.append(f"{DATA}/ holds no data file (..._data.csv)")
+    if listed is not None:
+        unlisted = [c for c in columns if c not in listed]
+        if unlisted:
+            problems.append(f"{columns[unlisted[0]]}: column {unlisted[0]!r} is not in {DESCRIPTION}'s "
+                            "variableMeasured (every column must be)")
+        unused = [n for n in listed if n not in columns]
+        if unused and files:
+            problems.append(f"{DESCRIPTION}: variableMeasured lists {unused[0]!r}, a column of no data file")
+    return problems
+
+
+def data_files(root: str | os.PathLike) -> list[Path]:
+    """The data files of the dataset ``root``, sorted; :class:`PsychDSError` naming the first problem
+    (and how many more) when it is not a valid dataset."""
+    root = Path(root)
+    problems = check_dataset(root)
+    if problems:
+        more = f" (and {len(problems) - 1} more problem{'s' * (len(problems) > 2)})" if len(problems) > 1 else ""
+        raise PsychDSError(f"{root}: not a valid Psych-DS dataset: {problems[0]}{more}; check it with "
+                           f"python -m overhang_framework.behaviour.psychds {root}")
+    patterns = _ignored(root)
+    return sorted(p for p in (root / DATA).rglob("*_data.csv")
+                  if DATA_FILE.fullmatch(p.name) and not _is_ignored(p.relative_to(root).as_posix(), patterns)
+                  and not any(part.startswith(".") for part in p.relative_to(root / DATA).parts))
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from overhang_framework.behaviour.log import count_noun
+
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.behaviour.psychds",
+                                 description="Check that folders are valid Psych-DS datasets; print what is wrong.")
+    ap.add_argument("datasets", nargs="+", metavar="DIR", help="a dataset's folder (with dataset_description.json)")
+    args = ap.parse_args(argv)
+    bad = 0
+    for root in args.datasets:
+        problems = check_dataset(root)
+        for line in problems:
+            print(f"{root}: {line}", file=sys.stderr)
+        if not problems:
+            print(f"{root}: a valid Psych-DS dataset ({count_noun(len(data_files(root)), 'data file')})")
+        bad += bool(problems)
+    return 2 if bad else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
