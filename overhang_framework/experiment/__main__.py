@@ -4,11 +4,16 @@
     python -m overhang_framework.experiment export --out log.jsonl [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment reissue PARTICIPANT [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment build                            # (re)build web/dist
+    python -m overhang_framework.experiment backup --out FILE [OVERRIDES...]  # a consistent copy of the database
+    python -m overhang_framework.experiment restore FILE [OVERRIDES...]       # into an empty database
+    python -m overhang_framework.experiment nginx-config --server-name NAME [OVERRIDES...]
+    python -m overhang_framework.experiment systemd-unit --user USER [OVERRIDES...]
 
 Overrides are keys of ``conf/serve.yaml`` (``port=8080``, ``database=postgresql+psycopg://...``,
 ``'tasks.only=[paper00,paper01]'``). ``export`` reads the database the config names, or with ``--url``
 asks a running server (with the admin token). ``reissue`` gives a participant a new session token (the old
-one stops working) and prints the link that resumes their session in any browser.
+one stops working) and prints the link that resumes their session in any browser. ``backup``, ``restore``,
+``nginx-config`` and ``systemd-unit`` are the production set-up of docs/deploy.md.
 """
 
 from __future__ import annotations
@@ -50,8 +55,9 @@ def _serve(overrides: Sequence[str]) -> int:
         print(f"experiment: http://{settings.host}:{settings.port}/?participant=P1  (database {db}, "
               f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)}, "
               f"{settings.workers} server process(es))", file=sys.stderr)
+        # the app reads the forwarded headers itself, from the proxies forwarded_allow_ips names (forwarded.py)
         options = dict(host=settings.host, port=settings.port, log_level="warning",
-                       timeout_keep_alive=int(settings.keep_alive))
+                       timeout_keep_alive=int(settings.keep_alive), proxy_headers=False)
         if settings.workers == 1:
             settings.web_dir = web_dir
             uvicorn.run(create_app(settings), **options)
@@ -191,11 +197,52 @@ def _reissue(args) -> int:
     return 0
 
 
+def _backup(args) -> int:
+    from overhang_framework.experiment.backup import backup, check_backup_target, describe
+    from overhang_framework.experiment.settings import load_settings
+
+    out = check_backup_target(args.out)
+    settings = load_settings(args.overrides, need_admin_token=False)
+    copied = backup(settings.database, out)
+    print(f"wrote {args.out}: a {copied.kind} backup of {describe(copied)}", file=sys.stderr)
+    return 0
+
+
+def _restore(args) -> int:
+    from overhang_framework.experiment.backup import describe, restore
+    from overhang_framework.experiment.settings import load_settings
+
+    settings = load_settings(args.overrides, need_admin_token=False)
+    copied = restore(args.file, settings.database)
+    print(f"restored {args.file} into {settings.database.split('://')[0]} ({_shown(settings.database)}): "
+          f"{describe(copied)}", file=sys.stderr)
+    return 0
+
+
+def _shown(url: str) -> str:
+    from sqlalchemy.engine import make_url
+
+    return make_url(url).render_as_string(hide_password=True)
+
+
+def _write(text: str, out: Optional[str]) -> int:
+    from overhang_framework.preflight import check_writable
+    from overhang_framework.results import atomic_write_text
+
+    if out is None:
+        sys.stdout.write(text)
+        return 0
+    check_writable(Path(out).absolute().parent, "--out FILE")
+    atomic_write_text(out, text)
+    print(f"wrote {out}", file=sys.stderr)
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from overhang_framework.errors import OverhangError
 
-    commands = ("serve", "export", "reissue", "build")
+    commands = ("serve", "export", "reissue", "build", "backup", "restore", "nginx-config", "systemd-unit")
     command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
@@ -211,7 +258,26 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                      description=__doc__.split("\n\n")[0])
     if command == "reissue":
         parser.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
+    if command == "restore":
+        parser.add_argument("file", help="a backup that the backup command wrote")
     parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
+    if command == "backup":
+        parser.add_argument("--out", required=True, help="the copy to write (SQLite: a database file; "
+                                                         "PostgreSQL: a pg_dump archive, custom format)")
+    if command == "nginx-config":
+        parser.add_argument("--server-name", required=True, help="the host name participants open")
+        parser.add_argument("--certificate", help="default: certbot's fullchain.pem for the server name")
+        parser.add_argument("--certificate-key", help="default: certbot's privkey.pem for the server name")
+        parser.add_argument("--http-port", type=int, default=80)
+        parser.add_argument("--https-port", type=int, default=443)
+        parser.add_argument("--listen", action="append", default=[],
+                            help="an address to listen on (repeatable; default: every IPv4 and IPv6 address)")
+    if command == "systemd-unit":
+        parser.add_argument("--user", required=True, help="the system user the server runs as")
+        parser.add_argument("--env-file", default="/etc/overhang-experiment.env",
+                            help="the file with OVERHANG_ADMIN_TOKEN=... (default: %(default)s)")
+    if command in ("nginx-config", "systemd-unit"):
+        parser.add_argument("--out", help="the file to write (default: standard output)")
     if command == "export":
         parser.add_argument("--out", required=True, help="the behaviour log to write (JSON Lines)")
         parser.add_argument("--include-screened-out", action="store_true",
@@ -226,6 +292,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _export(args)
         if command == "reissue":
             return _reissue(args)
+        if command == "backup":
+            return _backup(args)
+        if command == "restore":
+            return _restore(args)
+        if command == "nginx-config":
+            from overhang_framework.experiment.deploy import nginx_config
+
+            return _write(nginx_config(args.server_name, args.overrides, args.certificate, args.certificate_key,
+                                       args.http_port, args.https_port, args.listen), args.out)
+        if command == "systemd-unit":
+            from overhang_framework.experiment.deploy import systemd_unit
+
+            return _write(systemd_unit(args.user, args.overrides, env_file=args.env_file), args.out)
         if command == "build":
             from overhang_framework.experiment.web import ensure_built
 

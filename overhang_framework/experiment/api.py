@@ -18,6 +18,7 @@ timeout.
 from __future__ import annotations
 
 import hmac
+import os
 import re
 import secrets
 import time
@@ -33,7 +34,8 @@ from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from overhang_framework import rules
+from overhang_framework import __version__, rules
+from overhang_framework.experiment.forwarded import ForwardedHeaders
 from overhang_framework.experiment.outcome import Outcomes
 from overhang_framework.experiment.settings import Settings
 from overhang_framework.experiment.store import Conflict, Participant, Placement, Store, request_hash, token_hash
@@ -156,9 +158,21 @@ def main_tasks(settings: Settings, participant: Participant):
     return [by_id[i] for i in participant.order]
 
 
-def resume_link(settings: Settings, participant: Participant, token: str) -> str:
-    """The address that resumes ``participant``'s session with ``token`` in any browser."""
-    base = settings.public_url or f"http://{settings.host}:{settings.port}"
+def public_base(settings: Settings, request: Optional[Request] = None) -> str:
+    """The address participants open, without a trailing slash: ``public_url`` when set; else, within a
+    request, the address the request came to (through a trusted proxy: the one the participant opened,
+    :mod:`~overhang_framework.experiment.forwarded`); else ``http://host:port``."""
+    if settings.public_url:
+        return settings.public_url
+    if request is not None:
+        return str(request.base_url).rstrip("/")
+    return f"http://{settings.host}:{settings.port}"
+
+
+def resume_link(settings: Settings, participant: Participant, token: str, base: Optional[str] = None) -> str:
+    """The address that resumes ``participant``'s session with ``token`` in any browser (``base``: the
+    address participants open, :func:`public_base`)."""
+    base = base or public_base(settings)
     if participant.study_id is not None or participant.session_id is not None:
         params = {"PROLIFIC_PID": participant.id, "STUDY_ID": participant.study_id or "",
                   "SESSION_ID": participant.session_id or ""}
@@ -167,8 +181,9 @@ def resume_link(settings: Settings, participant: Participant, token: str) -> str
     return f"{base}/?{urlencode({**params, 'token': token})}"
 
 
-def reissue(settings: Settings, store: Store, pid: str) -> tuple[str, str]:
-    """A new session token for participant ``pid`` (the old one stops working) and its resume link."""
+def reissue(settings: Settings, store: Store, pid: str, base: Optional[str] = None) -> tuple[str, str]:
+    """A new session token for participant ``pid`` (the old one stops working) and its resume link (starting
+    with ``base``, by default :func:`public_base`)."""
     participant = store.participant(pid)
     if participant is None:
         known = [p.id for p in store.participants()]
@@ -176,7 +191,7 @@ def reissue(settings: Settings, store: Store, pid: str) -> tuple[str, str]:
         raise Refused(404, f"no participant {pid!r}; the study has {len(known)}" + (f": {shown}" if known else ""))
     token = secrets.token_urlsafe(24)
     participant = store.set_token(pid, token)
-    return token, resume_link(settings, participant, token)
+    return token, resume_link(settings, participant, token, base)
 
 
 def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Optional[Outcomes] = None,
@@ -198,6 +213,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     app = FastAPI(title="Overhang Tower experiment", version="1", lifespan=lifespan)
     app.state.store, app.state.settings, app.state.outcomes = store, settings, outcomes
+    app.add_middleware(ForwardedHeaders, trusted=settings.forwarded_allow_ips)
 
     @app.middleware("http")
     async def _arrival(request: Request, call_next):
@@ -469,8 +485,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         return PlainTextResponse(text, media_type="application/x-ndjson")
 
     @app.post("/api/admin/participants/{pid}/reissue", dependencies=[Depends(admin)])
-    def reissue_token(pid: str):
-        token, link = reissue(settings, store, pid)
+    def reissue_token(pid: str, request: Request):
+        token, link = reissue(settings, store, pid, public_base(settings, request))
         return {"participant": pid, "token": token, "resume_url": link}
 
     @app.get("/api/admin/participants", dependencies=[Depends(admin)])
@@ -484,6 +500,16 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                          "completed": p.completed_at is not None, "bonus": p.bonus,
                          "tokens_issued": p.tokens_issued or 1})
         return rows
+
+    @app.get("/api/health")
+    def health():
+        """Whether this server process answers and reaches the database: for a proxy's or a monitor's check."""
+        reason = store.ping()
+        body = {"status": "ok" if reason is None else "unavailable", "database": reason is None,
+                "version": __version__, "workers": settings.workers, "pid": os.getpid()}
+        if reason is not None:
+            body["error"] = f"the database does not answer: {reason}"
+        return JSONResponse(body, status_code=200 if reason is None else 503, headers={"Cache-Control": "no-store"})
 
     @app.get("/complete", response_class=HTMLResponse)
     def complete():
