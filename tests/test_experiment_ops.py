@@ -295,3 +295,42 @@ def test_the_systemd_unit_runs_the_checked_overrides_as_the_user(tmp_path, capsy
     assert "workers must be" in capsys.readouterr().err
     assert main(["systemd-unit", "--user", "overhang", "admin_token=secret-token"]) == 2
     assert "OVERHANG_ADMIN_TOKEN" in capsys.readouterr().err
+
+
+# docs/deploy.md -------------------------------------------------------------------------------------------------
+def deploy_commands():
+    """The ``overhang_framework.experiment`` commands of docs/deploy.md's shell blocks, continuation lines joined,
+    as argument lists (after the module)."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "deploy.md").read_text()
+    blocks = re.findall(r"```bash\n(.*?)```", text, flags=re.S)
+    lines = "\n".join(blocks).replace("\\\n", " ").splitlines()
+    out = []
+    for line in lines:
+        words = shlex.split(line.split(" #")[0])
+        if "overhang_framework.experiment" in words:
+            out.append(words[words.index("overhang_framework.experiment") + 1:])
+    return out, text
+
+
+def test_the_deploy_guide_s_commands_write_what_it_says(tmp_path, monkeypatch, capsys):
+    from test_experiment_deploy import OPENSSL
+
+    commands, text = deploy_commands()
+    by_name = {c[0]: c for c in commands}
+    assert {"build", "systemd-unit", "nginx-config", "export", "backup", "restore"} <= set(by_name)
+    # the files: the guide's commands as written, into a temporary directory instead of /etc
+    for name in ("systemd-unit", "nginx-config"):
+        words = list(by_name[name])
+        words[words.index("--out") + 1] = str(tmp_path / name)
+        assert main(words) == 0, capsys.readouterr().err
+    unit = (tmp_path / "systemd-unit").read_text()
+    assert "User=overhang" in unit and "database=postgresql+psycopg://overhang@/overhang" in unit
+    assert "public_url=https://study.example.org" in unit and "ReadWritePaths=-/srv/overhang/study" in unit
+    site = (tmp_path / "nginx-config").read_text()
+    assert "ssl_certificate /etc/letsencrypt/live/study.example.org/fullchain.pem;" in site
+    # the self-signed certificate is the one the deployment test makes
+    assert OPENSSL.format(key="/etc/ssl/private/overhang.key", cert="/etc/ssl/certs/overhang.pem") in text
