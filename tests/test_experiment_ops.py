@@ -334,3 +334,64 @@ def test_the_deploy_guide_s_commands_write_what_it_says(tmp_path, monkeypatch, c
     assert "ssl_certificate /etc/letsencrypt/live/study.example.org/fullchain.pem;" in site
     # the self-signed certificate is the one the deployment test makes
     assert OPENSSL.format(key="/etc/ssl/private/overhang.key", cert="/etc/ssl/certs/overhang.pem") in text
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_a_backup_taken_while_the_server_writes_is_one_moment(tmp_path, kind):
+    """Each newcomer's transaction adds a participant and counts it in ``newcomers``: a copy of one moment
+    holds as many participants as it counted, whatever the writer was doing while it was taken."""
+    import threading
+    import time
+
+    from sqlalchemy import create_engine, text
+
+    from overhang_framework.experiment.backup import backup, restore
+    from overhang_framework.experiment.store import Participant
+
+    if kind == "sqlite":
+        source, drops = f"sqlite:///{tmp_path / 'busy.sqlite'}", []
+    else:
+        (source, drop), drops = fresh_postgres_database(), []
+        drops.append(drop)
+    store = Store(source)
+    done = threading.Event()
+
+    def write():
+        n = 0
+        while not done.is_set():
+            n += 1
+            store.add_newcomer(["a"], lambda counts, n=n: Participant(
+                id=f"W{n}", token_hash=uuid.uuid4().hex, condition="a", time_limit=None, order=[]))
+
+    writer = threading.Thread(target=write)
+    writer.start()
+    try:
+        deadline = time.time() + 30
+        while store.count()["participants"] < 5 and time.time() < deadline:  # the writer is under way
+            time.sleep(0.01)
+        copies = []
+        for k in range(3):
+            out = tmp_path / f"busy-{k}.backup"
+            copies.append((out, backup(source, out)))
+    finally:
+        done.set()
+        writer.join()
+        store.close()
+    try:
+        for k, (out, copied) in enumerate(copies):
+            if kind == "sqlite":
+                target = f"sqlite:///{tmp_path / f'check-{k}.sqlite'}"
+            else:
+                target, drop = fresh_postgres_database()
+                drops.append(drop)
+            restored = restore(out, target)
+            engine = create_engine(target)
+            with engine.connect() as c:
+                counted = c.execute(text("SELECT assigned FROM newcomers WHERE id = 1")).scalar()
+                held = c.execute(text("SELECT count(*) FROM participants")).scalar()
+            engine.dispose()
+            assert counted == held == copied.participants == restored.participants
+        assert 5 <= copies[0][1].participants < copies[-1][1].participants  # taken while the writer wrote
+    finally:
+        for drop in drops:
+            drop()
