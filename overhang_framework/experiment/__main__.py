@@ -6,6 +6,10 @@
     python -m overhang_framework.experiment reissue PARTICIPANT [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment withdraw PARTICIPANT --yes [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment build                            # (re)build web/dist
+    python -m overhang_framework.experiment backup --out FILE [OVERRIDES...]  # a consistent copy of the database
+    python -m overhang_framework.experiment restore FILE [OVERRIDES...]       # into an empty database
+    python -m overhang_framework.experiment nginx-config --server-name NAME [OVERRIDES...]
+    python -m overhang_framework.experiment systemd-unit --user USER [OVERRIDES...]
 
 Overrides are keys of ``conf/serve.yaml`` (``port=8080``, ``database=postgresql+psycopg://...``,
 ``'tasks.only=[paper00,paper01]'``). ``export`` reads the database the config names, or with ``--url``
@@ -13,6 +17,7 @@ asks a running server (with the admin token). ``reissue`` gives a participant a 
 one stops working) and prints the link that resumes their session in any browser. ``withdraw`` deletes a
 participant who withdrew their consent, with everything stored of them; the study keeps only a count.
 ``export`` also writes ``study.json`` beside the log: the study's settings, versions and dates.
+``backup``, ``restore``, ``nginx-config`` and ``systemd-unit`` are the production set-up of docs/deploy.md.
 """
 
 from __future__ import annotations
@@ -48,13 +53,13 @@ def _serve(overrides: Sequence[str]) -> int:
     busy = (f"another server is serving the study in {settings.run_dir}; stop it first, or give this one "
             "another run_dir=DIR")
     with RunDir(settings.run_dir, busy).lock():
-        from overhang_framework.experiment.api import begin_study, public_address
+        from overhang_framework.experiment.api import begin_study, public_base
 
         store = Store(settings.database)  # the tables, made once before the server processes open the database
         try:
             known = len(getattr(store.study(), "history", None) or [])
             study = begin_study(settings, store)  # refused when the study runs with other settings
-            address = public_address(settings, store)
+            address = public_base(settings, store=store)
         finally:
             store.close()
         web_dir = ensure_built(settings.web_dir)
@@ -66,8 +71,9 @@ def _serve(overrides: Sequence[str]) -> int:
         print(f"experiment: {address}/?participant=P1  (database {db}, "
               f"{len(settings.tasks)} main trials, conditions {', '.join(settings.conditions)}, "
               f"{settings.workers} server process(es))", file=sys.stderr)
+        # the app reads the forwarded headers itself, from the proxies forwarded_allow_ips names (forwarded.py)
         options = dict(host=settings.host, port=settings.port, log_level="warning",
-                       timeout_keep_alive=int(settings.keep_alive))
+                       timeout_keep_alive=int(settings.keep_alive), proxy_headers=False)
         if settings.workers == 1:
             settings.web_dir = web_dir
             uvicorn.run(create_app(settings), **options)
@@ -267,11 +273,53 @@ def _withdraw(args) -> int:
     return 0
 
 
+def _backup(args) -> int:
+    from overhang_framework.experiment.backup import backup, check_backup_target, describe
+    from overhang_framework.experiment.settings import load_settings
+
+    out = check_backup_target(args.out)
+    settings = load_settings(args.overrides, need_admin_token=False)
+    copied = backup(settings.database, out)
+    print(f"wrote {args.out}: a {copied.kind} backup of {describe(copied)}", file=sys.stderr)
+    return 0
+
+
+def _restore(args) -> int:
+    from overhang_framework.experiment.backup import describe, restore
+    from overhang_framework.experiment.settings import load_settings
+
+    settings = load_settings(args.overrides, need_admin_token=False)
+    copied = restore(args.file, settings.database)
+    print(f"restored {args.file} into {settings.database.split('://')[0]} ({_shown(settings.database)}): "
+          f"{describe(copied)}", file=sys.stderr)
+    return 0
+
+
+def _shown(url: str) -> str:
+    from sqlalchemy.engine import make_url
+
+    return make_url(url).render_as_string(hide_password=True)
+
+
+def _write(text: str, out: Optional[str]) -> int:
+    from overhang_framework.preflight import check_writable
+    from overhang_framework.results import atomic_write_text
+
+    if out is None:
+        sys.stdout.write(text)
+        return 0
+    check_writable(Path(out).absolute().parent, "--out FILE")
+    atomic_write_text(out, text)
+    print(f"wrote {out}", file=sys.stderr)
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from overhang_framework.errors import OverhangError
 
-    commands = ("serve", "export", "reissue", "withdraw", "build")
+    commands = ("serve", "export", "reissue", "withdraw", "build", "backup", "restore", "nginx-config",
+                "systemd-unit")
     command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
@@ -289,7 +337,26 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         parser.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
     if command == "withdraw":
         parser.add_argument("--yes", action="store_true", help="delete them (for good)")
+    if command == "restore":
+        parser.add_argument("file", help="a backup that the backup command wrote")
     parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
+    if command == "backup":
+        parser.add_argument("--out", required=True, help="the copy to write (SQLite: a database file; "
+                                                         "PostgreSQL: a pg_dump archive, custom format)")
+    if command == "nginx-config":
+        parser.add_argument("--server-name", required=True, help="the host name participants open")
+        parser.add_argument("--certificate", help="default: certbot's fullchain.pem for the server name")
+        parser.add_argument("--certificate-key", help="default: certbot's privkey.pem for the server name")
+        parser.add_argument("--http-port", type=int, default=80)
+        parser.add_argument("--https-port", type=int, default=443)
+        parser.add_argument("--listen", action="append", default=[],
+                            help="an address to listen on (repeatable; default: every IPv4 and IPv6 address)")
+    if command == "systemd-unit":
+        parser.add_argument("--user", required=True, help="the system user the server runs as")
+        parser.add_argument("--env-file", default="/etc/overhang-experiment.env",
+                            help="the file with OVERHANG_ADMIN_TOKEN=... (default: %(default)s)")
+    if command in ("nginx-config", "systemd-unit"):
+        parser.add_argument("--out", help="the file to write (default: standard output)")
     if command == "export":
         parser.add_argument("--out", required=True,
                             help="the behaviour log to write (JSON Lines), or with --format psych-ds the dataset's "
@@ -310,6 +377,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _reissue(args)
         if command == "withdraw":
             return _withdraw(args)
+        if command == "backup":
+            return _backup(args)
+        if command == "restore":
+            return _restore(args)
+        if command == "nginx-config":
+            from overhang_framework.experiment.deploy import nginx_config
+
+            return _write(nginx_config(args.server_name, args.overrides, args.certificate, args.certificate_key,
+                                       args.http_port, args.https_port, args.listen), args.out)
+        if command == "systemd-unit":
+            from overhang_framework.experiment.deploy import systemd_unit
+
+            return _write(systemd_unit(args.user, args.overrides, env_file=args.env_file), args.out)
         if command == "build":
             from overhang_framework.experiment.web import ensure_built
 

@@ -18,6 +18,7 @@ timeout.
 from __future__ import annotations
 
 import hmac
+import os
 import re
 import secrets
 import time
@@ -33,7 +34,8 @@ from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from overhang_framework import rules
+from overhang_framework import __version__, rules
+from overhang_framework.experiment.forwarded import ForwardedHeaders
 from overhang_framework.experiment.outcome import Outcomes
 from overhang_framework.experiment.settings import Settings
 from overhang_framework.experiment.store import (Conflict, Participant, Placement, SettingsChanged, Store, request_hash,
@@ -162,12 +164,16 @@ def main_tasks(settings: Settings, participant: Participant):
     return [by_id[i] for i in participant.order]
 
 
-def public_address(settings: Settings, store: Store) -> str:
-    """The address participants open: ``public_url=`` when given, else the one stored with the study (the
-    ``public_url`` it was served with, else the host and port it last listened on), else host and port."""
+def public_base(settings: Settings, request: Optional[Request] = None, store: Optional[Store] = None) -> str:
+    """The address participants open, without a trailing slash: ``public_url=`` when set; else, within a
+    request, the address the request came to (through a trusted proxy: the one the participant opened,
+    :mod:`~overhang_framework.experiment.forwarded`); else the one stored with the study in ``store`` (the
+    ``public_url`` it was served with, else the host and port it last listened on); else ``http://host:port``."""
     if settings.public_url:
         return settings.public_url
-    study = store.study()
+    if request is not None:
+        return str(request.base_url).rstrip("/")
+    study = store.study() if store is not None else None
     if study is not None:
         return study.public_url or study.address
     return f"http://{settings.host}:{settings.port}"
@@ -191,9 +197,9 @@ def begin_study(settings: Settings, store: Store):
 
 
 def resume_link(settings: Settings, participant: Participant, token: str, base: Optional[str] = None) -> str:
-    """The address that resumes ``participant``'s session with ``token`` in any browser (from ``base``, by
-    default ``public_url`` or host and port)."""
-    base = base or settings.public_url or f"http://{settings.host}:{settings.port}"
+    """The address that resumes ``participant``'s session with ``token`` in any browser (``base``: the
+    address participants open, :func:`public_base`)."""
+    base = base or public_base(settings)
     if participant.study_id is not None or participant.session_id is not None:
         params = {"PROLIFIC_PID": participant.id, "STUDY_ID": participant.study_id or "",
                   "SESSION_ID": participant.session_id or ""}
@@ -202,8 +208,9 @@ def resume_link(settings: Settings, participant: Participant, token: str, base: 
     return f"{base}/?{urlencode({**params, 'token': token})}"
 
 
-def reissue(settings: Settings, store: Store, pid: str) -> tuple[str, str]:
-    """A new session token for participant ``pid`` (the old one stops working) and its resume link."""
+def reissue(settings: Settings, store: Store, pid: str, base: Optional[str] = None) -> tuple[str, str]:
+    """A new session token for participant ``pid`` (the old one stops working) and its resume link (starting
+    with ``base``, by default :func:`public_base`)."""
     participant = store.participant(pid)
     if participant is None:
         known = [p.id for p in store.participants()]
@@ -211,7 +218,7 @@ def reissue(settings: Settings, store: Store, pid: str) -> tuple[str, str]:
         raise Refused(404, f"no participant {pid!r}; the study has {len(known)}" + (f": {shown}" if known else ""))
     token = secrets.token_urlsafe(24)
     participant = store.set_token(pid, token)
-    return token, resume_link(settings, participant, token, public_address(settings, store))
+    return token, resume_link(settings, participant, token, base or public_base(settings, store=store))
 
 
 def withdraw(store: Store, pid: str) -> dict:
@@ -219,7 +226,8 @@ def withdraw(store: Store, pid: str) -> dict:
     deleted = store.withdraw(pid)
     if deleted is None:
         raise Refused(404, f"no participant {pid!r} (withdrawn already, or never started)")
-    return {"participant": pid, "deleted": deleted, "withdrawn": store.study().withdrawn}
+    study = store.study()
+    return {"participant": pid, "deleted": deleted, "withdrawn": study.withdrawn if study is not None else 1}
 
 
 def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Optional[Outcomes] = None,
@@ -245,6 +253,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     app = FastAPI(title="Overhang Tower experiment", version="1", lifespan=lifespan)
     app.state.store, app.state.settings, app.state.outcomes = store, settings, outcomes
+    app.add_middleware(ForwardedHeaders, trusted=settings.forwarded_allow_ips)
 
     @app.middleware("http")
     async def _arrival(request: Request, call_next):
@@ -543,8 +552,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         return withdraw(store, pid)
 
     @app.post("/api/admin/participants/{pid}/reissue", dependencies=[Depends(admin)])
-    def reissue_token(pid: str):
-        token, link = reissue(settings, store, pid)
+    def reissue_token(pid: str, request: Request):
+        token, link = reissue(settings, store, pid, public_base(settings, request))
         return {"participant": pid, "token": token, "resume_url": link}
 
     @app.get("/api/admin/participants", dependencies=[Depends(admin)])
@@ -558,6 +567,16 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                          "completed": p.completed_at is not None, "bonus": p.bonus,
                          "tokens_issued": p.tokens_issued or 1})
         return rows
+
+    @app.get("/api/health")
+    def health():
+        """Whether this server process answers and reaches the database: for a proxy's or a monitor's check."""
+        reason = store.ping()
+        body = {"status": "ok" if reason is None else "unavailable", "database": reason is None,
+                "version": __version__, "workers": settings.workers, "pid": os.getpid()}
+        if reason is not None:
+            body["error"] = f"the database does not answer: {reason}"
+        return JSONResponse(body, status_code=200 if reason is None else 503, headers={"Cache-Control": "no-store"})
 
     @app.get("/complete", response_class=HTMLResponse)
     def complete():

@@ -68,6 +68,7 @@ class Settings:
     workers: int = 1
     physics_processes: int = 0
     keep_alive: float = 75.0
+    forwarded_allow_ips: str = "127.0.0.1"
     extra: dict = field(default_factory=dict)
 
 
@@ -218,6 +219,7 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
             raise ConfigError(f"practice task {p.task.id} has the sequence of a main task; practice is excluded "
                               "from the stimulus pool")
     web_dir = Path(str(cfg.web_dir)) if cfg.web_dir else None
+    forwarded = forwarded_ips(cfg.get("forwarded_allow_ips"))
     counts = {}
     for key, minimum in (("workers", 1), ("physics_processes", 0)):
         value = cfg.get(key)
@@ -239,4 +241,24 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         bonus_per_unit=_number(cfg, "bonus_per_unit", strict=False), currency=str(cfg.currency),
         mouse_hz=_number(cfg, "mouse_hz"), animation_fps=_number(cfg, "animation_fps"), seed=int(cfg.seed),
         run_dir=run_dir, web_dir=web_dir, host=str(cfg.host), port=int(port), **counts,
-        keep_alive=_number(cfg, "keep_alive"))
+        keep_alive=_number(cfg, "keep_alive"), forwarded_allow_ips=forwarded)
+
+
+def forwarded_ips(value) -> str:
+    """``forwarded_allow_ips`` checked, as the comma-separated text uvicorn reads: addresses or networks, or ``*``."""
+    import ipaddress
+
+    items = [str(v).strip() for v in value] if isinstance(value, (list, tuple)) or OmegaConf.is_list(value) \
+        else [s.strip() for s in str(value if value is not None else "").split(",")]
+    items = [i for i in items if i]
+    for item in items:
+        if item == "*":
+            continue
+        try:
+            ipaddress.ip_network(item, strict=False)
+        except ValueError:
+            raise ConfigError(f"forwarded_allow_ips must list addresses or networks of the reverse proxy "
+                              f"(127.0.0.1, 10.0.0.0/8, ...) or be '*', got {item!r}") from None
+    if not items:
+        raise ConfigError("forwarded_allow_ips must name at least one address (127.0.0.1: a proxy on this machine)")
+    return ",".join(items)

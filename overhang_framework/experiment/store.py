@@ -214,6 +214,18 @@ class Store:
     def close(self) -> None:
         self.engine.dispose()
 
+    def ping(self) -> Optional[str]:
+        """None when the database answers a trivial query; else why not, in one line."""
+        from sqlalchemy import text
+        from sqlalchemy.exc import SQLAlchemyError
+
+        try:
+            with self.engine.connect() as connection:
+                connection.execute(text("SELECT 1"))
+        except SQLAlchemyError as err:
+            return str(getattr(err, "orig", None) or err).strip().splitlines()[0]
+        return None
+
     # participants -------------------------------------------------------------------------------------------
     def participant(self, pid: str) -> Optional[Participant]:
         with self._session() as s:
