@@ -165,10 +165,7 @@ def _export(args) -> int:
         records = [json_line(line) for line in text.splitlines() if line.strip()]
     else:
         from overhang_framework.experiment.export import log_records
-        from overhang_framework.experiment.settings import load_settings
-
-        settings = load_settings(args.overrides, need_admin_token=False)
-        store = _open_store(settings)
+        settings, store = _local_store(args)
         if store is None:
             return 2
         try:
@@ -197,6 +194,15 @@ def _export(args) -> int:
     return 0
 
 
+def _local_store(args):
+    """The settings of ``args.overrides`` (no admin token needed: the database answers to whoever can read it)
+    and the study's store, None when it has no database (the reason printed)."""
+    from overhang_framework.experiment.settings import load_settings
+
+    settings = load_settings(args.overrides, need_admin_token=False)
+    return settings, _open_store(settings)
+
+
 def _open_store(settings):
     """The study's store, or None (with the reason printed) when its SQLite file does not exist."""
     from overhang_framework.experiment.store import Store
@@ -217,10 +223,7 @@ def _reissue(args) -> int:
         link = reply.json()["resume_url"]
     else:
         from overhang_framework.experiment.api import Refused, reissue
-        from overhang_framework.experiment.settings import load_settings
-
-        settings = load_settings(args.overrides, need_admin_token=False)
-        store = _open_store(settings)
+        settings, store = _local_store(args)
         if store is None:
             return 2
         study = store.study()
@@ -253,10 +256,7 @@ def _withdraw(args) -> int:
         done = reply.json()
     else:
         from overhang_framework.experiment.api import Refused, withdraw
-        from overhang_framework.experiment.settings import load_settings
-
-        settings = load_settings(args.overrides, need_admin_token=False)
-        store = _open_store(settings)
+        settings, store = _local_store(args)
         if store is None:
             return 2
         try:
