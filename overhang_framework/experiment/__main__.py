@@ -4,11 +4,14 @@
     python -m overhang_framework.experiment export --out log.jsonl [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment reissue PARTICIPANT [OVERRIDES...] [--url URL]
     python -m overhang_framework.experiment build                            # (re)build web/dist
+    python -m overhang_framework.experiment pilot --out DIR [--url URL] [PARTICIPANTS OVERRIDES...]
 
 Overrides are keys of ``conf/serve.yaml`` (``port=8080``, ``database=postgresql+psycopg://...``,
 ``'tasks.only=[paper00,paper01]'``). ``export`` reads the database the config names, or with ``--url``
 asks a running server (with the admin token). ``reissue`` gives a participant a new session token (the old
-one stops working) and prints the link that resumes their session in any browser.
+one stops working) and prints the link that resumes their session in any browser. ``pilot`` lets a
+simulated cohort take part through the HTTP API (``pilot --help``; docs/experiment.md, "A pilot before
+people").
 """
 
 from __future__ import annotations
@@ -195,10 +198,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from overhang_framework.errors import OverhangError
 
-    commands = ("serve", "export", "reissue", "build")
+    commands = ("serve", "export", "reissue", "build", "pilot")
     command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
+    if command == "pilot":
+        from overhang_framework.experiment.pilot import main as pilot
+
+        return pilot(argv)
     elif argv and not argv[0].startswith("-"):
         from overhang_framework.preflight import check_words
 
