@@ -45,7 +45,7 @@ def pilot(out, *args, check=True):
 
 def export(out, *args):
     log = out / "log.jsonl"
-    run("-m", "overhang_framework.experiment", "export", f"run_dir={out}", "--out", str(log), *args)
+    run("-m", "overhang_framework.experiment", "export", f"run_dir={out}", *args, "--out", str(log))
     return [json.loads(line) for line in log.read_text().splitlines()]
 
 
