@@ -211,3 +211,23 @@ def test_a_pilot_on_postgresql(tmp_path):
     records = export(out, f"database={url}")
     assert records and {r["participant"] for r in records} == {"pilot-001"}
     assert same(records) == same(offline_twin(overrides, records, truth(out)))
+
+
+@pytest.mark.slow
+def test_the_fit_of_the_exported_log_recovers_depths_as_the_offline_logs_fit_does(tmp_path):
+    # four participants (depth 1 or 2, as cohort=small plants them), three tasks, a quick time scale; the
+    # IPE at depths 1 and 2 fitted to the export and to the offline log of the same cohort and seed
+    from overhang_framework.bench.pilot_recovery import main
+
+    out = tmp_path / "recovery"
+    assert main(["--out", str(out), "--time-scale", "0.05", "--serve", "workers=1", "--serve", "physics_processes=0",
+                 "--fit", "~models.cnn", "--fit", "~models.hybrid", "--fit", "models.ipe.K=20",
+                 "--fit", "models.ipe.sigma=[0.03]", "cohort=small", "cohort.n_tasks=3",
+                 "cohort.participants.time_limited=2", "cohort.participants.unconstrained=2", "seed=1"]) == 0
+    result = json.loads((out / "recovery.json").read_text())
+    exported, offline = result["exported"], result["offline"]
+    assert exported["participants"] == offline["participants"] == 4
+    planted = {k: sum(v.values()) for k, v in exported["confusion"].items()}
+    assert planted == {k: sum(v.values()) for k, v in offline["confusion"].items()}  # the same participants
+    assert exported["recovered"] >= offline["recovered"] - 1
+    assert exported["recovered"] >= 2
