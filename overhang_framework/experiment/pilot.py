@@ -359,13 +359,14 @@ class Pilot:
                 self.stop.set()
                 return taker
 
+        pool = ThreadPoolExecutor(max_workers=max(1, min(concurrency, len(takers))))
         try:
-            with ThreadPoolExecutor(max_workers=max(1, min(concurrency, len(takers)))) as pool:
-                done = list(pool.map(one, takers))
+            done = list(pool.map(one, takers))
         except KeyboardInterrupt:
-            self.stop.set()
+            self.stop.set()  # each participant stops at its next step; then the pool is shut down
             raise
         finally:
+            pool.shutdown(wait=True)
             bar.close()
         failed = [t for t in done if t.error]
         if failed:
