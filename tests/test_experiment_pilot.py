@@ -65,7 +65,8 @@ def offline_twin(overrides, records, table):
     by_index = {q.index: q for q in p.participants}
     out = []
     for pid, row in table.items():
-        firsts = sorted((r["trial"], index[r["task_id"]]) for r in records if r["participant"] == pid and r["step"] == 1)
+        firsts = sorted((r["trial"], index[r["task_id"]]) for r in records
+                        if r["participant"] == pid and r["step"] == 1)
         q = by_index[int(row["index"])]
         assert q.id == row["cohort_id"] and q.condition == row["condition"]
         sim = simulate_participant(q, p.checked.cohort, p.tasks, p.checked.models, p.checked.agents, p.checked.seed,

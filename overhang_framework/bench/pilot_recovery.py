@@ -52,7 +52,8 @@ def _table(name: str, r: dict) -> list[str]:
     cols = list(next(iter(r["confusion"].values())))
     lines = [f"**{name}**: {r['recovered']} of {r['participants']} depths recovered", "",
              "| | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
-    lines += [f"| {row} | " + " | ".join(str(v) for v in cells.values()) + " |" for row, cells in r["confusion"].items()]
+    lines += [f"| {row} | " + " | ".join(str(v) for v in cells.values()) + " |"
+              for row, cells in r["confusion"].items()]
     return lines + [""]
 
 
@@ -83,7 +84,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         result[name] = depth_recovery(out / f"fit_{name}" / "fits.csv", log.parent / "participants.csv")
     result["seconds"] = seconds
     atomic_write_json(out / "recovery.json", result)
-    md = [f"# Depth recovery: through the server and offline", "",
+    md = ["# Depth recovery: through the server and offline", "",
           f"`python -m overhang_framework.bench.pilot_recovery --out {out} --time-scale {args.time_scale} "
           + " ".join([*(f"--serve {s}" for s in args.serve), *(f"--fit '{w}'" for w in args.fit), *args.overrides])
           + "`", ""]
