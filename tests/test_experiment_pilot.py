@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from overhang_framework.experiment.pilot import SAME, offline_twin, placements_alike
+
 pytest.importorskip("httpx")
 pytest.importorskip("uvicorn")
 
@@ -27,9 +29,6 @@ PG_ENV = "OVERHANG_TEST_POSTGRES_URL"
 #: Two participants (one a condition), two tasks each.
 COHORT = ["cohort=small", "cohort.n_tasks=2", "cohort.participants.time_limited=1",
           "cohort.participants.unconstrained=1", "seed=3"]
-#: What the server stores of a placement that the offline simulation also logs (the times apart).
-SAME = ("participant", "condition", "task_id", "sequence", "trial", "step", "width", "x", "layer", "tower_before",
-        "stable", "timed_out")
 
 
 def run(*args, check=True, timeout=600):
@@ -54,27 +53,6 @@ def truth(out):
         return {r["id"]: r for r in csv.DictReader(f)}
 
 
-def offline_twin(overrides, records, table):
-    """The offline simulation's records of the pilot's participants, each doing the tasks in the server's order,
-    under the server's participant ids."""
-    from overhang_framework.behaviour.participants import simulate_participant
-    from overhang_framework.experiment.pilot import plan
-
-    p = plan(overrides)
-    index = {t.id: k for k, t in enumerate(p.tasks)}
-    by_index = {q.index: q for q in p.participants}
-    out = []
-    for pid, row in table.items():
-        firsts = sorted((r["trial"], index[r["task_id"]]) for r in records
-                        if r["participant"] == pid and r["step"] == 1)
-        q = by_index[int(row["index"])]
-        assert q.id == row["cohort_id"] and q.condition == row["condition"]
-        sim = simulate_participant(q, p.checked.cohort, p.tasks, p.checked.models, p.checked.agents, p.checked.seed,
-                                   order=[k for _, k in firsts])
-        out += [{**r, "participant": pid} for r in sim]
-    return out
-
-
 def same(records):
     return sorted(({k: r[k] for k in SAME} for r in records), key=lambda r: (r["participant"], r["trial"], r["step"]))
 
@@ -92,6 +70,7 @@ def test_a_pilot_through_the_server_stores_what_the_offline_simulation_places(tm
     # the same participants, tasks, placements and outcomes as offline; the server rounds overhangs to 1e-9
     twin = offline_twin(COHORT, records, table)
     assert same(records) == same(twin)
+    assert placements_alike(records, twin) == (len(records), len(records))
     assert len({(r["participant"], r["task_id"]) for r in records}) == 4
     key = lambda r: (r["participant"], r["trial"], r["step"])  # noqa: E731
     for a, b in zip(sorted(records, key=key), sorted(twin, key=key)):
@@ -226,6 +205,7 @@ def test_the_fit_of_the_exported_log_recovers_depths_as_the_offline_logs_fit_doe
                  "--fit", "models.ipe.sigma=[0.03]", "cohort=small", "cohort.n_tasks=3",
                  "cohort.participants.time_limited=2", "cohort.participants.unconstrained=2", "seed=1"]) == 0
     result = json.loads((out / "recovery.json").read_text())
+    assert result["alike"]["equal_offline_in_server_order"] == result["alike"]["placements"] > 0
     exported, offline = result["exported"], result["offline"]
     assert exported["participants"] == offline["participants"] == 4
     planted = {k: sum(v.values()) for k, v in exported["confusion"].items()}

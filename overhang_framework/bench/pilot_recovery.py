@@ -7,8 +7,9 @@ Runs, with the commands a lab types: the pilot (``python -m overhang_framework.e
 server, ``run_dir`` ``DIR/pilot``), the export of what the server stored, the offline simulation of the
 same cohort with the same seed (``python -m overhang_framework.participants``, ``DIR/offline``), and the
 fit of each log (``python -m overhang_framework.fit``, with ``--fit`` words such as ``'~models.cnn'``).
-Then it sets each participant's planted depth beside the depth of its best model (by BIC), for the
-exported and the offline log, and writes ``DIR/recovery.json`` and ``DIR/recovery.md``: the
+Then it counts the exported placements equal to the offline simulation's in the server's orders
+(:func:`overhang_framework.experiment.pilot.offline_twin`), sets each participant's planted depth beside
+the depth of its best model (by BIC), for the exported and the offline log, and writes ``DIR/recovery.json`` and ``DIR/recovery.md``: the
 confusion of planted and fitted depths, the share recovered, and each step's wall time.
 """
 
@@ -78,6 +79,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     seconds["offline"] = _timed(["-m", "overhang_framework.participants", *args.overrides, "progress=false",
                                  f"hydra.run.dir={out / 'offline'}"])
     result = {"overrides": args.overrides, "time_scale": float(args.time_scale), "fit": args.fit}
+    import csv
+    import json
+
+    from overhang_framework.experiment.pilot import offline_twin, placements_alike
+
+    records = [json.loads(line) for line in (out / "pilot" / "log.jsonl").read_text().splitlines()]
+    with open(out / "pilot" / "participants.csv") as f:
+        table = {r["id"]: r for r in csv.DictReader(f)}
+    alike, total = placements_alike(records, offline_twin(args.overrides, records, table))
+    result["alike"] = {"placements": total, "equal_offline_in_server_order": alike}
     for name, log in (("exported", out / "pilot" / "log.jsonl"), ("offline", out / "offline" / "log.jsonl")):
         seconds[f"fit {name}"] = _timed(["-m", "overhang_framework.fit", str(log), "--out", str(out / f"fit_{name}"),
                                          *args.fit, "progress=false"])
@@ -88,6 +99,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
           f"`python -m overhang_framework.bench.pilot_recovery --out {out} --time-scale {args.time_scale} "
           + " ".join([*(f"--serve {s}" for s in args.serve), *(f"--fit '{w}'" for w in args.fit), *args.overrides])
           + "`", ""]
+    md += [f"{alike} of {total} exported placements equal the offline simulation's in the server's orders", ""]
     md += _table("exported (the pilot through the server)", result["exported"])
     md += _table("offline (the participants command, same seed)", result["offline"])
     md += ["wall time: " + ", ".join(f"{k} {v:g} s" for k, v in seconds.items()), ""]

@@ -374,6 +374,50 @@ class Pilot:
         return done
 
 
+def offline_twin(overrides: Sequence[str], records: Sequence[dict], table: dict) -> list[dict]:
+    """The offline simulation's records of a pilot's participants, each doing the tasks in the server's order
+    (read from the exported ``records``), under the server's participant ids; ``table`` is the pilot's
+    ``participants.csv`` as ``{id: row}``. The export of a pilot equals these, the times apart (and rewards and
+    overhangs, which the server rounds to 1e-9)."""
+    from overhang_framework.behaviour.participants import simulate_participant
+
+    p = plan(overrides)
+    index = {t.id: k for k, t in enumerate(p.tasks)}
+    by_index = {q.index: q for q in p.participants}
+    out = []
+    for pid, row in table.items():
+        firsts = sorted((r["trial"], index[r["task_id"]]) for r in records
+                        if r["participant"] == pid and r["step"] == 1)
+        q = by_index[int(row["index"])]
+        if q.id != row["cohort_id"] or q.condition != row["condition"]:
+            raise ConfigError(f"participants.csv names {row['cohort_id']} ({row['condition']}) as cohort participant "
+                              f"{row['index']}, but these overrides make it {q.id} ({q.condition})")
+        sim = simulate_participant(q, p.checked.cohort, p.tasks, p.checked.models, p.checked.agents, p.checked.seed,
+                                   order=[k for _, k in firsts])
+        out += [{**r, "participant": pid} for r in sim]
+    return out
+
+
+#: What the server stores of a placement that the offline simulation also logs, alike (the times and rounding apart).
+SAME = ("participant", "condition", "task_id", "sequence", "trial", "step", "width", "x", "layer", "tower_before",
+        "stable", "timed_out")
+
+
+def placements_alike(exported: Sequence[dict], offline: Sequence[dict]) -> tuple[int, int]:
+    """How many of the ``exported`` placements equal their ``offline`` twin in :data:`SAME`, with the reward
+    within 2e-9; and how many there are."""
+    key = lambda r: (r["participant"], r["trial"], r["step"])  # noqa: E731
+    twins = {key(r): r for r in offline}
+    alike = 0
+    for r in exported:
+        o = twins.get(key(r))
+        if o is not None and all(r[k] == o[k] for k in SAME) and (
+                (r["reward"] is None and o["reward"] is None) or
+                (r["reward"] is not None and o["reward"] is not None and abs(r["reward"] - o["reward"]) <= 2e-9)):
+            alike += 1
+    return alike, len(exported)
+
+
 # -- outputs --------------------------------------------------------------------------------------------------
 
 def participants_table(takers: Sequence[Taker]) -> str:
