@@ -380,6 +380,13 @@ def participant_rngs(seed: int, index: int) -> tuple[np.random.Generator, np.ran
     return np.random.default_rng(params), np.random.default_rng(behaviour)
 
 
+def practice_rng(seed: int, index: int) -> np.random.Generator:
+    """The generator of participant ``index``'s practice trials (in a pilot through the experiment server): a
+    third child of the seed that :func:`participant_rngs` splits, so the practice leaves the main trials'
+    draws as the offline simulation makes them."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]).spawn(3)[2])
+
+
 def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
     """Every participant of the cohort, conditions in config order, each with parameters drawn from
     its own generator (the first of :func:`participant_rngs`)."""
@@ -481,6 +488,41 @@ def _legal_x(world: World, state, action: Action, sd: float, retries: int, rng: 
     return action.x
 
 
+@dataclass(frozen=True)
+class Choice:
+    """One decision of a participant: what it chose, what the choice cost, and how long it took."""
+
+    action: Action  # the grid action played (a random legal one after a lapse)
+    lapsed: bool
+    predictor_calls: int
+    depth_completed: Optional[int]
+    seconds: float  # the simulated decision time
+    timed_out: bool  # the decision time was over the time limit: nothing is placed
+    x: Optional[float]  # the placed x (grid x plus motor noise); None on a timeout
+
+
+def decide(participant: Participant, spec: ConditionSpec, cohort: Cohort, state, world: World, predictor, planner,
+           value, rng: np.random.Generator, time_limit: Optional[float] = None) -> Choice:
+    """The participant's decision in ``state``: plan under the condition's call budget, lapse, draw the decision
+    time, and, unless that is over ``time_limit`` (seconds; None: no limit), the placed x.
+
+    The draws from ``rng`` come in one order (the plan, the lapse, the lapse's action, the time, the motor
+    noise), so a participant who sees the same states makes the same choices however its outcomes reach it.
+    """
+    budget = Budget(seconds=None, predictor_calls=spec.call_limit)
+    decision = planner.plan(state, predictor, value, budget, rng)
+    action, lapsed = decision.action, bool(rng.random() < participant.lapse)
+    if lapsed:
+        legal = world.legal_actions(state)
+        action = legal[int(rng.integers(len(legal)))]
+    calls = decision.spend.predictor_calls
+    seconds = cohort.time_for(spec.name).sample(calls, rng)
+    if time_limit is not None and seconds > time_limit:
+        return Choice(action, lapsed, calls, decision.spend.depth_completed, seconds, True, None)
+    x = _legal_x(world, state, action, cohort.motor_sd, cohort.motor_retries, rng)
+    return Choice(action, lapsed, calls, decision.spend.depth_completed, seconds, False, x)
+
+
 def simulate_trial(participant: Participant, spec: ConditionSpec, cohort: Cohort, task: Task, trial: int,
                    world: World, predictor, planner, value, rng: np.random.Generator) -> list[dict]:
     """The records of one trial: the participant places the task's blocks until the end, a collapse or a timeout."""
@@ -488,33 +530,25 @@ def simulate_trial(participant: Participant, spec: ConditionSpec, cohort: Cohort
     records: list[dict] = []
     stood = True
     while not state.done:
-        budget = Budget(seconds=None, predictor_calls=spec.call_limit)
-        decision = planner.plan(state, predictor, value, budget, rng)
-        action, lapsed = decision.action, bool(rng.random() < participant.lapse)
-        if lapsed:
-            legal = world.legal_actions(state)
-            action = legal[int(rng.integers(len(legal)))]
-        calls = decision.spend.predictor_calls
-        seconds = cohort.time_for(spec.name).sample(calls, rng)
+        choice = decide(participant, spec, cohort, state, world, predictor, planner, value, rng, spec.time_limit)
         before = [[b.width, b.x, b.layer] for b in state.geometry.blocks]
         record = {
             "log_version": 1, "participant": participant.id, "condition": participant.condition,
             "task_id": task.id, "sequence": list(task.sequence), "trial": trial, "step": len(records) + 1,
-            "width": state.next_width, "tower_before": before, "decision_time": seconds,
-            "source": "simulated", "grid_x": action.x, "lapse": lapsed, "predictor_calls": calls,
-            "depth_completed": decision.spend.depth_completed,
+            "width": state.next_width, "tower_before": before, "decision_time": choice.seconds,
+            "source": "simulated", "grid_x": choice.action.x, "lapse": choice.lapsed,
+            "predictor_calls": choice.predictor_calls, "depth_completed": choice.depth_completed,
         }
-        if spec.time_limit is not None and seconds > spec.time_limit:
+        if choice.timed_out:
             record.update(x=None, layer=None, stable=None, overhang=None, reward=0.0,
                           decision_time=spec.time_limit, timed_out=True)
             records.append(record)
             return records
-        x = _legal_x(world, state, action, cohort.motor_sd, cohort.motor_retries, rng)
-        state = world.step(state, Action(x, action.layer))
+        state = world.step(state, Action(choice.x, choice.action.layer))
         stable = bool(world.is_stable(state.geometry))
         stood = stood and stable
         ends = not stable or state.done
-        record.update(x=x, layer=action.layer, stable=stable, overhang=world.overhang(state.geometry),
+        record.update(x=choice.x, layer=choice.action.layer, stable=stable, overhang=world.overhang(state.geometry),
                       reward=world.reward(state.geometry, stood) if ends else None, timed_out=False)
         records.append(record)
         if not stable:
@@ -537,17 +571,21 @@ def cohort_tasks(cohort: Cohort, tasks: Sequence[Task]) -> list[Task]:
 
 def simulate_participant(participant: Participant, cohort: Cohort, tasks: Sequence[Task], models: Mapping[str, Any],
                          agents: "Agents", seed: int,
-                         on_trial: Optional[Callable[[Participant, Task], None]] = None) -> list[dict]:
+                         on_trial: Optional[Callable[[Participant, Task], None]] = None,
+                         order: Optional[Sequence[int]] = None) -> list[dict]:
     """The records of one participant doing ``tasks`` (already cut to the cohort's) in an order of its own.
 
     They depend only on the participant, the models and ``seed``: participants
-    can be simulated in any order, in any process.
+    can be simulated in any order, in any process. ``order`` (indices into ``tasks``) replaces the
+    participant's own order (an experiment server's, say); its own is still drawn, so the trials' draws
+    are those the participant makes when it does the tasks in that order.
     """
     specs = {s.name: s for s in cohort.conditions}
     world, value = models["world"], models["value"]
     predictor, planner = agents.build(participant)
     rng = participant_rngs(seed, participant.index)[1]
-    order = rng.permutation(len(tasks))
+    own = rng.permutation(len(tasks))
+    order = own if order is None else list(order)
     records: list[dict] = []
     for trial, k in enumerate(order, 1):
         records.extend(simulate_trial(participant, specs[participant.condition], cohort, tasks[int(k)], trial,

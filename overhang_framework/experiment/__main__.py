@@ -10,6 +10,7 @@
     python -m overhang_framework.experiment restore FILE [OVERRIDES...]       # into an empty database
     python -m overhang_framework.experiment nginx-config --server-name NAME [OVERRIDES...]
     python -m overhang_framework.experiment systemd-unit --user USER [OVERRIDES...]
+    python -m overhang_framework.experiment pilot --out DIR [--url URL] [PARTICIPANTS OVERRIDES...]
 
 Overrides are keys of ``conf/serve.yaml`` (``port=8080``, ``database=postgresql+psycopg://...``,
 ``'tasks.only=[paper00,paper01]'``). ``export`` reads the database the config names, or with ``--url``
@@ -18,6 +19,8 @@ one stops working) and prints the link that resumes their session in any browser
 participant who withdrew their consent, with everything stored of them; the study keeps only a count.
 ``export`` also writes ``study.json`` beside the log: the study's settings, versions and dates.
 ``backup``, ``restore``, ``nginx-config`` and ``systemd-unit`` are the production set-up of docs/deploy.md.
+``pilot`` lets a simulated cohort take part through the HTTP API (``pilot --help``; docs/experiment.md, "A
+pilot before people").
 """
 
 from __future__ import annotations
@@ -319,10 +322,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from overhang_framework.errors import OverhangError
 
     commands = ("serve", "export", "reissue", "withdraw", "build", "backup", "restore", "nginx-config",
-                "systemd-unit")
+                "systemd-unit", "pilot")
     command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
+    if command == "pilot":
+        from overhang_framework.experiment.pilot import main as pilot
+
+        return pilot(argv)
     elif argv and not argv[0].startswith("-"):
         from overhang_framework.preflight import check_words
 
