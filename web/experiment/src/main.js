@@ -332,7 +332,10 @@ function askConsent(session) {
   if (session.consent.given) return Promise.resolve();
   return new Promise((resolve) => {
     const show = () => {
-      target.innerHTML = session.consent.html;
+      // laid out as jsPsych lays out a trial (its display element, centred content), before jsPsych starts
+      target.classList.add("jspsych-display-element");
+      target.innerHTML = `<div class="jspsych-content-wrapper"><div class="jspsych-content">${session.consent.html}
+        <div class="consent-actions"></div></div></div>`;
       const agree = document.createElement("button");
       agree.className = "jspsych-btn";
       agree.dataset.testid = "agree";
@@ -346,8 +349,7 @@ function askConsent(session) {
           showError(error.message, show);
         }
       });
-      const page = target.firstElementChild ?? target;
-      page.append(agree);
+      target.querySelector(".consent-actions").append(agree);
     };
     show();
   });
