@@ -17,6 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from overhang_framework.experiment.pilot import SAME, offline_twin, placements_alike
@@ -191,6 +192,18 @@ def test_a_pilot_on_postgresql(tmp_path):
     records = export(out, f"database={url}")
     assert records and {r["participant"] for r in records} == {"pilot-001"}
     assert same(records) == same(offline_twin(overrides, records, truth(out)))
+    # the same stored study as a Psych-DS dataset: valid, and read back as the JSON Lines export
+    from overhang_framework.behaviour.log import read_log
+    from overhang_framework.behaviour.psychds import check_dataset
+
+    dataset = out / "dataset"
+    run("-m", "overhang_framework.experiment", "export", "--format", "psych-ds", f"run_dir={out}",
+        f"database={url}", "--out", str(dataset))
+    assert check_dataset(dataset) == []
+    pd.testing.assert_frame_equal(read_log(dataset), read_log(out / "log.jsonl"))
+    sidecar = json.loads((dataset / "study.json").read_text())
+    assert sidecar == json.loads((out / "study.json").read_text())
+    assert {r["settings_hash"] for r in records} == {sidecar["study"]["settings_hash"]}
 
 
 @pytest.mark.slow
