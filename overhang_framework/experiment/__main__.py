@@ -326,10 +326,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
-    if command == "pilot":
-        from overhang_framework.experiment.pilot import main as pilot
+        if command == "pilot":
+            from overhang_framework.experiment.pilot import main as pilot
 
-        return pilot(argv)
+            return pilot(argv)
     elif argv and not argv[0].startswith("-"):
         from overhang_framework.preflight import check_words
 
