@@ -406,6 +406,7 @@ def test_leaderboard_rows_carry_their_command_and_provenance_and_replace_their_o
     assert (tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.slow
 def test_no_agent_beats_a_stored_optimum_and_the_oracle_reaches_each(tmp_path):
     """Depth-2 lookahead with the world's own verdicts on a sample of test tasks, under the default physics:
     a reward above a task's stored optimum would mean the optimum is wrong."""

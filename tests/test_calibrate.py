@@ -86,6 +86,7 @@ def test_reweighting_the_library_predicts_a_cohort_simulated_directly(library):
         assert got[key] == pytest.approx(truth[key], rel=0.04), key
 
 
+@pytest.mark.slow
 def test_the_fit_recovers_a_planted_cohort_and_the_abc_region_holds_it():
     rng = np.random.default_rng(4)
     library = calibrate.Library(synthetic_trials(synthetic_people(PROPOSAL, 400, rng), rng, trials=10), PROPOSAL,

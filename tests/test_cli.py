@@ -334,6 +334,7 @@ def test_progress_moves_per_placement_on_a_terminal(tmp_path):
     assert "build time" not in frames + proc.stdout
 
 
+@pytest.mark.slow
 def test_progress_off_a_terminal_writes_whole_lines_now_and_then(tmp_path):
     import os
 

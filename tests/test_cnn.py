@@ -157,6 +157,7 @@ def test_training_runs_end_to_end_and_resumes_where_it_stopped(tmp_path, monkeyp
         train.train(train_cfg(tmp_path / "b", "optim.lr=0.1"))
 
 
+@pytest.mark.slow
 def test_training_with_auxiliary_margin_targets_keeps_the_verdict_first(tmp_path):
     from overhang_framework.cnn import train
 
@@ -295,6 +296,7 @@ def test_the_renderer_channels_are_recorded_in_the_checkpoint_and_set_the_networ
     assert model.probabilities([Geometry((Block(1.8, 0.0, 0),))]).shape == (1,)
 
 
+@pytest.mark.slow
 def test_the_renderer_options_compose(tmp_path):
     from overhang_framework.cnn import train
 
@@ -440,6 +442,7 @@ def unfused_and_fused():
             StabilityModel("default", device="cpu"))
 
 
+@pytest.mark.slow
 def test_the_fused_network_gives_the_trained_networks_probabilities(unfused_and_fused):
     import torch
 
@@ -548,6 +551,7 @@ def test_a_hybrid_is_batched_when_its_cnn_is_and_empties_its_cnns_cache():
     assert len(hybrid.late._cache) == 0
 
 
+@pytest.mark.slow
 def test_the_exported_network_is_kept_between_processes(tmp_path, monkeypatch):
     from overhang_framework.cnn import model as cnn_model
 
@@ -577,6 +581,7 @@ def test_bad_inference_settings_are_refused():
         Registry().create("predictor", {"name": "cnn", "fused": "yes"}, world=world)
 
 
+@pytest.mark.slow
 def test_the_fit_benchmark_compares_the_tables_with_the_code_before_and_as_a_fit_computes_them(capsys, tmp_path):
     from overhang_framework.bench import fit
 
@@ -770,7 +775,9 @@ MISMATCH_COMMANDS = {
 }
 
 
-@pytest.mark.parametrize("command", list(MISMATCH_COMMANDS))
+# about 6 s each: the main command's case runs in the default suite, the others with the slow tests
+@pytest.mark.parametrize("command", [c if c == "predictor=cnn" else pytest.param(c, marks=pytest.mark.slow)
+                                     for c in MISMATCH_COMMANDS])
 def test_a_torchvision_built_for_another_torch_stops_each_command_in_one_line(tmp_path, command):
     import os
 

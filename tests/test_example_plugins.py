@@ -108,6 +108,7 @@ def test_the_plugins_pass_their_own_tests_in_the_installed_environment(installed
     assert where.count(str(installed.base / "venv")) == 3
 
 
+@pytest.mark.slow
 def test_a_multirun_runs_the_plugins_beside_a_built_in(installed):
     sweep = installed.base / "sweep"
     installed.run("-m", "overhang_framework", "-m", "predictor=veridical,com_margin,edge",

@@ -12,7 +12,7 @@ pytest.importorskip("uvicorn")
 pytest.importorskip("pybullet")
 
 
-@pytest.mark.parametrize("physics_processes", [0, 1])
+@pytest.mark.parametrize("physics_processes", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_every_acknowledged_placement_is_stored_once(tmp_path, physics_processes):
     from overhang_framework.bench.experiment_load import LoadConfig, run_load, table
 

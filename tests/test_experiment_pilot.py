@@ -58,6 +58,8 @@ def same(records):
     return sorted(({k: r[k] for k in SAME} for r in records), key=lambda r: (r["participant"], r["trial"], r["step"]))
 
 
+# the same pilot on PostgreSQL (below) checks the equality in the default suite
+@pytest.mark.slow
 def test_a_pilot_through_the_server_stores_what_the_offline_simulation_places(tmp_path):
     out = tmp_path / "pilot"
     done = pilot(out, "--time-scale", "0.05", "--serve", "workers=1", "--serve", "physics_processes=0", *COHORT)

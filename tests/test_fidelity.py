@@ -121,6 +121,7 @@ def _levels(tmp_path, models):
     return levels
 
 
+@pytest.mark.slow
 def test_the_paper_levels_config_puts_the_myopic_model_at_the_papers_level(tmp_path):
     (got,) = _levels(tmp_path, ["myopic"]).values()
     mean, sem = fidelity.PAPER["myopic"]

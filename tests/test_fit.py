@@ -177,6 +177,7 @@ FIT = ["world.physics=static", "~models.cnn", "~models.hybrid", "models.ipe.K=10
        "+models.veridical={predictor: veridical}", "progress=false"]
 
 
+@pytest.mark.slow
 def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tmp_path, tiny_log):
     one = tmp_path / "one"
     proc = _cli(str(tiny_log), "--out", str(one), *FIT, f"cache={tmp_path / 'scores.sqlite'}")
@@ -227,6 +228,7 @@ def test_a_fit_writes_every_participant_x_model_and_shards_give_the_same_fits(tm
     assert proc.returncode == 2 and "holds fits of another" in proc.stderr, proc.stderr
 
 
+@pytest.mark.slow
 def test_a_fit_killed_part_way_continues_from_its_journal_with_the_same_fits(tmp_path, tiny_log):
     import os
     import signal
@@ -383,6 +385,7 @@ def test_grid_states_replay_each_trial_so_that_the_same_grid_choices_share_state
         map_placements(world, c, "nearest")
 
 
+@pytest.mark.slow
 def test_recovery_of_a_small_cohort_whose_answer_is_known(tmp_path):
     """The recovery command on a cohort whose answer is known.
 

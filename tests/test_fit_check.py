@@ -75,6 +75,7 @@ def test_the_generating_model_passes_the_check_and_a_wrong_model_fails_it(fitted
     assert (fitted / "wrong" / "check.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_a_stopped_check_continues_from_its_parts_and_other_settings_are_refused(fitted):
     out = fitted / "again"
     proc = _check(fitted, "--replicas", "3", "--out", str(out))

@@ -65,7 +65,7 @@ def models():
     return world, predictor, value
 
 
-@pytest.mark.parametrize("depth", [1, 2, 3])
+@pytest.mark.parametrize("depth", [1, 2, pytest.param(3, marks=pytest.mark.slow)])
 def test_lazy_lookahead_chooses_as_the_exhaustive_search(depth):
     settled = 0
     for state in random_states(6, seed=depth):
@@ -91,6 +91,7 @@ def test_lazy_softmax_scores_are_all_exact():
         np.testing.assert_allclose(out[0], out[1], rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_lazy_optimum_equals_the_exhaustive_one_and_settles_fewer():
     for state in random_states(3, seed=5):
         values, revealed = [], []

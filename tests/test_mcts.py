@@ -168,8 +168,9 @@ def _references(world) -> int:
     return world.backend.backend.counts["reference"]  # the tiered physics under the world's cache
 
 
-# about 15 s of one core each: the softmax case (every root answer settled) runs with the slow tests
-@pytest.mark.parametrize("choice", ["argmax", pytest.param("softmax", marks=pytest.mark.slow)])
+# about 15 s of one core each; tests/test_bench.py runs the argmax case's benchmark in the default suite
+@pytest.mark.slow
+@pytest.mark.parametrize("choice", ["argmax", "softmax"])
 def test_settling_only_the_needed_answers_changes_no_choice_and_runs_fewer_references(choice):
     """With the world's verdicts (tiered physics: a full-window reference run for the towers its static stages
     cannot judge), the lazy search makes the eager search's decisions, from fewer reference runs."""

@@ -66,6 +66,7 @@ def episode_actions(run_dir):
             for line in (run_dir / "episodes.jsonl").read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_a_saved_policy_plays_through_the_main_job(policy_file, tmp_path):
     cmd = [sys.executable, "-m", "overhang_framework", "planner=policy", f"planner.path={policy_file}",
            "world.physics=static", "tasks=paper20", "tasks.only=[paper00,paper03,paper07]", "progress=false"]
@@ -130,6 +131,7 @@ def test_unreadable_policy_files_are_refused_in_one_line(tmp_path, content, mess
         Registry().create("planner", {"name": "policy"}, world=world)
 
 
+@pytest.mark.slow
 def test_the_ppo_example_trains_saves_and_compares(tmp_path):
     out = tmp_path / "ppo"
     done = subprocess.run([sys.executable, "-m", "overhang_framework.envs.ppo", "--steps", "2048", "--envs", "2",

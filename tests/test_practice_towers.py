@@ -78,6 +78,7 @@ def better_towers(world, task, reward):
     return out
 
 
+@pytest.mark.slow
 def test_stored_towers_stay_legal_and_stand_under_the_reference_with_every_placement_off(settings, reference):
     assert len(settings.practice) == 3
     for practice in settings.practice:

@@ -48,6 +48,7 @@ def interrupt_after_first_episode(args, partial: Path) -> subprocess.CompletedPr
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
+@pytest.mark.slow
 def test_an_interrupted_run_resumes_and_keeps_every_finished_episode_once(tmp_path):
     out = tmp_path / "run"
     args = [*SLOW, f"hydra.run.dir={out}"]

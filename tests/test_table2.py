@@ -54,6 +54,7 @@ def test_a_bad_model_is_one_line_before_anything_runs(tmp_path):
     assert not (tmp_path / "sweep").exists()
 
 
+@pytest.mark.slow
 def test_the_quick_variant_runs_end_to_end(tmp_path):
     """The quick variant on one task, one run: every model runs and the table is printed and written."""
     proc = subprocess.run([sys.executable, "-m", "overhang_framework", "experiment=table2_quick",

@@ -96,6 +96,7 @@ def test_the_listed_order_decides_knife_edge_verdicts_when_the_engine_is_given_i
     assert not reference.stable(TOP_FIRST)
 
 
+@pytest.mark.slow
 def test_pybullet_gives_one_outcome_per_tower_whatever_the_order(reference, edge_towers, flip_towers):
     towers = edge_towers + flip_towers
     verdicts = []
@@ -106,6 +107,7 @@ def test_pybullet_gives_one_outcome_per_tower_whatever_the_order(reference, edge
     assert 0 < sum(verdicts[len(edge_towers):]) < len(flip_towers)  # both verdicts occur at the flips
 
 
+@pytest.mark.slow
 def test_per_block_friction_and_jitters_travel_with_their_blocks(flip_towers):
     sim = PyBulletSimulator(PyBulletParams(jitters=2, jitter=0.001))
     try:
