@@ -93,7 +93,8 @@ def test_a_restart_with_settings_participants_see_is_refused_in_one_line_and_an_
     old_hash = first.app.state.store.study().settings_hash
     first.app.state.store.close()
     # where the server listens and how many processes it runs change nothing a participant sees
-    _serve_app([*overrides, "port=8123", "workers=1", "keep_alive=30"]).app.state.store.close()
+    _serve_app([*overrides, "port=8123", "workers=1", "keep_alive=30", "world.cache=false",
+                "world.workers=2"]).app.state.store.close()
     with pytest.raises(ConfigError, match=r"tasks: .* -> .*; time_limit: 5\.0 -> 4\.0\); .*allow_settings_change=true"):
         _serve_app([*overrides[:1], "tasks.only=[paper03,paper01]", "physics_processes=0", "time_limit=4"])
     # the command line says it in one line, before it listens

@@ -6,7 +6,7 @@ The study's settings are recorded in its database when its server first starts (
 and the hashes of the settings and of the task set it was made under; a server restarted on the study
 with other such settings is refused unless ``allow_settings_change=true``, and then the change is
 recorded. Where the server listens, its processes, the database and the admin token are not among them:
-they change nothing a participant sees.
+they change nothing a participant sees; nor do the world's cache and worker processes.
 """
 
 from __future__ import annotations
@@ -28,10 +28,14 @@ def task_set(settings: Settings) -> list:
     return [[t.id, list(t.sequence)] for t in settings.tasks]
 
 
+#: Keys of the world's config that change how fast its verdicts come, not what they are.
+WORLD_SPEED_KEYS = ("cache", "verdict_file", "workers")
+
+
 def study_settings(settings: Settings) -> dict:
     """The settings that change what participants see or how they are scored (plain JSON data)."""
     return {
-        "world": settings.world,
+        "world": {k: v for k, v in settings.world.items() if k not in WORLD_SPEED_KEYS},
         "tasks": task_set(settings),
         "practice": [{"id": p.task.id, "sequence": list(p.task.sequence), "pass_reward": p.pass_reward,
                       "shown_reward": p.shown_reward, "tolerance": p.tolerance} for p in settings.practice],
