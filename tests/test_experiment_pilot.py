@@ -204,7 +204,7 @@ def test_a_pilot_on_postgresql(tmp_path):
     assert check_dataset(dataset) == []
     pd.testing.assert_frame_equal(read_log(dataset), read_log(out / "log.jsonl"))
     sidecar = json.loads((dataset / "study.json").read_text())
-    assert sidecar == json.loads((out / "study.json").read_text())
+    assert sidecar == json.loads((out / "log.study.json").read_text())
     assert {r["settings_hash"] for r in records} == {sidecar["study"]["settings_hash"]}
 
 

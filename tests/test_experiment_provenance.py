@@ -179,12 +179,16 @@ def test_withdraw_deletes_a_participant_from_the_database_and_every_later_export
     after.parent.mkdir()
     assert main(["export", "--out", str(after), *overrides]) == 0
     assert set(read_log(after).participant) == {"P1", "P3"}
-    study = json.loads((after.parent / "study.json").read_text())
+    study = json.loads((after.parent / "log.study.json").read_text())
     assert study["participants"]["withdrawn"] == 1 and study["participants"]["total"] == 2
-    assert "P2" not in (after.parent / "study.json").read_text()
+    assert "P2" not in (after.parent / "log.study.json").read_text()
+    # P2 cannot come back, with the old link or as a newcomer
+    back = client.post("/api/sessions", json={"params": {"participant": "P2"}})
+    assert back.status_code == 410 and back.json()["reason"] == "withdrawn"
+    assert store.participant("P2") is None
     capsys.readouterr()
     assert main(["withdraw", "P2", "--yes", *overrides]) == 2
-    assert capsys.readouterr().err == "error: no participant 'P2' (withdrawn already, or never started)\n"
+    assert capsys.readouterr().err == "error: no participant 'P2'; the study has 2: P1, P3\n"
     # through a running server, with the admin token
     reply = client.post("/api/admin/participants/P3/withdraw", headers={"X-Admin-Token": ADMIN})
     assert reply.status_code == 200 and reply.json()["withdrawn"] == 2
@@ -205,7 +209,7 @@ def test_the_export_sidecar_holds_the_settings_versions_and_the_first_and_last_p
     out = tmp_path / "export" / "log.jsonl"
     out.parent.mkdir()
     assert main(["export", "--out", str(out), *overrides]) == 0
-    study = json.loads((out.parent / "study.json").read_text())
+    study = json.loads((out.parent / "log.study.json").read_text())
     assert study["study"]["settings"] == json.loads(json.dumps(study_settings(client.settings)))
     assert {k: study["study"][k] for k in ("framework_version", "commit")} == versions()
     assert study["exported_with"] == versions()
@@ -239,3 +243,37 @@ def test_reissue_without_a_public_url_takes_the_address_the_server_listened_on(o
     out = capsys.readouterr()
     assert out.out.startswith("http://127.0.0.1:8123/?participant=P1&token=")
     assert "note: the link starts with http://127.0.0.1:8123" in out.err
+
+
+def test_the_commands_refuse_targets_they_would_clobber_and_arguments_in_the_wrong_place(overrides, tmp_path, capsys):
+    from overhang_framework.experiment.__main__ import main
+
+    client = _serve_app(overrides)
+    _play(client, "P1")
+    client.app.state.store.close()
+    other = tmp_path / "notes.csv"
+    other.write_text("a,b\n1,2\n")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    cases = [
+        (["export", "--out", str(other)], "exists and is not a behaviour log"),
+        (["export", "--out", str(tmp_path / "x.study.json")], "study.json sidecar"),
+        (["export", "--out", str(folder)], "is a folder"),
+        (["backup", "--out", str(folder)], "is a folder"),
+        (["withdraw", "--yes"], "withdraw needs a participant's id first"),
+        (["reissue"], "reissue needs a participant's id first"),
+        (["withdraw", "nobody"], "no participant 'nobody'; the study has 1: P1"),
+    ]
+    for words, message in cases:
+        assert main([*words, *overrides]) == 2, words
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and message in err, (words, err)
+    assert other.read_text() == "a,b\n1,2\n" and list(folder.iterdir()) == []
+    assert main(["withdraw", "P1", *overrides]) == 2
+    err = capsys.readouterr().err
+    assert "deletes them with their" in err and "nothing was deleted" in err
+    # exports into one folder keep their own sidecars
+    assert main(["export", "--out", str(tmp_path / "a.jsonl"), *overrides]) == 0
+    assert main(["export", "--out", str(tmp_path / "b.jsonl"), *overrides]) == 0
+    assert (tmp_path / "a.study.json").is_file() and (tmp_path / "b.study.json").is_file()
+    assert main(["export", "--out", str(tmp_path / "a.jsonl"), *overrides]) == 0  # an earlier log is replaced

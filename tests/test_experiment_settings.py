@@ -267,7 +267,7 @@ def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_o
     log = read_log(out)
     assert (len(log), int(log.timed_out.sum())) == (3, 2)
     assert capsys.readouterr().err == (f"wrote {out}: 1 placement and 2 timeouts; the study's settings and versions "
-                                       f"in {out.parent / 'study.json'}\n")
+                                       f"in {out.parent / 'log.study.json'}\n")
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     assert main(["export", "--out", str(blocker / "log.jsonl"), *overrides]) == 2

@@ -155,6 +155,11 @@ def _export(args) -> int:
         return 2
     out = Path(args.out)
     check_writable(out.absolute().parent, "--out FILE" if args.format == "jsonl" else "--out DIR")
+    if args.format == "jsonl":
+        problem = _not_a_log_target(out)
+        if problem:
+            print(f"error: --out {args.out}: {problem}", file=sys.stderr)
+            return 2
     if args.format == "psych-ds":
         from overhang_framework.behaviour.psychds import check_out
 
@@ -185,7 +190,7 @@ def _export(args) -> int:
     else:
         from overhang_framework.behaviour.log import log_text
 
-        sidecar = out.absolute().parent / "study.json"
+        sidecar = sidecar_of(out)
         atomic_write_text(out, text if args.url else log_text(records))
         atomic_write_text(sidecar, study_text(study))
         where = args.out
@@ -195,6 +200,33 @@ def _export(args) -> int:
     print(f"wrote {where}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}; "
           f"the study's settings and versions in {sidecar}", file=sys.stderr)
     return 0
+
+
+def sidecar_of(log: Path) -> Path:
+    """Where a JSON Lines export's ``study.json`` goes: beside it, named after it (``log.jsonl`` ->
+    ``log.study.json``), so that exports in one folder keep their own."""
+    log = log.absolute()
+    return log.with_name((log.name[: -len(log.suffix)] if log.suffix else log.name) + ".study.json")
+
+
+def _not_a_log_target(out: Path) -> Optional[str]:
+    """Why a JSON Lines export must not be written to ``out`` (None when it may: a new file, or an earlier
+    behaviour log, which it replaces)."""
+    if out.is_dir():
+        return "is a folder; give the log's file name, e.g. log.jsonl (or --format psych-ds for a dataset folder)"
+    if out.name.endswith(".study.json") or out.name == "study.json":
+        return "is the name of an export's study.json sidecar; give the log's file name, e.g. log.jsonl"
+    if out.exists() and out.stat().st_size:
+        with open(out, "rb") as f:
+            first = f.readline(100_000).strip()
+        try:
+            record = json.loads(first)
+        except ValueError:
+            record = None
+        if not isinstance(record, dict) or "log_version" not in record:
+            return ("exists and is not a behaviour log (its first line is no log record); the export would "
+                    "replace it: give a new file name")
+    return None
 
 
 def _local_store(args):
@@ -249,8 +281,22 @@ def _reissue(args) -> int:
 
 def _withdraw(args) -> int:
     if not args.yes:
-        print(f"error: withdrawing deletes everything stored of participant {args.participant}, for good; add --yes "
-              "to do it", file=sys.stderr)
+        what = "everything stored of them"
+        if not args.url:  # say what would go, or that there is no such participant
+            from overhang_framework.experiment.api import unknown_participant
+
+            _, store = _local_store(args)
+            if store is None:
+                return 2
+            try:
+                if store.participant(args.participant) is None:
+                    print(f"error: {unknown_participant(store, args.participant).message}", file=sys.stderr)
+                    return 2
+                what = f"them with their {len(store.placements(args.participant))} placement(s) and step clocks"
+            finally:
+                store.close()
+        print(f"error: withdrawing participant {args.participant} deletes {what}, for good; nothing was deleted: "
+              "add --yes to do it", file=sys.stderr)
         return 2
     if args.url:
         reply = _ask_server(args, "POST", f"/api/admin/participants/{args.participant}/withdraw", timeout=60)
@@ -377,6 +423,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if command == "build":
         parser.add_argument("--force", action="store_true", help="build even when web/dist exists")
     args = parser.parse_intermixed_args(argv)  # overrides may come before or after the flags
+    for name, what in (("participant", "a participant's id"), ("file", "the backup file")):
+        value = getattr(args, name, None)
+        if value is not None and "=" in value and not Path(value).exists():
+            print(f"error: {command} needs {what} first, then the overrides; got the override {value!r}",
+                  file=sys.stderr)
+            return 2
     try:
         if command == "export":
             return _export(args)

@@ -208,14 +208,19 @@ def resume_link(settings: Settings, participant: Participant, token: str, base: 
     return f"{base}/?{urlencode({**params, 'token': token})}"
 
 
+def unknown_participant(store: Store, pid: str) -> Refused:
+    """The refusal of a request about participant ``pid``, whom the study does not hold: which it does."""
+    known = [p.id for p in store.participants()]
+    shown = ", ".join(known[:10]) + (", ..." if len(known) > 10 else "")
+    return Refused(404, f"no participant {pid!r}; the study has {len(known)}" + (f": {shown}" if known else ""))
+
+
 def reissue(settings: Settings, store: Store, pid: str, base: Optional[str] = None) -> tuple[str, str]:
     """A new session token for participant ``pid`` (the old one stops working) and its resume link (starting
     with ``base``, by default :func:`public_base`)."""
     participant = store.participant(pid)
     if participant is None:
-        known = [p.id for p in store.participants()]
-        shown = ", ".join(known[:10]) + (", ..." if len(known) > 10 else "")
-        raise Refused(404, f"no participant {pid!r}; the study has {len(known)}" + (f": {shown}" if known else ""))
+        raise unknown_participant(store, pid)
     token = secrets.token_urlsafe(24)
     participant = store.set_token(pid, token)
     return token, resume_link(settings, participant, token, base or public_base(settings, store=store))
@@ -225,7 +230,7 @@ def withdraw(store: Store, pid: str) -> dict:
     """Delete participant ``pid`` and everything stored of them (:meth:`Store.withdraw`); what was deleted."""
     deleted = store.withdraw(pid)
     if deleted is None:
-        raise Refused(404, f"no participant {pid!r} (withdrawn already, or never started)")
+        raise unknown_participant(store, pid)
     study = store.study()
     return {"participant": pid, "deleted": deleted, "withdrawn": study.withdrawn if study is not None else 1}
 
@@ -363,6 +368,9 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                                    "link; the researcher can issue a new link (experiment reissue)",
                               reason="session_elsewhere", contact=settings.contact)
             return JSONResponse(session_payload(known, token), status_code=200)
+        if store.withdrew(pid):
+            raise Refused(410, f"participant {pid} withdrew from this study, and their data were deleted; they "
+                               "cannot take part again", reason="withdrawn", contact=settings.contact)
         token = secrets.token_urlsafe(24)
 
         def newcomer(counts: dict[str, int]) -> Participant:

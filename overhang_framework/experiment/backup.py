@@ -261,5 +261,7 @@ def check_backup_target(out: Optional[str]) -> Path:
     from overhang_framework.preflight import check_writable
 
     path = Path(out).absolute()
+    if path.is_dir():
+        raise ConfigError(f"--out {out} is a folder; give the backup file's path, e.g. {Path(out) / 'study.backup'}")
     check_writable(path.parent, "--out FILE")
     return path

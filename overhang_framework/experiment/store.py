@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import hmac
 import json
+import secrets
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Optional, Sequence
 
@@ -81,6 +83,10 @@ class Study(Base):
     started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
     history: Mapped[list] = mapped_column(JSON, default=list)  # {"at", "what", "changes"}, oldest first
     withdrawn: Mapped[int] = mapped_column(Integer, default=0)
+    # keyed hashes of the withdrawn participants' ids (HMAC-SHA-256 under ``salt``, a random key of this study):
+    # enough to refuse their return, not to tell who they were without the database
+    salt: Mapped[str] = mapped_column(String(64))
+    withdrawn_keys: Mapped[list] = mapped_column(JSON, default=list)
 
 
 class Newcomers(Base):
@@ -141,6 +147,10 @@ class Clock(StepKey, Base):
     __table_args__ = (UniqueConstraint("participant_id", "phase", "trial", "attempt", "step", name="one_clock_per_step"),)
 
     issued_at: Mapped[float] = mapped_column(Float)
+
+
+def _withdrawn_key(salt: str, pid: str) -> str:
+    return hmac.new(salt.encode(), pid.encode(), hashlib.sha256).hexdigest()
 
 
 def utc_iso(when: Optional[dt.datetime]) -> Optional[str]:
@@ -326,9 +336,17 @@ class Store:
             for kind, model in (("placements", Placement), ("clocks", Clock)):
                 deleted[kind] = s.execute(delete(model).where(model.participant_id == pid)).rowcount
             s.delete(p)
-            s.execute(update(Study).where(Study.id == 1).values(withdrawn=Study.withdrawn + 1))
+            study = s.get(Study, 1, with_for_update=True)
+            if study is not None:
+                study.withdrawn = (study.withdrawn or 0) + 1
+                study.withdrawn_keys = [*(study.withdrawn_keys or []), _withdrawn_key(study.salt, pid)]
             s.commit()
         return deleted
+
+    def withdrew(self, pid: str) -> bool:
+        """Whether a participant with id ``pid`` withdrew from this study (and was deleted)."""
+        study = self.study()
+        return study is not None and _withdrawn_key(study.salt, pid) in (study.withdrawn_keys or [])
 
     # the study ----------------------------------------------------------------------------------------------
     def study(self) -> Optional[Study]:
@@ -350,7 +368,7 @@ class Store:
             row = s.get(Study, 1, with_for_update=True)
             if row is None:
                 s.add(Study(id=1, settings=settings, history=[], withdrawn=0, address=address, public_url=public_url,
-                            **hashes, **versions))
+                            salt=secrets.token_hex(32), withdrawn_keys=[], **hashes, **versions))
                 try:
                     s.commit()
                 except IntegrityError:  # another server process made it first: check against theirs

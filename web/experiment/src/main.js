@@ -363,6 +363,7 @@ async function start() {
     session = await openSession(params, token);
   } catch (error) {
     if (error.reason === "session_elsewhere") showElsewhere(error.data?.contact);
+    else if (error.reason === "withdrawn") showMessage("You have withdrawn", `<p>${escapeHtml(error.message)}.</p>`, "withdrawn");
     else showError(error.message, () => start());
     return;
   }
