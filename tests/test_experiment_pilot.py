@@ -141,6 +141,9 @@ def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path):
     finally:
         process.terminate()
         process.wait(timeout=30)
+    # a server stopped as a service is stopped leaves what it stored in the database file, not in its -wal
+    wal = tmp_path / "server" / "experiment.sqlite-wal"
+    assert not wal.exists() or wal.stat().st_size == 0
     assert "1 screened out in the practice" in done.stdout, done.stdout
     assert json.loads((out / "pilot.json").read_text())["screened_out"] == 1
     decisions = [json.loads(line) for line in (out / "decisions.jsonl").read_text().splitlines()]
@@ -193,6 +196,7 @@ def test_a_pilot_on_postgresql(tmp_path):
           "--serve", f"database={url}", *overrides)
     records = export(out, f"database={url}")
     assert records and {r["participant"] for r in records} == {"pilot-001"}
+    assert {r["source"] for r in records} == {"simulated"}  # a pilot's own server says who took part
     assert same(records) == same(offline_twin(overrides, records, truth(out)))
     # the same stored study as a Psych-DS dataset: valid, and read back as the JSON Lines export
     from overhang_framework.behaviour.log import read_log

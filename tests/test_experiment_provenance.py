@@ -277,3 +277,4 @@ def test_the_commands_refuse_targets_they_would_clobber_and_arguments_in_the_wro
     assert main(["export", "--out", str(tmp_path / "b.jsonl"), *overrides]) == 0
     assert (tmp_path / "a.study.json").is_file() and (tmp_path / "b.study.json").is_file()
     assert main(["export", "--out", str(tmp_path / "a.jsonl"), *overrides]) == 0  # an earlier log is replaced
+

@@ -243,6 +243,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     ``clock`` (seconds, shared by every server process) to the system's wall clock; the front end in
     ``settings.web_dir`` is served at ``/`` when given.
     """
+    own_store = store is None
     store = store or Store(settings.database)
     study = begin_study(settings, store)
     # what every placement stored by this server carries: the code's version and the settings' hashes
@@ -255,6 +256,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         outcomes.start()
         yield
         outcomes.close()
+        if own_store:
+            store.close()  # SQLite: what its write-ahead log holds goes into the database file
 
     app = FastAPI(title="Overhang Tower experiment", version="1", lifespan=lifespan)
     app.state.store, app.state.settings, app.state.outcomes = store, settings, outcomes

@@ -87,6 +87,8 @@ def log_records(store: Store, include_screened_out: bool = False) -> tuple[list[
     ``include_screened_out`` adds the practice attempts of the participants screened out in the practice.
     """
     people = {p.id: p for p in store.participants()}
+    study = store.study()
+    source = (study.settings.get("source") if study is not None else None) or "human"
     screened = {pid for pid, p in people.items() if p.screened_out_at is not None}
     trials: dict[tuple, list] = {}
     for row in store.placements(phase="main"):
@@ -118,10 +120,10 @@ def log_records(store: Store, include_screened_out: bool = False) -> tuple[list[
                 "sequence": list(r.sequence), "trial": number, "step": r.step, "width": r.width, "x": r.x,
                 "layer": r.layer, "tower_before": r.tower_before, "stable": r.stable, "overhang": r.overhang,
                 "reward": r.reward, "decision_time": decision_time(r, limit), "timed_out": r.timed_out,
-                "trajectory": r.trajectory, "dwell": r.dwell, "source": "human", **extra,
+                "trajectory": r.trajectory, "dwell": r.dwell, "source": source, **extra,
                 "page_decision_time": r.decision_time, "server_time": r.server_time, "late_action": r.late_action,
                 "study_id": p.study_id, "session_id": p.session_id,
-                "received_at": r.received_at.isoformat() if r.received_at else None,
+                "received_at": utc_iso(r.received_at),
                 "consent_version": p.consent_version,
                 "consented_at": utc_iso(p.consented_at),
                 "framework_version": r.framework_version, "commit": r.commit, "settings_hash": r.settings_hash,
@@ -184,7 +186,9 @@ def write_psychds(records: Iterable[Mapping], out: str | Path, study: Optional[d
     conditions = sorted({r["condition"] for r in records})
     days = sorted(str(r["received_at"])[:10] for r in records if r.get("received_at"))
     practice = any(r.get("phase") == "practice" for r in records)
-    text = ("People building towers in the Overhang Tower task, recorded by the overhang-framework web experiment: "
+    simulated = any(r.get("source") == "simulated" for r in records)
+    who = "Simulated participants (a pilot through the server)" if simulated else "People"
+    text = (f"{who} building towers in the Overhang Tower task, recorded by the overhang-framework web experiment: "
             f"{len(people)} participant{'s' * (len(people) != 1)} in the condition(s) {', '.join(conditions)}. "
             "One data file per participant, one row per placement (a block placed, or a decision that ran out of "
             "time); the whole main trials"

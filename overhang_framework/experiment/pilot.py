@@ -117,7 +117,8 @@ def server_overrides(p: Plan, time_scale: float, run_dir: Path, port: int) -> li
     words += ["tasks=custom", "tasks.sequences=" + json.dumps([list(t.sequence) for t in p.tasks]),
               "tasks.ids=" + json.dumps([t.id for t in p.tasks]),
               "conditions=[" + ",".join(s.name for s in specs) + "]",
-              f"seed={p.checked.seed}", f"run_dir={run_dir}", f"port={port}", "host=127.0.0.1"]
+              f"seed={p.checked.seed}", f"run_dir={run_dir}", f"port={port}", "host=127.0.0.1",
+              "source=simulated"]  # the study's records say who took part
     if limited is not None and limited.time_limit is not None:
         words.append(f"time_limit={limited.time_limit * time_scale!r}")
     return words

@@ -52,6 +52,7 @@ def study_settings(settings: Settings) -> dict:
         "completion_url": settings.completion_url,
         "screen_out_url": settings.screen_out_url,
         "consent_version": settings.consent_version,
+        "source": settings.source,
     }
 
 

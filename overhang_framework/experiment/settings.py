@@ -63,6 +63,7 @@ class Settings:
     consent_html: str = ""
     consent_version: str = ""
     allow_settings_change: bool = False
+    source: str = "human"
     host: str = "127.0.0.1"
     port: int = 8000
     workers: int = 1
@@ -230,8 +231,11 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
     allow_change = cfg.get("allow_settings_change")
     if not isinstance(allow_change, bool):
         raise ConfigError(f"allow_settings_change must be true or false, got {allow_change!r}")
+    source = cfg.get("source")
+    if source not in ("human", "simulated"):
+        raise ConfigError(f"source must be human or simulated (a pilot), got {source!r}")
     return Settings(
-        consent_html=consent_html, consent_version=consent_version, allow_settings_change=allow_change,
+        source=source, consent_html=consent_html, consent_version=consent_version, allow_settings_change=allow_change,
         world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold),
         practice_max_attempts=max_attempts, conditions=conditions,
         time_limit=_number(cfg, "time_limit"), time_grace=_number(cfg, "time_grace", strict=False),

@@ -222,6 +222,14 @@ class Store:
                     s.rollback()
 
     def close(self) -> None:
+        if self.url.startswith("sqlite"):
+            # copy what the write-ahead log holds into the database file, without waiting for other readers
+            # or writers: a copy of the file alone then holds what was committed
+            try:
+                with self.engine.connect() as connection:
+                    connection.exec_driver_sql("PRAGMA wal_checkpoint(PASSIVE)")
+            except Exception:  # noqa: BLE001 - a checkpoint is a courtesy; SQLite makes one later anyway
+                pass
         self.engine.dispose()
 
     def ping(self) -> Optional[str]:
