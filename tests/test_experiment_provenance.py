@@ -278,3 +278,18 @@ def test_the_commands_refuse_targets_they_would_clobber_and_arguments_in_the_wro
     assert (tmp_path / "a.study.json").is_file() and (tmp_path / "b.study.json").is_file()
     assert main(["export", "--out", str(tmp_path / "a.jsonl"), *overrides]) == 0  # an earlier log is replaced
 
+
+
+def test_the_commands_help_lists_every_command_and_says_what_each_does(capsys):
+    from overhang_framework.experiment.__main__ import DESCRIPTIONS, SUMMARIES, main
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert set(SUMMARIES) == set(DESCRIPTIONS)
+    for command, summary in SUMMARIES.items():
+        assert f"  {command:<13} {summary}" in text
+    with pytest.raises(SystemExit):
+        main(["withdraw", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert DESCRIPTIONS["withdraw"] in text and "without it nothing is deleted" in text

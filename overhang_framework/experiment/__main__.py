@@ -26,11 +26,44 @@ pilot before people").
 from __future__ import annotations
 
 import argparse
+import textwrap
 import json
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
+
+#: What each command does, for its --help.
+DESCRIPTIONS = {
+    "serve": "Serve the experiment (the page and its API) on host:port, with the settings of the overrides.",
+    "export": "Write the study's whole main trials as a behaviour log (JSON Lines) or a Psych-DS dataset, and "
+              "the study's settings and versions as a study.json sidecar.",
+    "reissue": "Give a participant a new session token (the old one stops working) and print the link that "
+               "resumes their session in any browser.",
+    "withdraw": "Delete a participant who withdrew their consent, with everything stored of them; the study keeps "
+                "only a count, and refuses their id if they come back.",
+    "build": "Build the front end (web/dist) with npm.",
+    "backup": "Write a consistent copy of the study's database while the server runs (SQLite: a database file; "
+              "PostgreSQL: a pg_dump archive); an existing file at --out is replaced.",
+    "restore": "Restore a backup into an empty database (a new SQLite file, or an empty PostgreSQL database).",
+    "nginx-config": "Write the nginx site that serves the study over https in front of the server (docs/deploy.md).",
+    "systemd-unit": "Write the systemd service that runs the server (docs/deploy.md).",
+    "pilot": "Let a simulated cohort take part through the server's API, as a pilot before people.",
+}
+
+#: Each command in a line, for the list of commands.
+SUMMARIES = {
+    "serve": "serve the experiment (the default command)",
+    "export": "the study's data: a behaviour log or a Psych-DS dataset, with study.json",
+    "reissue": "a new resume link for a participant",
+    "withdraw": "delete a participant who withdrew their consent",
+    "build": "build the front end",
+    "backup": "a consistent copy of the study's database",
+    "restore": "a backup into an empty database",
+    "nginx-config": "the nginx site for https in front of the server",
+    "systemd-unit": "the systemd service that runs the server",
+    "pilot": "simulated participants through the server, before people",
+}
 
 #: How the server's worker processes get the command line's settings.
 SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
@@ -367,8 +400,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from overhang_framework.errors import OverhangError
 
-    commands = ("serve", "export", "reissue", "withdraw", "build", "backup", "restore", "nginx-config",
-                "systemd-unit", "pilot")
+    commands = tuple(SUMMARIES)
     command = argv[0] if argv and argv[0] in commands else "serve"
     if argv and argv[0] == command:
         argv = argv[1:]
@@ -384,15 +416,23 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         except OverhangError as err:
             print(f"error: {err}; commands: {', '.join(commands)}", file=sys.stderr)
             return 2
-    parser = argparse.ArgumentParser(prog=f"python -m overhang_framework.experiment {command}",
-                                     description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog=f"python -m overhang_framework.experiment {command}", description=textwrap.fill(DESCRIPTIONS[command], 100),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=(("commands:\n" + "\n".join(f"  {c:<13} {SUMMARIES[c]}" for c in commands)
+                 + "\n\npython -m overhang_framework.experiment COMMAND --help says more.")
+                if command == "serve" else "Overrides are keys of conf/serve.yaml (docs/experiment.md); the\n"
+                "commands that read the study's database need the run_dir=DIR or database=URL its server used."))
     if command in ("reissue", "withdraw"):
         parser.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
     if command == "withdraw":
-        parser.add_argument("--yes", action="store_true", help="delete them (for good)")
+        parser.add_argument("--yes", action="store_true",
+                            help="delete them, for good (without it nothing is deleted: the command says what would "
+                                 "be; exports and backups made before still hold them)")
     if command == "restore":
         parser.add_argument("file", help="a backup that the backup command wrote")
-    parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. port=8080 database=URL")
+    parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. run_dir=DIR port=8080 "
+                                                     "database=URL")
     if command == "backup":
         parser.add_argument("--out", required=True, help="the copy to write (SQLite: a database file; "
                                                          "PostgreSQL: a pg_dump archive, custom format)")
