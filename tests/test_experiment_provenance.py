@@ -127,6 +127,8 @@ def test_a_changed_consent_text_is_a_change_of_settings(overrides, tmp_path):
     text.write_text("<p>Other words.</p>")
     with pytest.raises(ConfigError, match=r"consent_version: sha256:[0-9a-f]{16} -> sha256:[0-9a-f]{16}"):
         _serve_app([*overrides, f"consent_file={text}"])
+    with pytest.raises(ConfigError, match=r"consent_version: "):  # the shipped text names the contact
+        _serve_app([*overrides, "contact=lab@example.org"])
     with pytest.raises(ConfigError, match=r"consent_file: cannot read .*nowhere\.html"):
         load_settings([*overrides, f"consent_file={tmp_path / 'nowhere.html'}", f"admin_token={ADMIN}"])
 
@@ -135,6 +137,7 @@ def test_consent_is_stored_with_its_time_and_version_and_nothing_is_placed_befor
     client = _serve_app(overrides)
     s, h = _session(client, "P1", consent=False)
     assert s["consent"]["html"] == client.settings.consent_html and "I agree" in s["consent"]["html"]
+    assert f"by contacting {client.settings.contact}: your" in s["consent"]["html"]  # @contact@ filled in
     assert s["consent"]["given"] is False
     body = {"phase": "practice", "trial": 1, "step": 1}
     refused = client.post("/api/steps/start", json=body, headers=h)

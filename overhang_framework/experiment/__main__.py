@@ -296,6 +296,11 @@ def _reissue(args) -> int:
             return 2
         study = store.study()
         stored_public = study is not None and study.public_url is not None
+        known = store.participant(args.participant)
+        if known is not None and (known.completed_at is not None or known.screened_out_at is not None):
+            ended = "finished the study" if known.completed_at is not None else "was screened out in the practice"
+            print(f"note: participant {args.participant} {ended}; the link shows them how it ended, nothing more",
+                  file=sys.stderr)
         try:
             _, link = reissue(settings, store, args.participant)
         except Refused as err:

@@ -468,6 +468,8 @@ def format_summary(s: dict) -> str:
     for name, c in s["conditions"].items():
         lines.append(f"{name:<16}{c['participants']:>8}{c['finished']:>10}{c['screened_out']:>10}"
                      f"{c['practice_attempts']:>10}{c['placements']:>8}{c['timeouts']:>10}")
+    lines.append("(practice: attempts at the practice towers; placed: placements of the practice and the main trials, "
+                 "where export counts the main trials')")
     return "\n".join(lines)
 
 

@@ -145,10 +145,12 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
     return out
 
 
-def consent_text(path) -> tuple[str, str]:
-    """The consent page's HTML (from ``path``, or the shipped text when None) and its version, ``sha256:`` and
-    the first 16 hex digits of the text's SHA-256."""
+def consent_text(path, contact: str = "") -> tuple[str, str]:
+    """The consent page's HTML (from ``path``, or the shipped text when None), with ``@contact@`` replaced by
+    ``contact`` (HTML-escaped), and its version: ``sha256:`` and the first 16 hex digits of the SHA-256 of the
+    text as participants see it."""
     import hashlib
+    import html
 
     file = Path(str(path)) if path else CONSENT_FILE
     try:
@@ -158,6 +160,7 @@ def consent_text(path) -> tuple[str, str]:
                           "HTML file of the consent text, or null for the shipped one") from None
     if not text.strip():
         raise ConfigError(f"consent_file: {file} is empty; give an HTML file of the consent text")
+    text = text.replace("@contact@", html.escape(contact or "the researcher"))
     return text, "sha256:" + hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
@@ -227,7 +230,7 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
             raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
         counts[key] = value
-    consent_html, consent_version = consent_text(cfg.get("consent_file"))
+    consent_html, consent_version = consent_text(cfg.get("consent_file"), str(cfg.contact or ""))
     allow_change = cfg.get("allow_settings_change")
     if not isinstance(allow_change, bool):
         raise ConfigError(f"allow_settings_change must be true or false, got {allow_change!r}")
