@@ -382,3 +382,16 @@ def test_another_browser_is_told_whom_to_contact_and_a_reissued_link_resumes(bro
     page.get_by_test_id("elsewhere").wait_for(timeout=30_000)
     first.close()
     second.close()
+
+
+def test_a_participant_who_does_not_agree_leaves_for_the_decline_page_and_nothing_is_kept(browser, server):
+    context = browser.new_context(viewport={"width": 1400, "height": 1000})
+    page = context.new_page()
+    page.goto(f"{server['url']}/?participant=E2E-5")
+    page.get_by_test_id("decline").wait_for(timeout=30_000)
+    assert server["store"].participant("E2E-5") is not None  # the session the page opened
+    page.get_by_test_id("decline").click()
+    page.wait_for_url("**/declined", timeout=30_000)
+    assert "Nothing about you is kept" in page.content()
+    assert server["store"].participant("E2E-5") is None
+    context.close()

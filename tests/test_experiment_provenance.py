@@ -296,3 +296,21 @@ def test_the_commands_help_lists_every_command_and_says_what_each_does(capsys):
         main(["withdraw", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert DESCRIPTIONS["withdraw"] in text and "without it nothing is deleted" in text
+
+
+def test_a_participant_who_does_not_agree_leaves_nothing_but_a_count(overrides):
+    client = _serve_app(overrides)
+    s, h = _session(client, "P1", consent=False)
+    store = client.app.state.store
+    assert store.participant("P1") is not None  # the session exists before the consent page
+    reply = client.post("/api/decline", headers=h)
+    assert reply.status_code == 200 and reply.json() == {"decline_url": "/declined"}
+    assert store.participant("P1") is None and store.participants() == []
+    assert client.get("/api/admin/study", headers={"X-Admin-Token": ADMIN}).json()["participants"]["declined"] == 1
+    assert client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h).status_code == 403
+    assert "Nothing about you is kept" in client.get("/declined").text
+    # who agreed cannot decline: only withdrawal deletes them
+    s2, h2 = _session(client, "P2")
+    refused = client.post("/api/decline", headers=h2)
+    assert refused.status_code == 409 and "withdraw" in refused.json()["error"]
+    assert store.participant("P2") is not None

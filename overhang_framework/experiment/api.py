@@ -404,6 +404,13 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         p = store.consent(p.id, settings.consent_version)
         return {"consent_version": p.consent_version, "consented_at": utc_iso(p.consented_at)}
 
+    @app.post("/api/decline")
+    def decline(p: Participant = Depends(participant_of)):
+        if not store.decline(p.id):
+            raise Refused(409, "the participant has agreed already; to withdraw, ask the researcher "
+                               f"({settings.contact})")
+        return {"decline_url": settings.decline_url}
+
     def consented(p: Participant) -> None:
         if p.consented_at is None:
             raise Refused(403, "no consent is recorded for this participant: POST /api/consent first",
@@ -593,6 +600,11 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     def complete():
         return info_page("Thank you", "<p>Thank you for taking part. Your answers are saved; you can close this "
                                       "tab.</p>")
+
+    @app.get("/declined", response_class=HTMLResponse)
+    def declined():
+        return info_page("Thank you", "<p>You chose not to take part. Nothing about you is kept; you can close "
+                                      "this tab.</p>")
 
     @app.get("/screened-out", response_class=HTMLResponse)
     def screened_out():

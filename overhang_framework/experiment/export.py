@@ -160,7 +160,8 @@ def study_json(store: Store) -> dict:
                          "screened_out": sum(p.screened_out_at is not None for p in people),
                          "by_condition": {c: sum(p.condition == c for p in people)
                                           for c in sorted({p.condition for p in people})},
-                         "withdrawn": study.withdrawn if study is not None else 0},
+                         "withdrawn": study.withdrawn if study is not None else 0,
+                         "declined": study.declined if study is not None else 0},
         "first_participant": utc_iso(min(started)) if started else None,
         "last_participant": utc_iso(max(started)) if started else None,
     }

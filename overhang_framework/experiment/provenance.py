@@ -51,6 +51,7 @@ def study_settings(settings: Settings) -> dict:
         "seed": settings.seed,
         "completion_url": settings.completion_url,
         "screen_out_url": settings.screen_out_url,
+        "decline_url": settings.decline_url,
         "consent_version": settings.consent_version,
         "source": settings.source,
     }

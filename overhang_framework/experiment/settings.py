@@ -64,6 +64,7 @@ class Settings:
     consent_version: str = ""
     allow_settings_change: bool = False
     source: str = "human"
+    decline_url: str = "/declined"
     host: str = "127.0.0.1"
     port: int = 8000
     workers: int = 1
@@ -238,7 +239,7 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
     if source not in ("human", "simulated"):
         raise ConfigError(f"source must be human or simulated (a pilot), got {source!r}")
     return Settings(
-        source=source, consent_html=consent_html, consent_version=consent_version, allow_settings_change=allow_change,
+        decline_url=str(cfg.get("decline_url") or "/declined"), source=source, consent_html=consent_html, consent_version=consent_version, allow_settings_change=allow_change,
         world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold),
         practice_max_attempts=max_attempts, conditions=conditions,
         time_limit=_number(cfg, "time_limit"), time_grace=_number(cfg, "time_grace", strict=False),

@@ -83,6 +83,7 @@ class Study(Base):
     started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=_now)
     history: Mapped[list] = mapped_column(JSON, default=list)  # {"at", "what", "changes"}, oldest first
     withdrawn: Mapped[int] = mapped_column(Integer, default=0)
+    declined: Mapped[int] = mapped_column(Integer, default=0)  # sessions deleted when consent was refused
     # keyed hashes of the withdrawn participants' ids (HMAC-SHA-256 under ``salt``, a random key of this study):
     # enough to refuse their return, not to tell who they were without the database
     salt: Mapped[str] = mapped_column(String(64))
@@ -333,6 +334,21 @@ class Store:
                 s.commit()
             return p
 
+    def decline(self, pid: str) -> bool:
+        """Delete the session of a participant who did not agree to take part (nothing else is stored of them
+        before consent) and count one; False when they had agreed already (then only withdrawal deletes)."""
+        with self._session() as s:
+            p = s.get(Participant, pid, with_for_update=True)
+            if p is None:
+                return True
+            if p.consented_at is not None:
+                return False
+            s.execute(delete(Clock).where(Clock.participant_id == pid))
+            s.delete(p)
+            s.execute(update(Study).where(Study.id == 1).values(declined=Study.declined + 1))
+            s.commit()
+        return True
+
     def withdraw(self, pid: str) -> Optional[dict[str, int]]:
         """Delete a participant and everything stored of them, and count one withdrawal; how many rows of each
         kind were deleted, or None when there is no such participant."""
@@ -375,7 +391,7 @@ class Store:
         with self._session() as s:
             row = s.get(Study, 1, with_for_update=True)
             if row is None:
-                s.add(Study(id=1, settings=settings, history=[], withdrawn=0, address=address, public_url=public_url,
+                s.add(Study(id=1, settings=settings, history=[], withdrawn=0, declined=0, address=address, public_url=public_url,
                             salt=secrets.token_hex(32), withdrawn_keys=[], **hashes, **versions))
                 try:
                     s.commit()

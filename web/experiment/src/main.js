@@ -4,7 +4,8 @@
  *
  * The consent text comes from the server (the study's `consent_file`), and "I agree" is recorded by
  * the server with its time and the text's version before anything else happens: the server places
- * nothing for a participant without it.
+ * nothing for a participant without it. "I do not agree" has the server delete the session, and
+ * leaves for the study's `decline_url`.
  *
  * The server's `position` drives the practice and main phases: every placement's response carries
  * the next position, and each trial starts from it. A reopened tab therefore continues where the
@@ -349,7 +350,20 @@ function askConsent(session) {
           showError(error.message, show);
         }
       });
-      target.querySelector(".consent-actions").append(agree);
+      const decline = document.createElement("button");
+      decline.className = "jspsych-btn";
+      decline.dataset.testid = "decline";
+      decline.textContent = "I do not agree";
+      decline.addEventListener("click", async () => {
+        decline.disabled = agree.disabled = true;
+        try {
+          const { decline_url: url } = await post("api/decline", {}, session.token);
+          window.location.assign(url);
+        } catch (error) {
+          showError(error.message, show);
+        }
+      });
+      target.querySelector(".consent-actions").append(agree, " ", decline);
     };
     show();
   });
