@@ -3,7 +3,8 @@
 Five tables. ``study`` is one row: the settings the study runs with (what
 participants see and how they are scored, :mod:`~overhang_framework.experiment.provenance`),
 their hashes, the framework's version and commit, the address participants
-open, the recorded changes of any of these, and how many participants withdrew.
+open, the recorded changes of any of these, and how many participants withdrew or
+declined.
 ``participants`` holds who took part (the recruitment
 platform's ids, a hash of the session token, the condition, the order of the
 main trials, when and to which version of the consent text they agreed, when
@@ -343,8 +344,7 @@ class Store:
                 return True
             if p.consented_at is not None:
                 return False
-            s.execute(delete(Clock).where(Clock.participant_id == pid))
-            s.delete(p)
+            _delete_participant(s, p)
             s.execute(update(Study).where(Study.id == 1).values(declined=Study.declined + 1))
             s.commit()
         return True
@@ -356,10 +356,7 @@ class Store:
             p = s.get(Participant, pid, with_for_update=True)
             if p is None:
                 return None
-            deleted = {}
-            for kind, model in (("placements", Placement), ("clocks", Clock)):
-                deleted[kind] = s.execute(delete(model).where(model.participant_id == pid)).rowcount
-            s.delete(p)
+            deleted = _delete_participant(s, p)
             study = s.get(Study, 1, with_for_update=True)
             if study is not None:
                 study.withdrawn = (study.withdrawn or 0) + 1
@@ -391,8 +388,9 @@ class Store:
         with self._session() as s:
             row = s.get(Study, 1, with_for_update=True)
             if row is None:
-                s.add(Study(id=1, settings=settings, history=[], withdrawn=0, declined=0, address=address, public_url=public_url,
-                            salt=secrets.token_hex(32), withdrawn_keys=[], **hashes, **versions))
+                s.add(Study(id=1, settings=settings, history=[], withdrawn=0, declined=0, address=address,
+                            public_url=public_url, salt=secrets.token_hex(32), withdrawn_keys=[], **hashes,
+                            **versions))
                 try:
                     s.commit()
                 except IntegrityError:  # another server process made it first: check against theirs
@@ -474,6 +472,14 @@ class Store:
         with self._session() as s:
             return {"participants": s.scalar(select(func.count()).select_from(Participant)),
                     "placements": s.scalar(select(func.count()).select_from(Placement))}
+
+
+def _delete_participant(session, participant: Participant) -> dict[str, int]:
+    """Delete ``participant`` with their placements and step clocks in ``session``; how many of each went."""
+    deleted = {kind: session.execute(delete(model).where(model.participant_id == participant.id)).rowcount
+               for kind, model in (("placements", Placement), ("clocks", Clock))}
+    session.delete(participant)
+    return deleted
 
 
 def _condition_counts(session, conditions: Sequence[str]) -> dict[str, int]:
