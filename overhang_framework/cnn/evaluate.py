@@ -68,6 +68,9 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
     seconds = time.perf_counter() - started
     probs = 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
     result = scores(probs, data)
+    crit = data["near_critical"].astype(bool)
+    result.update(calibration(probs, data["stable"]))
+    result["near_critical"] = calibration(probs[crit], data["stable"][crit])
     by_blocks = {}
     for k in np.unique(data["n_blocks"]):
         rows = data["n_blocks"] == k
@@ -78,6 +81,33 @@ def evaluate(checkpoint: str = "default", seed: int = 1000, n: int = 2000, shard
                    "torch_threads": torch.get_num_threads(), "accuracy_by_blocks": by_blocks,
                    "checkpoint": str(model.path), "seed": seed, "data_dir": str(directory)})
     return result
+
+
+def auc(probs: np.ndarray, stable: np.ndarray) -> float:
+    """The area under the ROC curve: the chance that a standing tower gets a higher probability than a
+    falling one (ties count half); NaN without both kinds."""
+    from scipy.stats import rankdata
+
+    y = np.asarray(stable, dtype=bool)
+    pos, neg = int(y.sum()), int((~y).sum())
+    if not pos or not neg:
+        return float("nan")
+    ranks = rankdata(np.asarray(probs, dtype=float))
+    return float((ranks[y].sum() - pos * (pos + 1) / 2) / (pos * neg))
+
+
+def calibration(probs: np.ndarray, stable: np.ndarray, bins: int = 10) -> dict:
+    """How well the probabilities rank and match the verdicts: ``auc``, the Brier score, and the expected
+    calibration error ``ece`` (the mean over ``bins`` equal-width probability bins, weighted by their
+    towers, of |mean probability - share standing|)."""
+    p = np.asarray(probs, dtype=float)
+    y = np.asarray(stable, dtype=bool).astype(float)
+    if not len(p):
+        return {"auc": float("nan"), "brier": float("nan"), "ece": float("nan")}
+    which = np.minimum((p * bins).astype(int), bins - 1)
+    ece = sum(abs(p[which == b].mean() - y[which == b].mean()) * (which == b).sum()
+              for b in range(bins) if (which == b).any()) / len(p)
+    return {"auc": auc(p, y.astype(bool)), "brier": float(np.mean((p - y) ** 2)), "ece": float(ece)}
 
 
 def main(argv=None) -> None:

@@ -27,6 +27,9 @@ from overhang_framework.results import atomic_output
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
 DEFAULT_CHECKPOINT = CHECKPOINT_DIR / "default.pt"
+#: The shipped networks by name: ``teacher`` (also ``default``) was trained on the reference physics'
+#: verdicts; ``student`` was distilled from it (:mod:`overhang_framework.cnn.distill`). Model cards beside them.
+SHIPPED = {"default": DEFAULT_CHECKPOINT, "teacher": DEFAULT_CHECKPOINT, "student": CHECKPOINT_DIR / "student.pt"}
 #: Smallest input side some backbones accept (their stems downsample too much below it).
 MIN_INPUT_SIDE = {"inception_v4": 75}
 
@@ -80,9 +83,15 @@ def matching_torchvision(torch_version: str, cuda: Optional[str]) -> str:
 
 
 def check_backbone(backbone: str, size) -> None:
-    """``ValueError`` when ``backbone`` is not a timm model or ``size`` (h, w) is too small for it."""
+    """``ValueError`` when ``backbone`` is not a timm model or a student architecture
+    (:mod:`overhang_framework.cnn.student`), or ``size`` (h, w) is too small for it."""
     check_torch()
     import timm
+
+    from overhang_framework.cnn.student import is_student
+
+    if is_student(backbone):
+        return
 
     if not isinstance(backbone, str) or not timm.is_model(backbone):
         raise ValueError(f"unknown timm backbone {backbone!r}; e.g. mobilenetv3_small_100, regnetx_002, "
@@ -93,13 +102,19 @@ def check_backbone(backbone: str, size) -> None:
                          f"{list(size)}; set renderer.size")
 
 
-def build_model(backbone: str, outputs: int = 1, channels: int = 3):
+def build_model(backbone: str, outputs: int = 1, channels: int = 3, size=None):
     """A timm ``backbone`` with random weights (``pretrained=False``) and ``outputs`` logits out, its
     weights in channels-last layout (about twice as fast on a CPU for these small inputs, measured for
     training and inference; feed it :func:`as_input`). The first logit is the stability verdict; any
-    others are the training's auxiliary targets."""
+    others are the training's auxiliary targets. A student architecture's name
+    (:mod:`overhang_framework.cnn.student`) builds that network for images of ``size`` (h, w)."""
     import timm
     import torch
+
+    from overhang_framework.cnn.student import build_student, is_student
+
+    if is_student(backbone):
+        return build_student(backbone, outputs, channels, size)
 
     net = timm.create_model(backbone, pretrained=False, num_classes=outputs, in_chans=channels)
     return net.to(memory_format=torch.channels_last)
@@ -143,8 +158,8 @@ def read_checkpoint(path: Path | str) -> dict:
 
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"no CNN checkpoint at {path}; use checkpoint=default or a .pt file written by "
-                         f"python -m overhang_framework.cnn.train")
+        raise ValueError(f"no CNN checkpoint at {path}; use checkpoint=teacher, student or a .pt file written "
+                         f"by python -m overhang_framework.cnn.train or .distill")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
@@ -155,11 +170,15 @@ def read_checkpoint(path: Path | str) -> dict:
 
 
 def resolve_checkpoint(checkpoint: Optional[str]) -> Path:
-    """``default`` (or ``None``) is the shipped checkpoint; anything else is a path."""
-    if checkpoint in (None, "default"):
+    """A shipped network's name (:data:`SHIPPED`: ``teacher``, the same as ``default`` or ``None``, and
+    ``student``) or a path to a ``.pt`` file."""
+    if checkpoint is None:
         return DEFAULT_CHECKPOINT
+    if isinstance(checkpoint, str) and checkpoint in SHIPPED:
+        return SHIPPED[checkpoint]
     if not isinstance(checkpoint, (str, Path)):
-        raise ValueError(f"checkpoint must be 'default' or a path to a .pt file, got {checkpoint!r}")
+        raise ValueError(f"checkpoint must be one of {', '.join(SHIPPED)} or a path to a .pt file, "
+                         f"got {checkpoint!r}")
     return Path(checkpoint).expanduser()
 
 
@@ -216,7 +235,8 @@ class StabilityModel:
         self.renderer = make_renderer(payload["renderer"])
         self.device = pick_device(device)
         self.batch_size = batch_size
-        self.net = build_model(self.backbone, int(payload.get("outputs", 1)), self.renderer.channels)
+        self.net = build_model(self.backbone, int(payload.get("outputs", 1)), self.renderer.channels,
+                               (self.renderer.height, self.renderer.width))
         self.net.load_state_dict(payload["state_dict"])
         self.net.eval().to(self.device)
         self.fused = fused
