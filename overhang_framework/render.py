@@ -198,8 +198,6 @@ class RasterRenderer(Renderer):
         right = left + wj
         cov = np.minimum(right, self._col_edges32[1:]) - np.maximum(left, self._col_edges32[:-1])  # (n, m, W)
         cov = np.where((cov > 1e-6) & keep[..., None], cov * f32(self.width / (2 * self.x_max)), f32(0))
-        u = np.clip((self._col_centres32 - left) / wj, 0, 1)
-        bevel = cov * (1 - f32(self.BEVEL) * (2 * u - 1) ** 2)  # symmetric in u: mirror-exact
         which = ((np.asarray(layers)[..., None] == np.arange(n_layers)) & keep[..., None]).astype(f32)
         which = which.transpose(0, 2, 1)  # (n, L, m)
         fill_cols = which @ cov  # (n, L, W)
@@ -208,6 +206,8 @@ class RasterRenderer(Renderer):
             if name == "fill":
                 out[:, c] = fill = self._rows @ fill_cols
             elif name == "bevel":
+                u = np.clip((self._col_centres32 - left) / wj, 0, 1)
+                bevel = cov * (1 - f32(self.BEVEL) * (2 * u - 1) ** 2)  # symmetric in u: mirror-exact
                 out[:, c] = self._rows @ (which @ bevel)
             elif name == "top":
                 out[:, c] = self._lit_rows @ fill_cols

@@ -177,6 +177,9 @@ class Expander:
     resolution: Optional[float] = None
     mirror: bool = False
     lazy: bool = True
+    #: Whether a predictor whose lazy answers are ``auto`` (:attr:`lazy_auto`) answers lazily here: in a
+    #: planner's search without a budget (the default); a score table sets it false.
+    auto_lazy: bool = True
     stats: SearchStats = field(default_factory=SearchStats)
     _memo: dict = field(default_factory=dict, repr=False)
 
@@ -193,7 +196,7 @@ class Expander:
             actions = [a for a in actions if a.x >= 0]
         settle = classify = None
         if actions:
-            lazy = getattr(self.predictor, "predict_lazy", None) if self.lazy else None
+            lazy = getattr(self.predictor, "predict_lazy", None) if self.asks_lazily else None
             if lazy is not None:
                 p, settle, classify = lazy(canonical_state(state), actions, node_rng(self.seed, key))
             else:
@@ -206,6 +209,17 @@ class Expander:
         expansion = self._expansion(state, actions, p, settle, classify)
         self._memo[key] = expansion
         return expansion
+
+    @property
+    def asks_lazily(self) -> bool:
+        """Whether this search takes the predictor's lazy answers where it has them. A predictor whose
+        laziness is ``auto`` (``lazy_auto``) is asked lazily only without a budget, where the scores and
+        the choice are the same and nothing is charged, and where :attr:`auto_lazy` allows it."""
+        if not self.lazy:
+            return False
+        if getattr(self.predictor, "lazy_auto", False):
+            return self.auto_lazy and not self.budget.limited
+        return True
 
     @property
     def settle_batch(self) -> int:
@@ -229,7 +243,7 @@ class Expander:
         expanded alone; a budget that cannot pay for all of them expands none
         (the search then expands them one by one until it runs out).
         """
-        lazy = getattr(self.predictor, "predict_lazy", None) is not None and self.lazy
+        lazy = getattr(self.predictor, "predict_lazy", None) is not None and self.asks_lazily
         lazy_for = getattr(self.predictor, "lazy_for", None)
         todo, seen = [], set()
         for state in states:

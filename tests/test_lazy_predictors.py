@@ -107,11 +107,24 @@ def test_only_cheap_lazy_predictors_settle_a_node_at_once(world):
     assert Expander(world, ipe, Budget(), seed=0).settle_batch == 8
     hybrid = REG.create("predictor", {"name": "hybrid", "early_params": {"lazy": True}}, world=world)
     assert hybrid.predict_lazy is not None and hybrid.settle_inner
-    assert REG.create("predictor", {"name": "hybrid"}, world=world).predict_lazy is None
+    assert REG.create("predictor", {"name": "hybrid", "late_params": {"lazy": False}},
+                      world=world).predict_lazy is None
+    # lazy: auto (the CNN's default) is asked lazily only by a search without a budget, and never by a table
+    auto = REG.create("predictor", {"name": "hybrid"}, world=world)
+    explicit = REG.create("predictor", {"name": "hybrid", "early_params": {"lazy": True},
+                                        "late_params": {"lazy": False}}, world=world)
+    assert auto.predict_lazy is not None and auto.lazy_auto and hybrid.lazy_auto and not explicit.lazy_auto
+    assert Expander(world, auto, Budget(), seed=0).asks_lazily
+    assert not Expander(world, auto, Budget(predictor_calls=16), seed=0).asks_lazily
+    assert not Expander(world, auto, Budget(seconds=5.0), seed=0).asks_lazily
+    assert not Expander(world, auto, Budget(), seed=0, auto_lazy=False).asks_lazily
+    assert Expander(world, explicit, Budget(predictor_calls=16), seed=0).asks_lazily  # lazy: true is always
+    assert not Expander(world, hybrid, Budget(predictor_calls=16), seed=0).asks_lazily  # a part is auto
     # a part that is lazy of itself (the tiered world's veridical verdicts) answers eagerly inside a hybrid,
     # as it always has: only parts asked to be lazy are
     tiered = REG.create("world", {"name": "overhang"})
-    plain = REG.create("predictor", {"name": "hybrid", "early": "veridical"}, world=tiered)
+    plain = REG.create("predictor", {"name": "hybrid", "early": "veridical", "late_params": {"lazy": False}},
+                       world=tiered)
     assert plain.early.predict_lazy is not None and plain.predict_lazy is None
     mixed = REG.create("predictor", {"name": "hybrid", "early": "veridical", "late_params": {"lazy": True}},
                        world=tiered)
@@ -126,7 +139,7 @@ def test_only_cheap_lazy_predictors_settle_a_node_at_once(world):
 @pytest.mark.parametrize("name,params,words", [
     ("ipe", {"lazy": "yes"}, "lazy must be true or false"),
     ("ipe", {"settle_batch": 0}, "settle_batch must be a whole number >= 1"),
-    ("cnn", {"lazy": 1}, "lazy must be true or false"),
+    ("cnn", {"lazy": 1}, "lazy must be true, false or auto, got 1"),
     ("cnn", {"settle_batch": 2.5}, "settle_batch must be a whole number >= 1"),
     ("cnn", {"lazy": True, "runtime": "torch"}, "lazy needs a tower's answer to be the same in any batch"),
 ])
@@ -153,3 +166,28 @@ def test_a_run_made_before_the_lazy_setting_continues_and_one_asking_for_it_is_r
     RunDir(tmp_path / "run").check_config(now)  # what the run did: the same config
     with pytest.raises(RunDirError, match=r"predictor.lazy: \(unset\) -> true"):
         RunDir(tmp_path / "run").check_config({**now, "predictor": {**now["predictor"], "lazy": True}})
+
+
+@pytest.mark.parametrize("choice", ["argmax", "softmax"])
+def test_the_cnns_automatic_laziness_keeps_every_decision_and_charge(world, choice):
+    """lazy: auto, the default, asks lazily in an unbudgeted search: the same decisions, scored with fewer
+    towers; under a call budget it asks as eagerly as lazy: false, charged the same calls."""
+    from overhang_framework.interfaces import Task
+
+    planner = REG.create("planner", {"name": "lookahead", "depth": 3, "choice": choice, "beta": 3.0}, world=world)
+    value = REG.create("value", {"name": "overhang"}, world=world)
+    models = {lazy: REG.create("predictor", {"name": "cnn", "lazy": lazy}, world=world) for lazy in ("auto", False)}
+    state = world.initial_state(Task("t", (1.2, 1.8, 0.6, 1.2)))
+    for budget in (lambda: Budget(), lambda: Budget(predictor_calls=12)):
+        decided, towers = {}, {}
+        for lazy, predictor in models.items():
+            predictor.clear_cache()
+            before = predictor.stats()["towers"]
+            d = planner.plan(state, predictor, value, budget(), np.random.default_rng(4))
+            decided[lazy] = (d.action, d.choice_probability, d.spend.predictor_calls, d.spend.depth_completed)
+            towers[lazy] = predictor.stats()["towers"] - before
+        assert decided["auto"] == decided[False]
+        if budget().limited:
+            assert towers["auto"] == towers[False]
+        else:
+            assert towers["auto"] < towers[False]

@@ -176,10 +176,76 @@ def decisions(tasks: str = "paper20", limit: Optional[int] = None, checkpoints: 
     return out
 
 
+#: ``headline``'s versions: the card's command as it was (the teacher, eager) and the ways it can run now.
+HEADLINE = {
+    "teacher": ["+predictor.late_params.checkpoint=teacher", "+predictor.late_params.lazy=false"],
+    "teacher_lazy": ["+predictor.late_params.checkpoint=teacher", "+predictor.late_params.lazy=true"],
+    "student": ["+predictor.late_params.checkpoint=student", "+predictor.late_params.lazy=false"],
+    "student_lazy": ["+predictor.late_params.checkpoint=student", "+predictor.late_params.lazy=true"],
+    "default": [],
+}
+
+
+def headline(versions: Sequence[str], tasks: str = "paper20", limit: Optional[int] = None, seed: int = 0,
+             depth: int = 3) -> dict:
+    """Whole episodes of ``python -m overhang_framework predictor=hybrid planner=lookahead planner.depth=3``
+    (seeded as the run seeds them) under each version of :data:`HEADLINE` (or ``name=override;override``),
+    task by task, alternating which version plays first. Per version: every decision's seconds, their
+    median and maximum, the reward; and whether the versions placed every block alike."""
+    from overhang_framework.episode import play_run_episode
+
+    specs = {}
+    for v in versions:
+        name, sep, overrides = v.partition("=")
+        specs[name] = [o for o in overrides.split(";") if o] if sep else HEADLINE[name]
+    models = {name: models_with_overrides(depth, specs[name]) for name in specs}
+    cases = list(enumerate(task_list(tasks, limit)))
+
+    def play(name):
+        def run(case):
+            index, task = case
+            record = play_run_episode(models[name], task, index, 0, seed, None, None)
+            return [(round(st["x"], 6), st["layer"], round(st["decision_time"], 9)) for st in record["steps"]], \
+                record["reward"]
+        return run
+
+    figures = side_by_side(cases, {name: play(name) for name in specs}, label=lambda c: c[1].id, quiet=True)
+    out = {"tasks": tasks, "limit": limit, "seed": seed, "depth": depth, "versions": {}}
+    first = list(specs)[0]
+    for name in specs:
+        results = figures["versions"][name]["results"]
+        times = [t for steps, _ in results for *_, t in steps]
+        placements = [[(x, layer) for x, layer, _ in steps] for steps, _ in results]
+        lead = [[(x, layer) for x, layer, _ in steps] for steps, _ in figures["versions"][first]["results"]]
+        alike = sum(a == b for ep, ref in zip(placements, lead) for a, b in zip(ep, ref))
+        out["versions"][name] = {
+            "overrides": specs[name], "decisions": len(times), "median_seconds": float(np.median(times)),
+            "max_seconds": float(np.max(times)), "mean_seconds": float(np.mean(times)),
+            "episode_seconds": figures["versions"][name]["total"],
+            "reward": float(np.mean([r for _, r in results])), "placements_alike_first": alike,
+            "placements": int(sum(len(ep) for ep in placements))}
+        v = out["versions"][name]
+        print(f"{name:>13}: median decision {v['median_seconds']:.3f} s, max {v['max_seconds']:.2f} s, "
+              f"episodes {v['episode_seconds']:.1f} s, reward {v['reward']:.3f}, "
+              f"{alike} of {v['placements']} placements as {first}", flush=True)
+    return out
+
+
+def models_with_overrides(depth: int, overrides: Sequence[str]) -> dict:
+    from overhang_framework.app import build_models
+    from overhang_framework.config import compose_config
+
+    return build_models(compose_config(["predictor=hybrid", "planner=lookahead", f"planner.depth={depth}",
+                                        *overrides]))
+
+
 def main(argv: Optional[Sequence[str]] = None) -> dict:
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.bench.student",
                                  description=(__doc__ or "").splitlines()[0])
-    ap.add_argument("what", choices=["speed", "decisions"])
+    ap.add_argument("what", choices=["speed", "decisions", "headline"])
+    ap.add_argument("--versions", default="teacher,default",
+                    help=f"headline: comma-separated versions, the reference first, from {', '.join(HEADLINE)} "
+                         "or NAME=OVERRIDE;OVERRIDE (default teacher,default)")
     ap.add_argument("--checkpoints", default="teacher,student",
                     help="comma-separated networks, the reference first (default teacher,student)")
     ap.add_argument("--threads", type=int, default=1)
@@ -202,6 +268,12 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     started = time.perf_counter()
     if args.what == "speed":
         result = speed(checkpoints, args.threads, args.batch, args.towers, args.rounds)
+    elif args.what == "headline":
+        versions = [v.strip() for v in args.versions.split(",") if v.strip()]
+        unknown = [v for v in versions if "=" not in v and v not in HEADLINE]
+        if unknown:
+            ap.error(f"--versions: unknown version {unknown[0]!r}; known: {', '.join(HEADLINE)}, or NAME=OVERRIDES")
+        result = headline(versions, args.tasks, args.limit, args.seed, args.depth)
     else:
         result = decisions(args.tasks, args.limit, checkpoints, args.depth, args.seed)
     result["wall_seconds"] = time.perf_counter() - started

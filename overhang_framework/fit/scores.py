@@ -288,7 +288,7 @@ class ScoreTables:
         self._tables: dict[tuple, np.ndarray] = {}
 
     def _new_expander(self) -> Expander:
-        return Expander(self.world, self.predictor, Budget(), seed=self.model.draw_seed(self.context))
+        return Expander(self.world, self.predictor, Budget(), seed=self.model.draw_seed(self.context), auto_lazy=False)
 
     def owner(self, state: State) -> "ScoreTables":
         """The tables that compute this model's table of ``state``: these, or others whose table there is the

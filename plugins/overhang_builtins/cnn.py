@@ -76,14 +76,14 @@ class CNNPredictor(Predictor):
 
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
                  threads: Optional[int] = 1, batch_size: int = 64, cache_size: int = 200_000,
-                 mirror="auto", fused: bool = True, runtime: str = "onnxruntime", lazy: bool = False,
+                 mirror="auto", fused: bool = True, runtime: str = "onnxruntime", lazy="auto",
                  settle_batch: int = 16, temperature: float = 1.0, bias: float = 0.0):
         from overhang_framework.cnn.model import StabilityModel
 
         if isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0:
             raise ValueError(f"cache_size must be a whole number >= 0, got {cache_size!r}")
-        if not isinstance(lazy, bool):
-            raise ValueError(f"lazy must be true or false, got {lazy!r}")
+        if not isinstance(lazy, bool) and lazy != "auto":
+            raise ValueError(f"lazy must be true, false or auto, got {lazy!r}")
         if isinstance(settle_batch, bool) or not isinstance(settle_batch, int) or settle_batch < 1:
             raise ValueError(f"settle_batch must be a whole number >= 1, got {settle_batch!r}")
         self.calibration = Calibration(temperature, bias)
@@ -99,9 +99,11 @@ class CNNPredictor(Predictor):
         #: Whether a tower's answer is the same in any batch: ONNX Runtime's on the CPU is, to the bit;
         #: torch's differs by float rounding (about 1e-6) with the batch's size.
         self.batch_invariant = self.model.runtime == "onnxruntime"
-        if lazy and not self.batch_invariant:
+        if lazy is True and not self.batch_invariant:
             raise ValueError("lazy needs a tower's answer to be the same in any batch, which only "
                              "runtime=onnxruntime on the CPU gives (with fused=true); this network runs in torch")
+        if lazy == "auto":  # lazy where it keeps every answer to the bit, in searches without a budget
+            self.lazy = self.batch_invariant and "auto"
         self.cache_size = cache_size
         self._cache: OrderedDict = OrderedDict()
         self.counts = {"towers": 0, "cache_hits": 0, "images": 0}
@@ -144,8 +146,15 @@ class CNNPredictor(Predictor):
 
     @property
     def predict_lazy(self):
-        """With ``lazy``, :meth:`_predict_lazy`; else ``None`` (searches then call :meth:`predict`)."""
+        """With ``lazy`` (``true`` or ``auto``), :meth:`_predict_lazy`; else ``None`` (searches then call
+        :meth:`predict`)."""
         return self._predict_lazy if self.lazy else None
+
+    @property
+    def lazy_auto(self) -> bool:
+        """Whether the answers are lazy only where that changes nothing a search reports: ``lazy: auto``
+        (see :class:`~overhang_framework.search.Expander`)."""
+        return self.lazy == "auto"
 
     def _predict_lazy(self, state: State, actions: Sequence[Action], rng: np.random.Generator):
         """Every answer unknown for now, with the functions that give given actions' answers: ``classify`` the

@@ -77,9 +77,15 @@ class HybridPredictor(Predictor):
 
     @staticmethod
     def _opted(part) -> bool:
-        """Whether ``part`` was asked to answer lazily (``lazy: true``); a part that is lazy of itself (the
+        """Whether ``part`` was asked to answer lazily (``lazy: true`` or ``auto``); a part that is lazy of itself (the
         veridical predictor in a world with deferred verdicts) answers eagerly inside a hybrid, as it always has."""
-        return getattr(part, "lazy", False) is True and getattr(part, "predict_lazy", None) is not None
+        return getattr(part, "lazy", False) in (True, "auto") and getattr(part, "predict_lazy", None) is not None
+
+    @property
+    def lazy_auto(self) -> bool:
+        """Whether the lazy answers are only for searches without a budget: when a lazy part's are
+        (``lazy: auto``); the hybrid then answers eagerly under a budget, every part alike."""
+        return any(getattr(p, "lazy_auto", False) for p in (self.early, self.late) if self._opted(p))
 
     @property
     def settle_batch(self) -> int:
