@@ -160,19 +160,25 @@ class CNNPredictor(Predictor):
         """Every answer unknown for now, with the functions that give given actions' answers: ``classify`` the
         remembered ones (-1 for the others) and ``settle`` the network's, in one pass; a search asks only
         for the towers whose answer can change its result (:class:`~overhang_framework.search.Expansion`)."""
-        geometries = [self.world.successor(state, a).geometry for a in actions]
+        made: list = [None] * len(actions)  # each tower drawn up when first asked about
+
+        def geometry(i):
+            g = made[i]
+            if g is None:
+                g = made[i] = self.world.successor(state, actions[i]).geometry
+            return g
 
         def classify(indices):
             out = np.full(len(indices), -1.0)
             if self.cache_size:
                 for n, i in enumerate(indices):
-                    hit = self._cache.get(geometries[i].key)
+                    hit = self._cache.get(geometry(i).key)
                     if hit is not None:
                         out[n] = self.calibration.one(hit)
             return out
 
         def settle(indices):
-            return self.probabilities([geometries[i] for i in indices])
+            return self.probabilities([geometry(i) for i in indices])
 
         return np.full(len(actions), np.nan), settle, classify
 
