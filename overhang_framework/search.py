@@ -313,8 +313,12 @@ def max_reach(world: World, state: State, resolution: Optional[float] = None) ->
     base = overhang(state.geometry)
     if state.done:
         return base
-    actions = world.legal_actions(state, resolution)
     width = state.next_width
+    arrays = getattr(world, "legal_xs", None)  # a world may give its placements as arrays, without objects
+    if arrays is not None:
+        xs, _ = arrays(state, resolution)
+        return max(base, float(np.abs(xs).max()) + width / 2) if len(xs) else base
+    actions = world.legal_actions(state, resolution)
     return max([base] + [abs(a.x) + width / 2 for a in actions])
 
 

@@ -268,3 +268,29 @@ def test_the_myopic_reward_can_be_the_gain_or_the_final_reward(world, veridical,
         planner(world, "myopic").plan(last, veridical, value, Budget(), rng).action
     with pytest.raises(Exception, match="unknown myopic reward 'later'; allowed: overhang, gain, final"):
         planner(world, "myopic", reward="later")
+
+
+def test_the_reach_bound_from_placement_arrays_equals_the_one_from_actions():
+    """max_reach takes a world's placements as arrays when it offers them (legal_xs), else its actions."""
+    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.interfaces import State
+    from overhang_framework.search import max_reach, reach_bound
+
+    world = Registry().create("world", {"name": "overhang", "physics": "static"})
+
+    class ActionsOnly:  # the same world without its arrays
+        def __init__(self, inner):
+            self.inner = inner
+
+        def legal_actions(self, state, resolution=None):
+            return self.inner.legal_actions(state, resolution)
+
+    plain = ActionsOnly(world)
+    states = [State(g, widths) for g in random_towers(60, seed=9, min_blocks=1, max_blocks=6)
+              for widths in ((0.6,), (1.8, 1.2), ())]
+    for s in states:
+        for resolution in (None, 0.05):
+            assert max_reach(world, s, resolution) == max_reach(plain, s, resolution)
+        assert reach_bound(world, s, 2) == reach_bound(plain, s, 2)
+    xs, layers = world.legal_xs(states[0])
+    assert [(a.x, a.layer) for a in world.legal_actions(states[0])] == list(zip(xs.tolist(), layers.tolist()))

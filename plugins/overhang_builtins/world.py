@@ -69,6 +69,13 @@ class OverhangWorld(World):
             return []
         return rules.legal_actions(state.geometry, state.next_width, resolution or self.resolution)
 
+    def legal_xs(self, state: State, resolution: Optional[float] = None):
+        """:meth:`legal_actions` as arrays ``(xs, layers)``, in the same order (searches that only need
+        the numbers skip making an action object each)."""
+        if state.done:
+            return np.zeros(0), np.zeros(0, dtype=int)
+        return rules.legal_xs(state.geometry, state.next_width, resolution or self.resolution)
+
     def illegal_reason(self, state: State, action: Action) -> Optional[str]:
         if state.done:
             return "no block is left to place"
