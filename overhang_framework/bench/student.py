@@ -113,14 +113,28 @@ def models_with(checkpoint: str, depth: int, extra: Sequence[str] = ()) -> dict:
                                         f"+predictor.late_params.checkpoint={checkpoint}", *extra]))
 
 
+def softmax(z: np.ndarray) -> np.ndarray:
+    e = np.exp(z - z.max())
+    return e / e.sum()
+
+
 def decisions(tasks: str = "paper20", limit: Optional[int] = None, checkpoints: Sequence[str] = ("teacher", "student"),
-              depth: int = 3, seed: int = 0, extra: Sequence[str] = ()) -> dict:
+              depth: int = 3, seed: int = 0, extra: Sequence[str] = (), tables: bool = True,
+              beta: float = 2.4) -> dict:
     """The share of the first checkpoint's decisions that each other checkpoint makes alike, at every state
-    of the first checkpoint's own episodes of ``tasks`` (see the module docstring)."""
+    of the first checkpoint's own episodes of ``tasks`` (see the module docstring). With ``tables``, also
+    what a different choice costs by the first's own scores (``regret``: how far below its best root score
+    the other's choice is), the total variation between the two versions' softmax choice probabilities at
+    inverse temperature ``beta`` (per metre; 2.4 is Table 2's), and the relative gap between the first's two
+    best root scores."""
     from overhang_framework.interfaces import Budget
     from overhang_framework.search import Expander, root_scores
 
-    models = {c: models_with(c, depth, extra) for c in checkpoints}
+    models = {}
+    for c in checkpoints:  # a network's name or path, or NAME=OVERRIDE;OVERRIDE (the headline model's config)
+        name, sep, overrides = c.partition("=")
+        models[c] = models_with_overrides(depth, [o for o in overrides.split(";") if o] + list(extra)) if sep \
+            else models_with(c, depth, extra)
     lead = checkpoints[0]
     world = models[lead]["world"]
     rows, cases = [], []
@@ -140,17 +154,23 @@ def decisions(tasks: str = "paper20", limit: Optional[int] = None, checkpoints: 
             got = {c: figures["versions"][c]["results"][0] for c in checkpoints}
             secs = {c: figures["versions"][c]["seconds"][0] for c in checkpoints}
             rows.append({"task": task.id, "step": step, "actions": got, "seconds": secs})
-            if any(got[c] != got[lead] for c in checkpoints):
-                scores = {}
+            if tables:  # every root action's exact score under each version
+                exact = {}
                 for c in checkpoints:
                     m = models[c]
                     ex = Expander(m["world"], m["predictor"], Budget(), seed=0)
-                    sc = root_scores(ex, m["value"], state, min(depth, len(state.remaining)), True)
-                    acts = ex.expand(state, force=True).actions
-                    top = np.argsort(-sc)[:3]
-                    scores[c] = [(round(acts[i].x, 3), round(float(sc[i]), 4)) for i in top]
-                rows[-1]["top_scores"] = scores
-                print(f"  {task.id} step {step}: {got} differ; top root scores {scores}", flush=True)
+                    exact[c] = root_scores(ex, m["value"], state, min(depth, len(state.remaining)), True)
+                    acts = [(round(a.x, 6), a.layer) for a in ex.expand(state, force=True).actions]
+                ref = exact[lead]
+                rows[-1]["regret"], rows[-1]["tv"] = {}, {}
+                for c in checkpoints[1:]:
+                    pick = acts.index(got[c]) if got[c] in acts else int(np.argmax(exact[c]))
+                    rows[-1]["regret"][c] = float(1 - ref[pick] / ref.max()) if ref.max() > 0 else 0.0
+                    rows[-1]["tv"][c] = float(0.5 * np.abs(softmax(beta * ref) - softmax(beta * exact[c])).sum())
+                top = np.sort(ref)[::-1]
+                rows[-1]["gap"] = float((top[0] - top[1]) / top[0]) if len(top) > 1 and top[0] > 0 else float("nan")
+            if any(got[c] != got[lead] for c in checkpoints):
+                print(f"  {task.id} step {step}: " + ", ".join(f"{c} {got[c]}" for c in checkpoints), flush=True)
             action = got[lead]
             legal = world.legal_actions(state)
             chosen = min(legal, key=lambda a: (abs(a.x - action[0]), a.layer != action[1]))
@@ -162,7 +182,13 @@ def decisions(tasks: str = "paper20", limit: Optional[int] = None, checkpoints: 
         same = {c: sum(r["actions"][c] == r["actions"][lead] for r in rows) for c in checkpoints[1:]}
         print(f"{task.id}: {done} decisions, the same: " + ", ".join(f"{c} {same[c]}" for c in same), flush=True)
     out = {"tasks": tasks, "limit": limit, "depth": depth, "decisions": len(rows), "checkpoints": list(checkpoints),
-           "rows": rows}
+           "beta": beta, "rows": rows}
+    if tables and rows:
+        gaps = np.array([r["gap"] for r in rows if np.isfinite(r["gap"])])
+        out["gap_median"] = float(np.median(gaps))
+        out["gap_below_1pct"] = float((gaps < 0.01).mean())
+        print(f"{lead}'s two best root scores differ by a median {100 * out['gap_median']:.2f}%; by less than 1% in "
+              f"{100 * out['gap_below_1pct']:.0f}% of decisions", flush=True)
     for c in checkpoints:
         secs = [r["seconds"][c] for r in rows]
         out[c] = {"median_seconds": float(np.median(secs)), "max_seconds": float(np.max(secs)),
@@ -170,6 +196,15 @@ def decisions(tasks: str = "paper20", limit: Optional[int] = None, checkpoints: 
         if c != lead:
             same = sum(r["actions"][c] == r["actions"][lead] for r in rows)
             out[c]["same_action"] = same / max(1, len(rows))
+            if tables and rows:
+                regret = np.array([r["regret"][c] for r in rows])
+                tv = np.array([r["tv"][c] for r in rows])
+                out[c].update({"regret_mean": float(regret.mean()), "regret_p90": float(np.quantile(regret, 0.9)),
+                               "regret_max": float(regret.max()), "tv_mean": float(tv.mean()),
+                               "tv_p90": float(np.quantile(tv, 0.9))})
+                print(f"{c}: its choice scores on average {100 * regret.mean():.2f}% below {lead}'s best by {lead}'s "
+                      f"own scores (90th percentile {100 * out[c]['regret_p90']:.2f}%); softmax choice probabilities "
+                      f"at beta {beta:g} differ by a total variation of {tv.mean():.3f} on average", flush=True)
             print(f"{c}: the same action as {lead} in {same} of {len(rows)} decisions ({100 * same / max(1, len(rows)):.1f}%); "
                   f"median decision {out[c]['median_seconds']:.3f} s against {out[lead]['median_seconds']:.3f} s",
                   flush=True)
@@ -247,7 +282,8 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
                     help=f"headline: comma-separated versions, the reference first, from {', '.join(HEADLINE)} "
                          "or NAME=OVERRIDE;OVERRIDE (default teacher,default)")
     ap.add_argument("--checkpoints", default="teacher,student",
-                    help="comma-separated networks, the reference first (default teacher,student)")
+                    help="comma-separated networks (names or paths) or NAME=OVERRIDE;OVERRIDE versions of the "
+                         "headline model, the reference first (default teacher,student)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--batch", type=int, default=64, help="images a forward pass (default 64)")
     ap.add_argument("--towers", type=int, default=4096)
@@ -256,6 +292,10 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
     ap.add_argument("--limit", type=int, default=None, help="the first N tasks only")
     ap.add_argument("--depth", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--beta", type=float, default=2.4,
+                    help="decisions: the softmax inverse temperature per metre for the choice probabilities (2.4)")
+    ap.add_argument("--no-tables", action="store_true",
+                    help="decisions: only the chosen actions, without every root action's exact score")
     ap.add_argument("--out", default=None, help="also write the JSON result to this file")
     args = ap.parse_args(argv)
     checkpoints = [c.strip() for c in args.checkpoints.split(",") if c.strip()]
@@ -275,7 +315,8 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
             ap.error(f"--versions: unknown version {unknown[0]!r}; known: {', '.join(HEADLINE)}, or NAME=OVERRIDES")
         result = headline(versions, args.tasks, args.limit, args.seed, args.depth)
     else:
-        result = decisions(args.tasks, args.limit, checkpoints, args.depth, args.seed)
+        result = decisions(args.tasks, args.limit, checkpoints, args.depth, args.seed, tables=not args.no_tables,
+                           beta=args.beta)
     result["wall_seconds"] = time.perf_counter() - started
     if args.out:
         from overhang_framework.results import atomic_write_json

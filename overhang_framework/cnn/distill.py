@@ -318,9 +318,13 @@ def distill(cfg) -> dict:
     with atomic_output(metrics_path) as tmp:
         Path(tmp).write_text("".join(json.dumps(r) + "\n" for r in rows))
     images = np.empty((batch, *renderer.shape), dtype=np.float32)
-    common = {"teacher": str(teacher.path), "teacher_mirror": teacher.mirror, "distill_config": record,
+    import hashlib
+
+    sha = hashlib.sha256(teacher.path.read_bytes()).hexdigest()
+    common = {"teacher": str(cfg.teacher), "teacher_sha256": sha, "teacher_mirror": teacher.mirror,
+              "distill_config": record, "mirror": False, "outputs": 1,
               "data": {"questions": int(cfg.data.questions), "tasks": int(cfg.data.tasks), "n_train": n,
-                       **data_settings(cfg, "")}, "mirror": False, "outputs": 1}
+                       **data_settings(cfg, sha[:16])}}
 
     def student_logits(data: dict) -> np.ndarray:
         net.eval()
