@@ -203,3 +203,29 @@ def test_auc_and_calibration_measures_are_the_textbook_ones():
     assert c["brier"] == pytest.approx(np.mean((p - y) ** 2))
     assert c["ece"] < 0.1  # drawn calibrated
     assert calibration(np.full(300, 0.9), y)["ece"] == pytest.approx(abs(0.9 - y.mean()))
+
+
+def test_a_fits_tables_are_the_teachers_byte_for_byte_whichever_name_chooses_it():
+    """The fit's CNN family keeps the teacher (checkpoint: default); naming it teacher changes no table
+    (tests/test_cnn.py checks that a table asks for the same towers as the network as trained)."""
+    from overhang_framework.fit.scores import Model, ScoreTables
+    from overhang_framework.geometry import Block, Geometry
+    from overhang_framework.interfaces import State
+    from overhang_framework.plugins import Registry
+
+    registry = Registry()
+    world = registry.create("world", {"name": "overhang", "physics": "static"})
+    value = registry.create("value", {"name": "overhang"}, world=world)
+    state = State(Geometry((Block(1.8, 0.0, 0), Block(1.2, 0.5, 1))), (0.6, 1.8, 1.2))
+    tables, towers = {}, {}
+    for name in ("default", "teacher", "student"):
+        predictor = registry.create("predictor", {"name": "cnn", "checkpoint": name}, world=world)
+        tables[name] = ScoreTables(world, value, predictor, Model({"name": "cnn", "checkpoint": name}, 2),
+                                   {"test": 1}).table(state)
+        towers[name] = predictor.stats()["towers"]
+    assert tables["default"].tobytes() == tables["teacher"].tobytes()
+    assert towers["default"] == towers["teacher"]
+    assert not np.array_equal(tables["student"], tables["teacher"])
+    from overhang_framework.config import compose_config
+
+    assert compose_config(["predictor=cnn"]).predictor.checkpoint == "default"  # the teacher stays the default
