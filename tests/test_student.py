@@ -108,7 +108,9 @@ def test_distillation_runs_end_to_end_resumes_and_loads_as_a_predictor(tmp_path)
     teacher = StabilityModel("teacher", device="cpu", threads=1)
     np.testing.assert_allclose(part["logits"][:40], teacher_logits(teacher, {k: v[:40] for k, v in part.items()
                                                                              if k != "meta"}), atol=1e-5)
-    # another config into the same folder starts again with overwrite=true, from the parts on disk
+    # another config into the same folder is refused, and starts again with overwrite=true, from the parts on disk
+    refused = run_distill(quick_config(tmp_path, "epochs=1"))
+    assert refused.returncode == 2 and "holds a distillation with another config" in refused.stderr
     more = run_distill(quick_config(tmp_path, "epochs=1", "overwrite=true"))
     assert more.returncode == 0, more.stderr[-2000:]
     assert len((tmp_path / "out" / "metrics.jsonl").read_text().splitlines()) == 1
@@ -179,12 +181,6 @@ def test_bad_distillation_settings_are_one_line(tmp_path, override, message):
     import re
 
     assert re.search(message, lines[0]), lines[0]
-
-
-def test_another_config_in_the_same_folder_is_refused(tmp_path):
-    assert run_distill(quick_config(tmp_path, "epochs=1")).returncode == 0
-    done = run_distill(quick_config(tmp_path, "epochs=1", "optim.lr=0.01"))
-    assert done.returncode == 2 and "holds a distillation with another config" in done.stderr
 
 
 # ------------------------------------------------------------------ calibration measures
