@@ -33,7 +33,8 @@ import numpy as np
 
 from overhang_framework.interfaces import Budget, Predictor, State, Task, World
 from overhang_framework.results import atomic_write_json
-from overhang_framework.search import Expander, lookahead_value, reach_bound, root_scores, score_step, settled_scores
+from overhang_framework.search import (Expander, binary_verdicts, lookahead_value, reach_bound,  # noqa: F401
+                                      root_scores, score_step, settled_scores)
 
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
 #: Backend parameters that choose how verdicts are computed, not the verdicts: left out of result keys.
@@ -149,12 +150,6 @@ class OptimumSearch:
         self.greedy(state)
         return root_scores(self.expander, self.value, state, len(state.remaining), exact_all=False,
                            memo=self.memo, prefetch=True)
-
-
-def binary_verdicts(predictor: Predictor) -> bool:
-    """Whether every probability ``predictor`` gives is 0 or 1 (one deterministic verdict per tower)."""
-    return bool(getattr(predictor, "world_verdicts", False)
-                or (getattr(predictor, "deterministic", False) and getattr(predictor, "K", None) == 1))
 
 
 class _Unlimited(Budget):

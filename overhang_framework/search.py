@@ -390,6 +390,22 @@ def settled_scores(expansion: Expansion, values: np.ndarray, floor: float = 0.0,
     return scores
 
 
+def binary_verdicts(predictor: Predictor) -> bool:
+    """Whether every probability ``predictor`` gives is 0 or 1 (one deterministic verdict per tower)."""
+    return bool(getattr(predictor, "world_verdicts", False)
+                or (getattr(predictor, "deterministic", False) and getattr(predictor, "K", None) == 1))
+
+
+def lattice_step(world: World, predictor: Predictor, value: Value, state: State) -> float:
+    """The spacing of the lattice every search score from ``state`` lies on (:func:`score_step`), when it
+    does: 0/1 verdicts (:func:`binary_verdicts`) times a value that is an overhang on the world's grid
+    (``value.lattice``); else 0."""
+    if not (binary_verdicts(predictor) and getattr(value, "lattice", False)):
+        return 0.0
+    widths = sorted({b.width for b in state.geometry.blocks} | set(state.remaining))
+    return score_step(getattr(world, "resolution", None) or 0.1, widths)
+
+
 def score_step(resolution: float, widths: Sequence[float]) -> float:
     """The spacing of the lattice that every overhang of a task lies on: placements sit at
     ``k * resolution`` and a block reaches half its width beyond its centre, so every overhang is a
@@ -411,7 +427,8 @@ def _wanted(best: float, floor: float, step: float) -> float:
 
 def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
                     threshold: float = 0.0, memo: Optional[dict] = None, beam: Optional[int] = None,
-                    prefetch: bool = False, step: float = 0.0, defer: bool = False) -> float:
+                    prefetch: bool = False, step: float = 0.0, defer: bool = False, settle_by_bound: bool = False,
+                    optimistic: bool = False) -> float:
     """``max`` over action sequences of length ``depth`` of ``prod p * V(leaf)`` from ``state``.
 
     Branch and bound: a child whose score cannot reach ``threshold`` (or the
@@ -438,12 +455,18 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
     as if it stood, and settles it only when that subtree could beat the floor: where answers are dear
     (the full-window reference) and most subtrees cannot, most unknown inner children are never
     settled. The value is the same: a child's subtree value does not depend on its own answer.
+
+    ``settle_by_bound`` settles an inner child whose answer is still unknown only when an optimistic value
+    of its subtree could beat the floor: the same search with every unknown answer counted as standing and
+    none settled (``optimistic``, which takes only the cheap first looks and returns an upper bound of the
+    value). Where answers are dear and subtrees are mostly decided by the cheap looks, most unknown children
+    whose geometry could reach far are never settled, and nothing is settled for a subtree that cannot win.
     """
     memo = {} if memo is None else memo
     depth = min(depth, len(state.remaining))
     if depth == 0:
         return float(value(state))
-    key = (state_key(state), depth)
+    key = (state_key(state), depth, "upper") if optimistic else (state_key(state), depth)
     known = memo.get(key)
     if known is not None:
         result, exact, tried = known
@@ -451,7 +474,12 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
             return result
     expansion = expander.expand(state)
     best = 0.0
-    if depth == 1:
+    if depth == 1 and optimistic:
+        values = _leaf_values(value, expansion)
+        upper = expansion.upper * values
+        expansion.look([i for i in range(len(upper)) if upper[i] > 0 and not _below(upper[i], threshold)])
+        best = float((expansion.upper * values).max()) if len(values) else 0.0
+    elif depth == 1:
         scores = settled_scores(expansion, _leaf_values(value, expansion), threshold, batch=expander.settle_batch,
                                 step=step)
         best = float(scores.max()) if len(scores) else 0.0
@@ -459,7 +487,7 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
         upper = expansion.upper
         bounds = np.array([_bound(value, child, depth - 1) for child in expansion.children], dtype=float)
         wanted = [i for i in range(len(upper)) if upper[i] > 0 and not _below(upper[i] * bounds[i], threshold)]
-        if expander.settle_inner:
+        if expander.settle_inner and not optimistic:
             expansion.settle(wanted)
         else:
             expansion.look(wanted)
@@ -474,6 +502,16 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
             if upper[i] <= 0 or _below(upper[i] * bounds[i], floor):
                 expander.stats.leaves_pruned += 1
                 continue
+            if optimistic:  # unknown answers count as standing; nothing is settled
+                child = lookahead_value(expander, value, expansion.children[i], depth - 1, floor / upper[i], memo,
+                                        beam, prefetch, step, optimistic=True)
+                best = max(best, float(upper[i] * child))
+                continue
+            if settle_by_bound and expansion.awaits_settling(i):
+                reach = _optimistic(expander, value, expansion.children[i], depth - 1, floor, memo, beam, prefetch,
+                                    step)
+                if reach <= 0 or _below(reach, floor):
+                    continue
             if defer and expansion.awaits_settling(i):
                 # its subtree first, as if it stood: settled only if the subtree could beat the floor
                 child = lookahead_value(expander, value, expansion.children[i], depth - 1,
@@ -493,11 +531,18 @@ def lookahead_value(expander: Expander, value: Value, state: State, depth: int,
             if p_i <= 0:
                 continue
             child = lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                    floor / p_i, memo, beam, prefetch, step, defer)
+                                    floor / p_i, memo, beam, prefetch, step, defer, settle_by_bound)
             best = max(best, float(p_i * child))
     exact = best >= threshold * (1 - TIE) or threshold <= 0
     memo[key] = (best, exact, threshold)
     return best
+
+
+def _optimistic(expander: Expander, value: Value, child: State, depth: int, floor: float, memo: dict,
+                beam: Optional[int], prefetch: bool, step: float) -> float:
+    """An upper bound of ``child``'s subtree value, exact for the optimistic search when at least ``floor``:
+    every unknown answer counted as standing, none settled (only the cheap first looks)."""
+    return lookahead_value(expander, value, child, depth, floor, memo, beam, prefetch, step, optimistic=True)
 
 
 def _settle_next(expander: Expander, expansion: Expansion, order, n: int, upper, bounds, floor: float) -> None:
@@ -530,7 +575,8 @@ def _bound(value: Value, state: State, depth: int) -> float:
 
 def root_scores(expander: Expander, value: Value, state: State, depth: int, exact_all: bool,
                 first: Optional[int] = None, memo: Optional[dict] = None,
-                beam: Optional[int] = None, prefetch: bool = False) -> np.ndarray:
+                beam: Optional[int] = None, prefetch: bool = False, defer: bool = False,
+                step: float = 0.0) -> np.ndarray:
     """The score ``p(s, a) * best continuation`` of every root action, at horizon ``depth``.
 
     With ``exact_all`` every score is exact (what a softmax rule needs);
@@ -540,6 +586,16 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
     ``beam`` and ``prefetch`` are passed on to :func:`lookahead_value`
     (the root's own children are expanded one by one, so that pruning keeps its
     effect where the subtrees are largest).
+
+    ``defer`` searches, at the root and below (:func:`lookahead_value`), the subtree of a child whose
+    answer only the dear settling can give (:meth:`Expansion.awaits_settling`: the reference's full-window
+    run) before settling it, as if it stood, and settles it only when that subtree could still beat the
+    best score (every score, with ``exact_all``, unless the subtree is worth 0). The scores that matter are
+    the same, ties included: a child's subtree value does not depend on its own answer, and a score is only
+    skipped when even a standing child could not reach the best.
+
+    ``step`` is passed on to the subtrees (:func:`lookahead_value`): their values stay exact, so the root
+    scores, their ties and the choice are the same. The root's own children are never compared on it.
     """
     memo = {} if memo is None else memo
     expansion = expander.expand(state, force=True)
@@ -548,7 +604,7 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
     if depth <= 1 or len(state.remaining) <= 1:
         return settled_scores(expansion, _leaf_values(value, expansion), exact_all=exact_all,
                               batch=expander.settle_batch)
-    if exact_all or expander.settle_inner:
+    if expander.settle_inner or exact_all:
         expansion.p  # every root score must be exact, or the predictor settles a node's children at once
     expansion.look(range(n))
     upper = expansion.upper
@@ -567,12 +623,18 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
             expander.stats.leaves_pruned += 1
             scores[i] = upper[i] * bounds[i]
             continue
+        if defer and expansion.awaits_settling(i):  # (every root answer is settled when all scores must be exact)
+            reach = _optimistic(expander, value, expansion.children[i], depth - 1, floor, memo, beam, prefetch, step)
+            if reach <= 0 or _below(reach, floor):
+                expander.stats.leaves_pruned += 1
+                scores[i] = max(reach, 0.0)  # a bound of its score, below the best
+                continue
         _settle_next(expander, expansion, order, k, upper, bounds, floor)
         p_i = expansion.p_at(i)  # settled just above
         if p_i <= 0:
             continue
         scores[i] = p_i * lookahead_value(expander, value, expansion.children[i], depth - 1,
-                                          floor / p_i, memo, beam, prefetch)
+                                          floor / p_i, memo, beam, prefetch, step, settle_by_bound=defer)
         best = max(best, scores[i])
     return scores
 

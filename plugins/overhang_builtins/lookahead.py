@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
-from overhang_framework.search import BudgetExhausted, ChoiceRule, Expander, root_scores
+from overhang_framework.search import BudgetExhausted, ChoiceRule, Expander, lattice_step, root_scores
 
 
 class LookaheadPlanner(Planner):
@@ -27,16 +27,25 @@ class LookaheadPlanner(Planner):
     iteratively, depth 1, 2, ..., and plays the best action of the deepest
     depth it completed when the budget runs out. ``choice`` is ``argmax`` or
     ``softmax`` over the root actions' scores with inverse temperature ``beta``.
+
+    ``defer`` (without a budget): a child whose answer only a dear settling can give (the world's
+    full-window reference, where its static stages are unsure) has its subtree searched first, as if it
+    stood, and is settled only if that subtree could still change the choice
+    (:func:`~overhang_framework.search.root_scores`); the scores and the choice are the same. Under a
+    budget the search settles as before, since deferring changes which calls are charged.
     """
 
     def __init__(self, world: World, depth: int = 2, beam: Optional[int] = None, prune: bool = True,
-                 choice: str = "argmax", beta: float = 10.0):
+                 choice: str = "argmax", beta: float = 10.0, defer: bool = True):
         if isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
             raise ValueError(f"depth must be a whole number >= 1, got {depth!r}")
         if beam is not None and (isinstance(beam, bool) or not isinstance(beam, int) or beam < 1):
             raise ValueError(f"beam must be a whole number >= 1 or null, got {beam!r}")
         if not isinstance(prune, bool):
             raise ValueError(f"prune must be true or false, got {prune!r}")
+        if not isinstance(defer, bool):
+            raise ValueError(f"defer must be true or false, got {defer!r}")
+        self.defer = defer
         self.world = world
         self.depth = depth
         self.beam = beam
@@ -52,10 +61,18 @@ class LookaheadPlanner(Planner):
         leaf_value = value if self.prune else _Unbounded(value)
         scores, completed, first, memo = None, 0, None, {}
         prefetch = self.prefetches(predictor, budget)
+        defer = self.defer and not budget.limited
+        # with deferred settling and argmax, subtrees compare scores on their lattice (0/1 verdicts times
+        # overhangs): their values are exact, and what only ties a found score is not settled for. (A value
+        # reached along another of several tied sequences may differ in its last bit, which argmax's ties
+        # absorb; softmax keeps its scores to the bit.)
+        exact_all = self.rule.needs_all_scores
+        step = lattice_step(self.world, predictor, value, state) if defer and self.prune and not exact_all else 0.0
         for depth in depths:
             try:
                 found = root_scores(expander, leaf_value, state, depth, self.rule.needs_all_scores,
-                                    first=first, memo=memo, beam=self.beam, prefetch=prefetch)
+                                    first=first, memo=memo, beam=self.beam, prefetch=prefetch,
+                                    defer=defer, step=step)
             except BudgetExhausted:
                 break
             scores, completed = found, depth

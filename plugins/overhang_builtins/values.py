@@ -14,6 +14,9 @@ from overhang_framework.search import reach_bound, state_key
 class OverhangValue(Value):
     """The overhang of the leaf's geometry (the paper's ``V(s_{t+D})``)."""
 
+    #: Its values are overhangs of geometries on the world's grid (see ``search.lattice_step``).
+    lattice = True
+
     def __init__(self, world: Optional[World] = None):
         self.world = world
 

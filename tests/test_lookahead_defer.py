@@ -1,0 +1,90 @@
+"""Lookahead with the world's verdicts runs the reference for an unsure tower only when its subtree could
+change the choice (``planner.defer``), and chooses as when it settles every such tower first."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from overhang_framework.interfaces import Budget, Task
+from overhang_framework.plugins import Registry
+from overhang_framework.search import Expander, root_scores, ties
+
+from test_lazy_search import HidingWorld, random_states
+
+REG = Registry()
+
+
+def decide(world, state, depth, choice, defer, budget=None, seed=5):
+    predictor = REG.create("predictor", {"name": "veridical"}, world=world)
+    value = REG.create("value", {"name": "overhang"}, world=world)
+    planner = REG.create("planner", {"name": "lookahead", "depth": depth, "choice": choice, "beta": 4.0,
+                                     "defer": defer}, world=world)
+    d = planner.plan(state, predictor, value, budget or Budget(), np.random.default_rng(seed))
+    return d.action, d.choice_probability, d.spend.depth_completed, d.spend.predictor_calls
+
+
+@pytest.mark.parametrize("depth, choice", [(2, "argmax"), (2, "softmax"), (3, "argmax"),
+                                           pytest.param(3, "softmax", marks=pytest.mark.slow)])
+def test_deferred_settling_chooses_as_settling_first_with_fewer_reference_runs(depth, choice):
+    revealed = {True: 0, False: 0}
+    for state in random_states(5 if depth == 3 else 8, seed=10 + depth):
+        got = {}
+        for defer in (True, False):
+            world = HidingWorld()
+            got[defer] = decide(world, state, depth, choice, defer)[:3]
+            revealed[defer] += world.revealed
+        assert got[True] == got[False]
+    assert revealed[True] <= revealed[False], revealed
+    if choice == "argmax" or depth == 3:  # softmax at depth 2 needs every root answer and every leaf's
+        assert revealed[True] < revealed[False], revealed
+
+
+@pytest.mark.parametrize("depth", [2, pytest.param(3, marks=pytest.mark.slow)])
+def test_deferred_root_scores_keep_the_best_the_ties_and_every_softmax_score(depth):
+    """Deferred (with the lattice step in the subtrees, as argmax plans) against settling first."""
+    from overhang_framework.search import lattice_step
+
+    for state in random_states(6, seed=20 + depth):
+        argmax, exact = {}, {}
+        for defer in (True, False):
+            world = HidingWorld()
+            predictor = REG.create("predictor", {"name": "veridical"}, world=world)
+            value = REG.create("value", {"name": "overhang"}, world=world)
+            step = lattice_step(world, predictor, value, state) if defer else 0.0
+            assert not defer or step == pytest.approx(0.1) or step > 0
+            scores = root_scores(Expander(world, predictor, Budget(), seed=1), value, state, depth, False,
+                                 defer=defer, step=step)
+            argmax[defer] = (sorted(ties(scores).tolist()), round(float(scores.max()), 12))
+            exact[defer] = root_scores(Expander(world, predictor, Budget(), seed=1), value, state, depth, True,
+                                       defer=defer)
+        assert argmax[True] == argmax[False]
+        np.testing.assert_array_equal(exact[True], exact[False])
+
+
+def test_under_a_budget_the_search_settles_as_before():
+    """Deferring would change which calls a budgeted search is charged, so a budget turns it off."""
+    for state in random_states(4, seed=31):
+        got = {}
+        for defer in (True, False):
+            world = HidingWorld()
+            got[defer] = (decide(world, state, 3, "argmax", defer, Budget(predictor_calls=20)), world.revealed)
+        assert got[True] == got[False]
+
+
+def test_on_the_tiered_world_the_reference_runs_less_for_the_same_choice():
+    tiered = REG.create("world", {"name": "overhang"})  # the default physics: the reference's verdicts
+    state = tiered.initial_state(Task("t", (1.2, 0.6, 1.8, 1.2, 0.6)))
+    got, runs = {}, {}
+    for defer in (True, False):
+        world = REG.create("world", {"name": "overhang"})
+        got[defer] = decide(world, state, 3, "argmax", defer)[:3]
+        runs[defer] = int(((world.stats().get("cache") or {}).get("backend") or {}).get("reference", 0))
+    assert got[True] == got[False]
+    assert runs[True] < runs[False], runs
+
+
+def test_a_bad_defer_setting_is_one_line():
+    world = REG.create("world", {"name": "overhang", "physics": "static"})
+    with pytest.raises(ValueError, match="defer must be true or false, got 'sometimes'"):
+        REG.create("planner", {"name": "lookahead", "defer": "sometimes"}, world=world)
