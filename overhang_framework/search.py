@@ -236,6 +236,16 @@ class Expander:
         and only the leaves' answers are left to settle as needed."""
         return bool(getattr(self.predictor, "settle_inner", False))
 
+    @property
+    def dear_answers(self) -> bool:
+        """Whether the answers this search leaves unknown are dear to settle, so that a search defers settling
+        them (:func:`root_scores`' ``defer``): the predictor answers lazily here and settles one child at a time
+        rather than an inner node's children together (``settle_inner`` false). That is the veridical
+        predictor with the world's own verdicts, where a tower the static stages leave unsure needs the
+        full-window reference run; a network's or the IPE's answers cost about the same in any batch."""
+        return self.asks_lazily and getattr(self.predictor, "predict_lazy", None) is not None \
+            and not self.settle_inner
+
     def expand_many(self, states: Sequence[State]) -> None:
         """Expand every state of ``states`` not expanded yet, with one :meth:`Predictor.predict_many` call.
 
@@ -592,7 +602,8 @@ def root_scores(expander: Expander, value: Value, state: State, depth: int, exac
     run) before settling it, as if it stood, and settles it only when that subtree could still beat the
     best score (every score, with ``exact_all``, unless the subtree is worth 0). The scores that matter are
     the same, ties included: a child's subtree value does not depend on its own answer, and a score is only
-    skipped when even a standing child could not reach the best.
+    skipped when even a standing child could not reach the best. It pays where settling is dear
+    (:attr:`Expander.dear_answers`); elsewhere the optimistic searches only add work.
 
     ``step`` is passed on to the subtrees (:func:`lookahead_value`): their values stay exact, so the root
     scores, their ties and the choice are the same. The root's own children are never compared on it.

@@ -28,11 +28,13 @@ class LookaheadPlanner(Planner):
     depth it completed when the budget runs out. ``choice`` is ``argmax`` or
     ``softmax`` over the root actions' scores with inverse temperature ``beta``.
 
-    ``defer`` (without a budget): a child whose answer only a dear settling can give (the world's
-    full-window reference, where its static stages are unsure) has its subtree searched first, as if it
-    stood, and is settled only if that subtree could still change the choice
-    (:func:`~overhang_framework.search.root_scores`); the scores and the choice are the same. Under a
-    budget the search settles as before, since deferring changes which calls are charged.
+    ``defer`` (without a budget, where settling is dear:
+    :attr:`~overhang_framework.search.Expander.dear_answers`, the veridical predictor with the world's
+    verdicts): a child whose answer only the full-window reference can give has its subtree searched
+    first, optimistically (unsure towers counted as standing, none simulated), and is simulated only if
+    that subtree could still change the choice (:func:`~overhang_framework.search.root_scores`); the
+    scores, the tied best actions and the choice are the same. Under a budget the search settles as
+    before, since deferring changes which calls are charged; other predictors settle as before too.
     """
 
     def __init__(self, world: World, depth: int = 2, beam: Optional[int] = None, prune: bool = True,
@@ -61,7 +63,7 @@ class LookaheadPlanner(Planner):
         leaf_value = value if self.prune else _Unbounded(value)
         scores, completed, first, memo = None, 0, None, {}
         prefetch = self.prefetches(predictor, budget)
-        defer = self.defer and not budget.limited
+        defer = self.defer and not budget.limited and expander.dear_answers
         # with deferred settling and argmax, subtrees compare scores on their lattice (0/1 verdicts times
         # overhangs): their values are exact, and what only ties a found score is not settled for. (A value
         # reached along another of several tied sequences may differ in its last bit, which argmax's ties
