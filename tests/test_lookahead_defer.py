@@ -72,16 +72,59 @@ def test_under_a_budget_the_search_settles_as_before():
         assert got[True] == got[False]
 
 
-def test_on_the_tiered_world_the_reference_runs_less_for_the_same_choice():
-    tiered = REG.create("world", {"name": "overhang"})  # the default physics: the reference's verdicts
-    state = tiered.initial_state(Task("t", (1.2, 0.6, 1.8, 1.2, 0.6)))
-    got, runs = {}, {}
-    for defer in (True, False):
-        world = REG.create("world", {"name": "overhang"})
-        got[defer] = decide(world, state, 3, "argmax", defer)[:3]
-        runs[defer] = int(((world.stats().get("cache") or {}).get("backend") or {}).get("reference", 0))
-    assert got[True] == got[False]
-    assert runs[True] < runs[False], runs
+def watched(world, depth, choice, defer):
+    """A lookahead planner on ``world`` whose choice rule keeps the root scores it was given."""
+    planner = REG.create("planner", {"name": "lookahead", "depth": depth, "choice": choice, "beta": 4.0,
+                                     "defer": defer}, world=world)
+    seen, rule_choose = [], planner.rule.choose
+
+    def choose(scores, rng):
+        seen.append(np.asarray(scores, dtype=float))
+        return rule_choose(scores, rng)
+
+    planner.rule.choose = choose
+    return planner, seen
+
+
+@pytest.mark.parametrize("depth, choice, n", [(2, "argmax", 4), (2, "softmax", 4), (3, "argmax", 2),
+                                              pytest.param(3, "softmax", 4, marks=pytest.mark.slow)])
+def test_on_the_tiered_world_the_same_choices_ties_and_scores_with_fewer_reference_runs(depth, choice, n):
+    """The default physics, each decision from an empty verdict cache: argmax sees the same tied best actions
+    and chooses the same one, softmax the same root scores to the bit; the reference runs no more often."""
+    runs = {True: [], False: []}
+    for state in random_states(n, seed=40 + depth):
+        got = {}
+        for defer in (True, False):
+            world = REG.create("world", {"name": "overhang"})  # physics: tiered, a fresh verdict cache
+            predictor = REG.create("predictor", {"name": "veridical"}, world=world)
+            value = REG.create("value", {"name": "overhang"}, world=world)
+            planner, seen = watched(world, depth, choice, defer)
+            d = planner.plan(state, predictor, value, Budget(), np.random.default_rng(5))
+            (scores,) = seen
+            got[defer] = (d.action, d.choice_probability, d.choice_rank, scores)
+            runs[defer].append(int(world.stats()["cache"]["backend"].get("reference", 0)))
+        assert got[True][:3] == got[False][:3]
+        if choice == "argmax":
+            assert ties(got[True][3]).tolist() == ties(got[False][3]).tolist()
+        else:
+            np.testing.assert_array_equal(got[True][3], got[False][3])
+    assert all(a <= b for a, b in zip(runs[True], runs[False])), runs
+    if choice == "argmax" or depth == 3:  # softmax at depth 2 needs every root verdict and every leaf's
+        assert sum(runs[True]) < sum(runs[False]), runs
+
+
+def test_only_dear_answers_are_deferred():
+    """The criterion: a lazy predictor that settles one child at a time (the world's verdicts)."""
+    tiered = REG.create("world", {"name": "overhang"})
+    static = REG.create("world", {"name": "overhang", "physics": "static"})
+    cases = {(tiered, "veridical"): True, (static, "veridical"): False,  # static: nothing left unknown
+             (HidingWorld(), "veridical"): True}
+    for (world, name), dear in cases.items():
+        predictor = REG.create("predictor", {"name": name}, world=world)
+        assert Expander(world, predictor, Budget(), seed=0).dear_answers is dear
+        assert Expander(world, predictor, Budget(predictor_calls=5), seed=0).dear_answers is dear
+    ipe = REG.create("predictor", {"name": "ipe", "K": 2, "lazy": True}, world=static)  # settles a node at once
+    assert ipe.predict_lazy is not None and not Expander(static, ipe, Budget(), seed=0).dear_answers
 
 
 def test_a_bad_defer_setting_is_one_line():
