@@ -1,17 +1,18 @@
 """Lookahead with the world's verdicts, deferring the reference against settling first, side by side:
 ``python -m overhang_framework.bench.lookahead_defer``.
 
-On decision states of the benchmark's ``test`` split (each task's start and the state after
-``--placed`` placements of the myopic planner under the static physics), one lookahead decision with
+On decision states of the benchmark's ``test`` split (``--tasks`` tasks spread over the split, each
+after every count of ``--placed`` placements of the myopic planner under the static physics), one lookahead decision with
 the veridical predictor under the default physics (the full-window reference where the static stages
 are unsure), ``planner.defer=true`` (the default) beside ``false`` (every unsure child settled before
 its subtree), each from an empty verdict cache (a new world, no verdict file), alternating which goes
 first (:mod:`overhang_framework.bench.sidebyside`). Prints each version's seconds and reference runs per
-decision at each depth and whether every decision was the same; the last line is one JSON object
+decision at each depth and whether every decision was the same (the action, and the number of tied
+best actions the random tie-break saw); ``--seed`` seeds the tie-breaks. The last line is one JSON object
 (``--out FILE`` writes it too).
 
     python -m overhang_framework.bench.lookahead_defer
-    python -m overhang_framework.bench.lookahead_defer --tasks 12 --depths 2,3 --placed 0,1
+    python -m overhang_framework.bench.lookahead_defer --tasks 20 --placed 1,2 --depths 2,3
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ import numpy as np
 from overhang_framework.bench.sidebyside import ratio, side_by_side
 
 
-def states(n_tasks: int, placed: Sequence[int]):
-    """Decision states: the first ``n_tasks`` tasks of ``test``, after each count of ``placed`` placements."""
+def states(n_tasks: int, placed: Sequence[int], seed: int = 0):
+    """Decision states: ``n_tasks`` tasks of ``test`` spread over the split (its ids are sorted by widths),
+    after each count of ``placed`` placements (the myopic planner's, ties broken by ``seed``)."""
     from overhang_framework.benchmark.splits import split_ids, task
     from overhang_framework.interfaces import Budget
     from overhang_framework.plugins import Registry
@@ -38,18 +40,22 @@ def states(n_tasks: int, placed: Sequence[int]):
     value = registry.create("value", {"name": "overhang"}, world=world)
     planner = registry.create("planner", {"name": "myopic"}, world=world)
     out = []
-    for tid in split_ids("test")[:n_tasks]:
+    ids = split_ids("test")
+    for tid in ids[::max(1, len(ids) // n_tasks)][:n_tasks]:
         state = world.initial_state(task(tid))
         for k in range(max(placed) + 1):
             if k in placed:
                 out.append((tid, k, state))
             if state.done:
                 break
-            state = world.step(state, planner.plan(state, predictor, value, Budget(), np.random.default_rng(k)).action)
+            rng = np.random.default_rng([seed, k])
+            state = world.step(state, planner.plan(state, predictor, value, Budget(), rng).action)
     return out
 
 
-def decide(state, depth: int, defer: bool, seed: int = 0) -> dict:
+def decide(state, depth: int, defer: bool, seed: int, runs: list) -> tuple:
+    """One decision from an empty verdict cache: the action, its choice probability (one over the tied best
+    actions) and rank, compared across the versions; its reference runs are appended to ``runs``."""
     from overhang_framework.interfaces import Budget
     from overhang_framework.plugins import Registry
 
@@ -59,19 +65,20 @@ def decide(state, depth: int, defer: bool, seed: int = 0) -> dict:
     value = registry.create("value", {"name": "overhang"}, world=world)
     planner = registry.create("planner", {"name": "lookahead", "depth": depth, "defer": defer}, world=world)
     d = planner.plan(state, predictor, value, Budget(), np.random.default_rng(seed))
-    runs = int(((world.stats().get("cache") or {}).get("backend") or {}).get("reference", 0))
+    runs.append(int(((world.stats().get("cache") or {}).get("backend") or {}).get("reference", 0)))
     close = getattr(world.backend, "close", None)
     if close is not None:
         close()
-    return {"action": (round(d.action.x, 6), d.action.layer), "reference_runs": runs}
+    return (round(d.action.x, 6), d.action.layer), d.choice_probability, d.choice_rank
 
 
 def main(argv: Optional[Sequence[str]] = None) -> dict:
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.bench.lookahead_defer",
                                  description=(__doc__ or "").splitlines()[0])
-    ap.add_argument("--tasks", type=int, default=8, help="the first N tasks of test (default 8)")
+    ap.add_argument("--tasks", type=int, default=8, help="N tasks of test, spread over the split (default 8)")
     ap.add_argument("--placed", default="0,1", help="placements before each decision state (default 0,1)")
     ap.add_argument("--depths", default="2,3", help="lookahead depths (default 2,3)")
+    ap.add_argument("--seed", type=int, default=0, help="the decisions' and the myopic placements' seed (default 0)")
     ap.add_argument("--out", default=None, help="also write the JSON result to this file")
     args = ap.parse_args(argv)
     try:
@@ -81,23 +88,21 @@ def main(argv: Optional[Sequence[str]] = None) -> dict:
         ap.error("--placed and --depths take comma-separated whole numbers")
     if args.tasks < 1 or min(placed) < 0 or min(depths) < 1:
         ap.error("--tasks and --depths take numbers >= 1, --placed numbers >= 0")
-    cases = states(args.tasks, placed)
+    cases = states(args.tasks, placed, args.seed)
     started = time.perf_counter()
-    out = {"tasks": args.tasks, "placed": placed, "states": len(cases), "depths": {}}
+    out = {"tasks": args.tasks, "placed": placed, "seed": args.seed, "states": len(cases), "depths": {}}
     for depth in depths:
         print(f"depth {depth}: {len(cases)} states, each from an empty verdict cache", flush=True)
-        figures = side_by_side(cases, {"deferred": lambda c, d=depth: decide(c[2], d, True),
-                                       "settled first": lambda c, d=depth: decide(c[2], d, False)},
+        runs = {"deferred": [], "settled first": []}
+        figures = side_by_side(cases, {name: (lambda c, d=depth, f=(name == "deferred"), r=runs[name]:
+                                              decide(c[2], d, f, args.seed, r)) for name in runs},
                                label=lambda c: f"{c[0]} after {c[1]}", quiet=False)
-        row = {"same_decisions": sum(a["action"] == b["action"] for a, b in
-                                     zip(figures["versions"]["deferred"]["results"],
-                                         figures["versions"]["settled first"]["results"]))}
-        for name in ("deferred", "settled first"):
+        row = {"same_decisions": figures["same"]}
+        for name in runs:
             v = figures["versions"][name]
-            runs = [r["reference_runs"] for r in v["results"]]
             row[name] = {"seconds_per_decision": v["total"] / len(cases),
                          "median_seconds": float(np.median(v["seconds"])),
-                         "reference_runs_per_decision": float(np.mean(runs))}
+                         "reference_runs_per_decision": float(np.mean(runs[name]))}
         row["speedup"] = ratio(figures, "settled first", "deferred")
         out["depths"][depth] = row
         d, e = row["deferred"], row["settled first"]
