@@ -168,7 +168,7 @@ def test_a_run_made_before_the_lazy_setting_continues_and_one_asking_for_it_is_r
         RunDir(tmp_path / "run").check_config({**now, "predictor": {**now["predictor"], "lazy": True}})
 
 
-@pytest.mark.parametrize("choice", ["argmax", "softmax"])
+@pytest.mark.parametrize("choice", ["argmax", pytest.param("softmax", marks=pytest.mark.slow)])
 def test_the_cnns_automatic_laziness_keeps_every_decision_and_charge(world, choice):
     """lazy: auto, the default, asks lazily in an unbudgeted search: the same decisions, scored with fewer
     towers; under a call budget it asks as eagerly as lazy: false, charged the same calls."""
