@@ -24,6 +24,7 @@ A third-party planner builds on these rather than copying them:
 from __future__ import annotations
 
 import hashlib
+from collections import abc
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
@@ -295,7 +296,7 @@ class Expander:
         return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach, settle, classify)
 
 
-class Successors(Sequence):
+class Successors(abc.Sequence):
     """The successor states of a state's actions, each made when first asked for: a search reaches few of
     a leaf's children as states (their values come from the overhang, their answers from the predictor),
     and making them all was a tenth of a deep search's time."""
