@@ -131,3 +131,13 @@ def test_a_bad_defer_setting_is_one_line():
     world = REG.create("world", {"name": "overhang", "physics": "static"})
     with pytest.raises(ValueError, match="defer must be true or false, got 'sometimes'"):
         REG.create("planner", {"name": "lookahead", "defer": "sometimes"}, world=world)
+
+
+def test_the_benchmark_compares_decisions_and_counts_reference_runs(capsys):
+    from overhang_framework.bench.lookahead_defer import main
+
+    out = main(["--tasks", "1", "--placed", "1", "--depths", "2", "--seed", "2"])
+    row = out["depths"][2]
+    assert out["states"] == 1 and row["same_decisions"] == 1
+    assert row["deferred"]["reference_runs_per_decision"] <= row["settled first"]["reference_runs_per_decision"]
+    assert "the same decision in 1 of 1" in capsys.readouterr().out
