@@ -379,31 +379,10 @@ def distill(cfg) -> dict:
     return {"best": best, "out_dir": str(out), "data_seconds": data_seconds, "n_train": n}
 
 
-def main(argv: Optional[list] = None) -> None:
-    import hydra
+def main() -> None:
+    from overhang_framework.cnn.train import run_app
 
-    from overhang_framework.errors import OverhangError
-    from overhang_framework.preflight import check_flags, compose_checked, is_multirun, split_flags, sweep_variants
-
-    args = sys.argv[1:] if argv is None else argv
-    try:
-        check_flags(args)
-        for variant in sweep_variants(split_flags(args)[1], is_multirun(args)):
-            compose_checked(variant, config_name="distill", config_dir=str(Path(__file__).parent / CONFIG_PATH))
-    except OverhangError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-
-    @hydra.main(version_base=None, config_path=CONFIG_PATH, config_name="distill")
-    def _main(cfg) -> None:
-        try:
-            summary = distill(cfg)
-        except (ValueError, FileNotFoundError) as err:
-            print(f"error: {err}", file=sys.stderr)
-            sys.exit(2)
-        print(json.dumps({"best": summary["best"], "out_dir": summary["out_dir"]}))
-
-    _main()
+    run_app("distill", lambda cfg: {k: v for k, v in distill(cfg).items() if k in ("best", "out_dir")})
 
 
 if __name__ == "__main__":

@@ -430,31 +430,39 @@ def _check_in_step(net) -> None:
         raise TrainingProcessFailed(f"the training processes' weights differ ({float(low)} against {float(high)})")
 
 
-def main() -> None:
+def run_app(config_name: str, work, errors: tuple = (ValueError, FileNotFoundError)) -> None:
+    """Run ``work(cfg)`` as the Hydra app of ``conf/<config_name>.yaml``: a misspelt key is one line with the
+    closest existing one (checked before Hydra starts), as for the other commands; an error of ``errors``
+    is one line and exit status 2; what ``work`` returns is printed as one JSON line."""
     import hydra
 
     from overhang_framework.errors import OverhangError
     from overhang_framework.preflight import check_flags, compose_checked, is_multirun, split_flags, sweep_variants
 
     args = sys.argv[1:]
-    try:  # a misspelt key is one line with the closest existing one, as for the other commands
+    try:
         check_flags(args)
         for variant in sweep_variants(split_flags(args)[1], is_multirun(args)):
-            compose_checked(variant, config_name="train", config_dir=str(Path(__file__).parent / CONFIG_PATH))
+            compose_checked(variant, config_name=config_name, config_dir=str(Path(__file__).parent / CONFIG_PATH))
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
 
-    @hydra.main(version_base=None, config_path=CONFIG_PATH, config_name="train")
+    @hydra.main(version_base=None, config_path=str(Path(__file__).parent / CONFIG_PATH), config_name=config_name)
     def _main(cfg) -> None:
         try:
-            summary = train(cfg)
-        except (ValueError, FileNotFoundError, TrainingProcessFailed) as err:
+            result = work(cfg)
+        except errors as err:
             print(f"error: {err}", file=sys.stderr)
             sys.exit(2)
-        print(json.dumps({"best": summary["best"], "out_dir": summary["out_dir"]}))
+        print(json.dumps(result))
 
     _main()
+
+
+def main() -> None:
+    run_app("train", lambda cfg: {k: v for k, v in train(cfg).items() if k in ("best", "out_dir")},
+            (ValueError, FileNotFoundError, TrainingProcessFailed))
 
 
 if __name__ == "__main__":
