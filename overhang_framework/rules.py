@@ -84,6 +84,23 @@ def legal_xs(geometry: Geometry, width: float, resolution: float) -> tuple[np.nd
     return np.concatenate(out_x), np.concatenate(out_layer)
 
 
+def legal_mask(geometry: Geometry, width: float, xs, layers) -> np.ndarray:
+    """Whether placing a block of ``width`` at each ``(xs[i], layers[i])`` (any real x) is legal, as
+    :func:`illegal_reason` decides, vectorised."""
+    xs, layers = np.asarray(xs, dtype=float), np.asarray(layers, dtype=int)
+    cl, cr = xs - width / 2, xs + width / 2
+    ok = (cl >= -GRID_HALF_WIDTH - EPS) & (cr <= GRID_HALF_WIDTH + EPS) & (layers >= 1) & (layers <= MAX_LAYER)
+    if not geometry.blocks:
+        return np.zeros(len(xs), dtype=bool)
+    arr = geometry.as_array()
+    lefts, rights, bl = arr[:, 1] - arr[:, 0] / 2, arr[:, 1] + arr[:, 0] / 2, arr[:, 2].astype(int)
+    ov = np.minimum(cr[:, None], rights[None, :]) - np.maximum(cl[:, None], lefts[None, :])
+    touching = ov > EPS
+    supported = (touching & (bl[None, :] == layers[:, None] - 1)).any(axis=1)
+    blocked = (touching & (bl[None, :] == layers[:, None])).any(axis=1)
+    return ok & supported & ~blocked
+
+
 def legal_actions(geometry: Geometry, width: float, resolution: float) -> list[Action]:
     """All legal placements of a block of ``width`` with x on the grid ``k * resolution``, layer by layer."""
     xs, layers = legal_xs(geometry, width, resolution)

@@ -62,7 +62,7 @@ def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
 
 #: Settings added to the configs after runs were made, by their last key, with the value that does what those
 #: runs did: a run directory written without one is the same config as one with that value.
-ADDED_LATER = {"lazy": False, "settle_batch": 16}
+ADDED_LATER = {"lazy": False, "settle_batch": 16, "risk": 0.0, "risk_form": "power", "defer": True}
 
 
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:

@@ -19,6 +19,8 @@ A third-party planner builds on these rather than copying them:
   ``argmax`` (ties broken uniformly with the episode's generator) or
   ``softmax`` with an inverse temperature; both report the chosen action's
   probability and rank.
+* :func:`risk_weight` makes a search risk-averse (an :class:`Expander`'s ``risk``): each placement's
+  chance of standing is replaced by a weight that makes a collapse count more than its expected loss.
 """
 
 from __future__ import annotations
@@ -35,6 +37,48 @@ from overhang_framework.interfaces import Budget, Predictor, Spend, State, Value
 
 #: Relative tolerance under which two scores count as tied (and a bound as not below a score).
 TIE = 1e-12
+
+
+#: How a risk-averse search weighs a placement's chance of standing (:func:`risk_weight`).
+RISK_FORMS = ("power", "cvar")
+
+
+def risk_weight(p, risk: float, form: str = "power") -> np.ndarray:
+    """The weight a search of risk aversion ``risk`` (0 to below 1) gives a placement that stands with
+    probability ``p``, in place of ``p`` itself in the paper's ``prod_k p(s_k, a_k) * V(s_{t+D})``.
+
+    ``power`` (the default): ``w(p) = p ** (1 / (1 - risk))``, Prelec's (1998) probability weighting of
+    elevation ``1 / (1 - risk)`` and curvature 1: at ``risk = 0.5`` a placement counts as if it had to stand
+    twice, at 0.75 four times. The product over a plan is the plan's chance of standing raised to the same
+    power, so the rule is time-consistent, and every placement keeps its order by ``p``.
+
+    ``cvar``: ``w(p) = max(0, (p - risk) / (1 - risk))``, the conditional value at risk at level
+    ``alpha = 1 - risk`` of the placement's two outcomes (collapse: 0; standing: the value of what follows),
+    so the product is the nested CVaR of the reward (Ruszczynski 2010; Gagne & Dayan 2022 for human
+    planning). Every placement judged to stand with probability at most ``risk`` is worth nothing, so
+    where no placement is surer than that the choice among them is at random: a very averse planner with
+    no safe option acts as carelessly as it can.
+
+    Both give ``w(p) = p`` at ``risk = 0`` (exactly: the array is returned as it is), ``w(0) = 0``,
+    ``w(1) = 1``, ``w(p) <= p`` and less weight for more risk, so a collapse weighs more than its
+    expected loss, 0/1 verdicts and every bound stay as they were, and unknown answers (NaN) stay unknown.
+    """
+    p = np.asarray(p, dtype=float)
+    if risk == 0:
+        return p
+    if form == "cvar":
+        return np.maximum(0.0, (p - risk) / (1.0 - risk))
+    return np.power(p, 1.0 / (1.0 - risk))
+
+
+def check_risk(risk, form: str = "power") -> float:
+    """``risk`` as a float; :class:`ValueError` unless it is a number from 0 (risk-neutral) to below 1 and
+    ``form`` one of :data:`RISK_FORMS`."""
+    if isinstance(risk, bool) or not isinstance(risk, (int, float)) or not 0 <= risk < 1:
+        raise ValueError(f"risk must be a number from 0 (risk-neutral) to below 1, got {risk!r}")
+    if form not in RISK_FORMS:
+        raise ValueError(f"unknown risk_form {form!r}; allowed: {', '.join(RISK_FORMS)}")
+    return float(risk)
 
 
 class BudgetExhausted(Exception):
@@ -86,9 +130,13 @@ class Expansion:
     (:func:`settled_scores`, :func:`lookahead_value`), which keeps the result exact.
     """
 
-    def __init__(self, actions: list, children: list, p, overhang: np.ndarray, settle=None, classify=None):
+    def __init__(self, actions: list, children: list, p, overhang: np.ndarray, settle=None, classify=None,
+                 risk: float = 0.0, risk_form: str = "power"):
         self.actions, self.children, self.overhang = actions, children, overhang
-        self._p = np.asarray(p, dtype=float)
+        self.risk, self.risk_form = risk, risk_form
+        # the predictor's answers; with ``risk`` the search reads their weights (:func:`risk_weight`)
+        self._stability = np.asarray(p, dtype=float)
+        self._p = risk_weight(self._stability, risk, risk_form) if risk else self._stability
         self._settle = settle
         self._classify = classify
         # with ``classify`` every answer starts unknown; :meth:`look` takes the cheap first look (1, 0, or
@@ -118,7 +166,9 @@ class Expansion:
         if todo:
             stage = np.asarray(self._classify(todo))
             known = stage >= 0
-            self._p[np.asarray(todo)[known]] = stage[known].astype(float)
+            self._p[np.asarray(todo)[known]] = stage[known].astype(float)  # 0 or 1: its own weight
+            if self._stability is not self._p:
+                self._stability[np.asarray(todo)[known]] = stage[known].astype(float)
             self._looked[todo] = True
 
     def settle(self, indices) -> None:
@@ -126,7 +176,10 @@ class Expansion:
         self.look(indices)
         todo = [int(i) for i in indices if np.isnan(self._p[int(i)])]
         if todo:
-            self._p[todo] = np.asarray(self._settle(todo), dtype=float)
+            answers = np.asarray(self._settle(todo), dtype=float)
+            if self._stability is not self._p:
+                self._stability[todo] = answers
+            self._p[todo] = risk_weight(answers, self.risk, self.risk_form)
             self.settled += len(todo)
 
     def is_known(self, i: int) -> bool:
@@ -138,9 +191,15 @@ class Expansion:
         return bool(np.isnan(self._p[i]) and self._looked[i])
 
     def p_at(self, i: int) -> float:
-        """The probability of child ``i`` (settled first when unknown)."""
+        """The probability of child ``i`` (settled first when unknown); with ``risk``, its weight."""
         self.settle([i])
         return float(self._p[i])
+
+    def stability_at(self, i: int) -> float:
+        """The predictor's probability that child ``i`` stands (settled first when unknown), whatever the
+        search's ``risk``: what a decision reports as its predicted stability."""
+        self.settle([i])
+        return float(self._stability[i])
 
 
 @dataclass
@@ -181,6 +240,9 @@ class Expander:
     #: Whether a predictor whose lazy answers are ``auto`` (:attr:`lazy_auto`) answers lazily here: in a
     #: planner's search without a budget (the default); a score table sets it false.
     auto_lazy: bool = True
+    #: Risk aversion: the search reads each answer's weight (:func:`risk_weight`); 0 is risk-neutral.
+    risk: float = 0.0
+    risk_form: str = "power"
     stats: SearchStats = field(default_factory=SearchStats)
     _memo: dict = field(default_factory=dict, repr=False)
 
@@ -293,7 +355,8 @@ class Expander:
         reach = np.array([abs(a.x) + width / 2 for a in actions], dtype=float)
         self.stats.actions_scored += len(actions)
         self.stats.nodes_expanded += 1
-        return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach, settle, classify)
+        return Expansion(actions, children, p, np.maximum(base, reach) if len(reach) else reach, settle, classify,
+                         self.risk, self.risk_form)
 
 
 class Successors(abc.Sequence):

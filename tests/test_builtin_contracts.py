@@ -61,3 +61,16 @@ class TestRolloutValue(_StaticWorld, ValueContract):
     @pytest.fixture
     def value(self, world):
         return Registry().create("value", {"name": "rollout"}, world=world)
+
+
+class TestHandPredictor(_StaticWorld, PredictorContract):
+    @pytest.fixture
+    def predictor(self, world):
+        return Registry().create("predictor", {"name": "hand", "inner": "ipe", "inner_params": {"K": 8},
+                                               "sd": 0.03}, world=world)
+
+
+class TestRiskAverseLookaheadPlanner(_StaticWorld, PlannerContract):
+    @pytest.fixture
+    def planner(self, world):
+        return Registry().create("planner", {"name": "lookahead", "depth": 2, "risk": 0.5}, world=world)

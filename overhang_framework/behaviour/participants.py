@@ -11,6 +11,22 @@ distributions:
 * ``switch``: the switch point of its hybrid predictor (towers of fewer blocks go to the early
   predictor; the predictor's ``switch``), drawn only when the cohort gives it a distribution.
 
+Three more axes separate what makes a person's towers fall from how far the person aims; each is drawn
+only when the cohort gives it a distribution, and a participant who does not draw it decides as before,
+draw for draw:
+
+* ``risk``: risk aversion of its planner (the planner's ``risk``, 0 to below 1): each placement's chance
+  ``p`` of standing counts as a weight below it (with the planner's default ``risk_form=power``,
+  ``p ** (1 / (1 - risk))``), so a collapse weighs more than its expected loss
+  (:func:`overhang_framework.search.risk_weight`);
+* ``percept``: perceptual noise, metres: before each decision the participant sees the x of every block
+  placed after the first with an error ``N(0, percept^2)`` of its own (one percept per decision, shared by
+  everything the decision's search imagines, apart from the dynamics noise inside the IPE's simulations),
+  plans on the tower it sees, and places the block in the real one (:func:`perceive`);
+* ``hand``: the motor noise its planner plans for, metres: its predictor's answers are averaged over a
+  placement error ``N(0, hand^2)`` (``predictor=hand``), so that an unsteady hand that knows it aims lower.
+  The noise actually applied is the cohort's ``motor.sd``, whatever ``hand`` is.
+
 Each decision runs the planner on the grid of legal actions under the
 condition's budget of predictor calls (``call_limit``, the machine-independent
 budget that truncates the search: the lookahead deepens iteratively and plays
@@ -49,10 +65,12 @@ from overhang_framework.interfaces import Budget, Task, World
 from overhang_framework.plugins import Registry, accepted_parameters
 
 #: The parameters each participant draws, and the model parameter each one sets.
-PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch")
+PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "hand")
 #: Where a drawn parameter goes: (model group, parameter name).
 TARGETS = {"sigma": ("predictor", "sigma"), "depth": ("planner", "depth"), "beta": ("planner", "beta"),
-           "switch": ("predictor", "switch")}
+           "switch": ("predictor", "switch"), "risk": ("planner", "risk")}
+#: Parameters whose column ``participants.csv`` has only when some participant draws them.
+OPTIONAL = ("switch", "risk", "percept", "hand")
 #: The deepest search a participant may have (a paper20 trial has 5 placements).
 MAX_DEPTH = 5
 #: The distributions a parameter may be drawn from, with their arguments.
@@ -354,6 +372,8 @@ def _distributions(where_all: str, params: Mapping[str, Any]) -> dict[str, Optio
                 _check_range(where, dist, 1, MAX_DEPTH, f"a depth from 1 to {MAX_DEPTH}", whole=True)
             elif name == "switch":
                 _check_range(where, dist, 1, math.inf, "a whole number of blocks >= 1", whole=True)
+            elif name == "risk":
+                _check_range(where, dist, 0.0, 0.999, "a risk aversion from 0 (risk-neutral) to 0.999")
             else:
                 _check_range(where, dist, 0.0, math.inf, "a number >= 0")
         dists[name] = dist
@@ -372,6 +392,9 @@ class Participant:
     beta: Optional[float]
     lapse: float
     switch: Optional[int] = None
+    risk: Optional[float] = None
+    percept: Optional[float] = None
+    hand: Optional[float] = None
 
 
 def participant_rngs(seed: int, index: int) -> tuple[np.random.Generator, np.random.Generator]:
@@ -401,16 +424,18 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
                 id=f"sim-{spec.code}-{k + 1:03d}", index=index, condition=spec.name,
                 sigma=drawn["sigma"], depth=None if drawn["depth"] is None else int(drawn["depth"]),
                 beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"]),
-                switch=None if drawn.get("switch") is None else int(drawn["switch"])))
+                switch=None if drawn.get("switch") is None else int(drawn["switch"]),
+                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("risk", "percept", "hand")}))
     return out
 
 
 def participants_csv(participants: Sequence[Participant]) -> str:
-    """``participants.csv``: one row per participant with its true parameters (empty: not drawn; the switch
-    point's column only when a cohort draws it)."""
+    """``participants.csv``: one row per participant with its true parameters (empty: not drawn; the columns
+    of :data:`OPTIONAL` only when some participant draws them)."""
     fields = [f.name for f in dataclasses.fields(Participant)]
-    if all(p.switch is None for p in participants):
-        fields.remove("switch")
+    for name in OPTIONAL:
+        if all(getattr(p, name) is None for p in participants):
+            fields.remove(name)
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(fields)
@@ -454,7 +479,8 @@ class Agents:
             self.configs["planner"]["choice"] = "softmax"
 
     def build(self, participant: Participant) -> tuple[Any, Any]:
-        """The participant's (predictor, planner)."""
+        """The participant's (predictor, planner); with ``hand``, its predictor knows that hand
+        (``predictor=hand`` around the configured one)."""
         built = {}
         for group in ("predictor", "planner"):
             config = dict(self.configs[group])
@@ -465,6 +491,9 @@ class Agents:
                         config[self.nested[name]] = {**dict(config.get(self.nested[name]) or {}), key: value}
                     else:
                         config[key] = value
+            if group == "predictor" and participant.hand:
+                inner = {k: v for k, v in config.items() if k != "name"}
+                config = {"name": "hand", "inner": config["name"], "inner_params": inner, "sd": participant.hand}
             built[group] = self.registry.create(group, config, world=self.world)
         return built["predictor"], built["planner"]
 
@@ -475,6 +504,37 @@ def _nested_ipe(config: Mapping[str, Any]) -> Optional[str]:
         if config.get(side) == "ipe" and f"{side}_params" in config:
             return f"{side}_params"
     return None
+
+
+def perceive(state, sd: float, rng: np.random.Generator):
+    """``state`` as a participant with perceptual noise ``sd`` (metres) sees it: every block placed after the
+    first (which stands fixed at the ground centre) seen at its x plus ``N(0, sd^2)``, one draw per block, in
+    placement order; blocks of a layer that would then overlap are moved apart by the least displacement
+    that makes them touch (as the IPE's perturbed scenes are). The layers, widths and blocks still to come
+    are seen as they are."""
+    from overhang_framework.geometry import Block, Geometry, separate_overlaps
+    from overhang_framework.interfaces import State
+
+    blocks = state.geometry.blocks
+    if sd <= 0 or len(blocks) < 2:
+        return state
+    xs = np.array([b.x for b in blocks], dtype=float)
+    seen = xs.copy()
+    seen[1:] = xs[1:] + sd * rng.standard_normal(len(blocks) - 1)
+    widths = np.array([b.width for b in blocks], dtype=float)
+    layers = np.array([b.layer for b in blocks], dtype=int)
+    seen = separate_overlaps(seen[None, :], widths, layers, xs)[0]
+    seen = np.round(seen, X_DECIMALS) + 0.0
+    return State(Geometry(tuple(Block(b.width, float(x), b.layer) for b, x in zip(blocks, seen))), state.remaining)
+
+
+def _nearest_legal(world: World, state, action: Action) -> Action:
+    """The legal grid action of ``state`` nearest ``action`` (same layer first, then by |x|), for a choice made
+    on a misperceived tower that the real one does not allow."""
+    if world.is_legal(state, action):
+        return action
+    legal = world.legal_actions(state)
+    return min(legal, key=lambda a: (a.layer != action.layer, abs(a.x - action.x), abs(a.layer - action.layer), a.x))
 
 
 def _legal_x(world: World, state, action: Action, sd: float, retries: int, rng: np.random.Generator) -> float:
@@ -506,12 +566,17 @@ def decide(participant: Participant, spec: ConditionSpec, cohort: Cohort, state,
     """The participant's decision in ``state``: plan under the condition's call budget, lapse, draw the decision
     time, and, unless that is over ``time_limit`` (seconds; None: no limit), the placed x.
 
-    The draws from ``rng`` come in one order (the plan, the lapse, the lapse's action, the time, the motor
-    noise), so a participant who sees the same states makes the same choices however its outcomes reach it.
+    The draws from ``rng`` come in one order (the percept, with perceptual noise; the plan, the lapse, the
+    lapse's action, the time, the motor noise), so a participant who sees the same states makes the same
+    choices however its outcomes reach it. With perceptual noise the participant plans on the tower it sees
+    (:func:`perceive`); a chosen placement that the real tower does not allow becomes the nearest one it does.
     """
     budget = Budget(seconds=None, predictor_calls=spec.call_limit)
-    decision = planner.plan(state, predictor, value, budget, rng)
+    seen = perceive(state, participant.percept, rng) if participant.percept else state
+    decision = planner.plan(seen, predictor, value, budget, rng)
     action, lapsed = decision.action, bool(rng.random() < participant.lapse)
+    if seen is not state:
+        action = _nearest_legal(world, state, action)
     if lapsed:
         legal = world.legal_actions(state)
         action = legal[int(rng.integers(len(legal)))]

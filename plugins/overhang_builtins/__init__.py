@@ -17,6 +17,7 @@ def register_worlds(register):
 @hookimpl
 def register_predictors(register):
     from overhang_builtins.cnn import CNNPredictor
+    from overhang_builtins.hand import HandPredictor
     from overhang_builtins.hybrid import HybridPredictor
     from overhang_builtins.simulation import IPEPredictor, VeridicalPredictor
 
@@ -24,6 +25,7 @@ def register_predictors(register):
     register("ipe", IPEPredictor)
     register("cnn", CNNPredictor)
     register("hybrid", HybridPredictor)
+    register("hand", HandPredictor)
 
 
 @hookimpl

@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
-from overhang_framework.search import BudgetExhausted, ChoiceRule, Expander, lattice_step, root_scores
+from overhang_framework.search import BudgetExhausted, ChoiceRule, Expander, check_risk, lattice_step, root_scores
 
 
 class LookaheadPlanner(Planner):
@@ -35,10 +35,16 @@ class LookaheadPlanner(Planner):
     that subtree could still change the choice (:func:`~overhang_framework.search.root_scores`); the
     scores, the tied best actions and the choice are the same. Under a budget the search settles as
     before, since deferring changes which calls are charged; other predictors settle as before too.
+
+    ``risk`` (0 to below 1; 0, the paper's, is risk-neutral) makes the search risk-averse: every ``p`` of
+    the product is replaced by its weight (:func:`~overhang_framework.search.risk_weight`): with
+    ``risk_form=power`` ``p ** (1 / (1 - risk))``, with ``cvar`` the nested conditional value at risk
+    ``max(0, (p - risk) / (1 - risk))``; a collapse then weighs more than its expected loss.
     """
 
     def __init__(self, world: World, depth: int = 2, beam: Optional[int] = None, prune: bool = True,
-                 choice: str = "argmax", beta: float = 10.0, defer: bool = True):
+                 choice: str = "argmax", beta: float = 10.0, defer: bool = True, risk: float = 0.0,
+                 risk_form: str = "power"):
         if isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
             raise ValueError(f"depth must be a whole number >= 1, got {depth!r}")
         if beam is not None and (isinstance(beam, bool) or not isinstance(beam, int) or beam < 1):
@@ -48,6 +54,8 @@ class LookaheadPlanner(Planner):
         if not isinstance(defer, bool):
             raise ValueError(f"defer must be true or false, got {defer!r}")
         self.defer = defer
+        self.risk = check_risk(risk, risk_form)
+        self.risk_form = risk_form
         self.world = world
         self.depth = depth
         self.beam = beam
@@ -57,7 +65,8 @@ class LookaheadPlanner(Planner):
     def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
              rng: np.random.Generator) -> Decision:
         start = time.perf_counter()
-        expander = Expander(self.world, predictor, budget, seed=int(rng.integers(2**63)))
+        expander = Expander(self.world, predictor, budget, seed=int(rng.integers(2**63)), risk=self.risk,
+                            risk_form=self.risk_form)
         horizon = max(1, min(self.depth, len(state.remaining)))
         depths = range(1, horizon + 1) if budget.limited else [horizon]
         leaf_value = value if self.prune else _Unbounded(value)
@@ -84,7 +93,7 @@ class LookaheadPlanner(Planner):
             raise RuntimeError("no legal action in this state")
         choice = self.rule.choose(scores, rng)
         spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=completed)
-        return Decision(actions.actions[choice.index], actions.p_at(choice.index), spend,
+        return Decision(actions.actions[choice.index], actions.stability_at(choice.index), spend,
                         choice.probability, choice.rank)
 
     def prefetches(self, predictor: Predictor, budget: Budget) -> bool:

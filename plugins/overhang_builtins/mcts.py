@@ -15,7 +15,7 @@ from typing import Optional
 import numpy as np
 
 from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
-from overhang_framework.search import TIE, BudgetExhausted, ChoiceRule, Expander, Expansion, ties
+from overhang_framework.search import TIE, BudgetExhausted, ChoiceRule, Expander, Expansion, check_risk, ties
 
 
 class MCTSPlanner(Planner):
@@ -91,6 +91,10 @@ class MCTSPlanner(Planner):
     with every answer settled when its state is expanded (``+planner.lazy=false``), at a fraction of the
     reference runs (``python -m overhang_framework.bench.mcts_settle``).
 
+    **Risk.** ``risk`` (0, risk-neutral, by default) backs up each placement's weight in place of ``p``
+    (:func:`~overhang_framework.search.risk_weight`; ``risk_form``: ``power``, ``p ** (1 / (1 - risk))``,
+    or ``cvar``, the nested conditional value at risk).
+
     **Choice.** ``argmax`` plays the most-visited root action, ties broken by
     its value ``Q_a`` (the prior for unvisited actions), then uniformly with
     the episode's generator; the recorded rank counts the actions ahead of it
@@ -104,7 +108,8 @@ class MCTSPlanner(Planner):
 
     def __init__(self, world: World, iterations: int = 200, c: float = 0.5, widening: float = 2.0,
                  alpha: float = 0.5, rollout: Optional[str] = None, backup: str = "max",
-                 choice: str = "argmax", beta: float = 10.0, lazy: bool = True):
+                 choice: str = "argmax", beta: float = 10.0, lazy: bool = True, risk: float = 0.0,
+                 risk_form: str = "power"):
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
             raise ValueError(f"iterations must be a whole number >= 0, got {iterations!r}")
         if not _number(c) or c < 0:
@@ -127,13 +132,15 @@ class MCTSPlanner(Planner):
         if not isinstance(lazy, bool):
             raise ValueError(f"lazy must be true or false, got {lazy!r}")
         self.lazy = lazy
+        self.risk = check_risk(risk, risk_form)
+        self.risk_form = risk_form
         self.rule = ChoiceRule(choice, beta)
 
     def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
              rng: np.random.Generator) -> Decision:
         start = time.perf_counter()
         seed = int(rng.integers(2**63))
-        expander = Expander(self.world, predictor, budget, seed=seed)
+        expander = Expander(self.world, predictor, budget, seed=seed, risk=self.risk, risk_form=self.risk_form)
         search = _Search(self, expander, value, np.random.default_rng(seed))
         root = search.node(state, depth=0, force=True)
         if not root.expansion.actions:
@@ -150,7 +157,7 @@ class MCTSPlanner(Planner):
         index, probability, rank = self._choose(root, rng)
         spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=search.deepest,
                                      iterations=done)
-        return Decision(root.expansion.actions[index], root.expansion.p_at(index), spend, probability, rank)
+        return Decision(root.expansion.actions[index], root.expansion.stability_at(index), spend, probability, rank)
 
     def _choose(self, root: "_Node", rng: np.random.Generator) -> tuple[int, float, int]:
         by_value = self.rule.rule == "softmax" or (root.solved and self.backup == "max")

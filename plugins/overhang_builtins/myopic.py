@@ -8,7 +8,7 @@ import numpy as np
 
 from overhang_framework.geometry import overhang
 from overhang_framework.interfaces import Budget, Decision, Planner, Predictor, State, Value, World
-from overhang_framework.search import ChoiceRule, Expander, settled_scores
+from overhang_framework.search import ChoiceRule, Expander, check_risk, settled_scores
 
 
 class MyopicPlanner(Planner):
@@ -25,21 +25,28 @@ class MyopicPlanner(Planner):
       does not extend it, whatever its risk);
     - ``final``: the episode's reward only, so 0 before the last block and
       every earlier action ties (chosen at random).
+
+    ``risk`` (0, the paper's, is risk-neutral) scores an action by ``w(p) * r`` with ``w`` the weight of
+    :func:`~overhang_framework.search.risk_weight` (``risk_form``: ``power`` or ``cvar``).
     """
 
     REWARDS = ("overhang", "gain", "final")
 
-    def __init__(self, world: World, choice: str = "argmax", beta: float = 10.0, reward: str = "overhang"):
+    def __init__(self, world: World, choice: str = "argmax", beta: float = 10.0, reward: str = "overhang",
+                 risk: float = 0.0, risk_form: str = "power"):
         if reward not in self.REWARDS:
             raise ValueError(f"unknown myopic reward {reward!r}; allowed: {', '.join(self.REWARDS)}")
         self.world = world
         self.rule = ChoiceRule(choice, beta)
         self.reward = reward
+        self.risk = check_risk(risk, risk_form)
+        self.risk_form = risk_form
 
     def plan(self, state: State, predictor: Predictor, value: Value, budget: Budget,
              rng: np.random.Generator) -> Decision:
         start = time.perf_counter()
-        expander = Expander(self.world, predictor, budget, seed=int(rng.integers(2**63)))
+        expander = Expander(self.world, predictor, budget, seed=int(rng.integers(2**63)), risk=self.risk,
+                            risk_form=self.risk_form)
         expansion = expander.expand(state, force=True)
         if not expansion.actions:
             raise RuntimeError("no legal action in this state")
@@ -47,7 +54,7 @@ class MyopicPlanner(Planner):
                                 batch=expander.settle_batch)
         choice = self.rule.choose(scores, rng)
         spend = expander.stats.spend(time.perf_counter() - start, budget, depth_completed=1)
-        return Decision(expansion.actions[choice.index], expansion.p_at(choice.index), spend,
+        return Decision(expansion.actions[choice.index], expansion.stability_at(choice.index), spend,
                         choice.probability, choice.rank)
 
     def immediate(self, state: State, after: np.ndarray) -> np.ndarray:

@@ -67,7 +67,7 @@ from typing import Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from overhang_framework.geometry import Action, Block, Geometry
+from overhang_framework.geometry import Action, Block, Geometry, separate_overlaps
 from overhang_framework.interfaces import Predictor, State, World
 from overhang_framework.physics import PhysicsBackend
 
@@ -111,49 +111,6 @@ class Draws:
         gravity = rng.standard_normal((k, 2))
         friction = rng.standard_normal((k, n_blocks))
         return cls(position, gravity, friction)
-
-
-def _isotonic(y: np.ndarray) -> np.ndarray:
-    """Row-wise least-squares non-decreasing fit of ``y`` (rows x m), by the max-min formula."""
-    rows, m = y.shape
-    csum = np.concatenate([np.zeros((rows, 1)), np.cumsum(y, axis=1)], axis=1)
-    idx = np.arange(m)
-    lo, hi = idx[:, None], idx[None, :]
-    length = np.where(hi >= lo, hi - lo + 1, 1)
-    means = (csum[:, None, 1:] - csum[:, :-1, None]) / length  # means[r, i, l] = mean(y[r, i..l])
-    fit = np.empty_like(y)
-    for j in range(m):
-        fit[:, j] = means[:, : j + 1, j:].min(axis=2).max(axis=1)
-    return fit
-
-
-def separate_overlaps(xs: np.ndarray, widths: np.ndarray, layers: np.ndarray,
-                      reference_x: np.ndarray) -> np.ndarray:
-    """Move perturbed block centres ``xs`` (rows x n) apart where blocks of one layer overlap.
-
-    ``widths``, ``layers`` and ``reference_x`` (the unperturbed centres) have
-    one entry per column. Within each layer the blocks keep the left-to-right
-    order of ``reference_x``. Rows without an overlap are returned unchanged,
-    bit for bit; a row with one gets the least-squares projection onto
-    non-penetration (blocks of a layer at least touching, none moved more than
-    needed).
-    """
-    out = xs
-    for layer in np.unique(layers):
-        cols = np.flatnonzero(layers == layer)
-        if cols.size < 2:
-            continue
-        cols = cols[np.argsort(reference_x[cols], kind="stable")]
-        gaps = (widths[cols[:-1]] + widths[cols[1:]]) / 2
-        offsets = np.concatenate([[0.0], np.cumsum(gaps)])
-        y = out[:, cols] - offsets
-        bad = (np.diff(y, axis=1) < 0).any(axis=1)
-        if not bad.any():
-            continue
-        if out is xs:
-            out = xs.copy()
-        out[np.ix_(np.flatnonzero(bad), cols)] = _isotonic(y[bad]) + offsets
-    return out
 
 
 @dataclass(frozen=True)

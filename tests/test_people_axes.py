@@ -1,0 +1,315 @@
+"""The axes of a simulated person that separate why towers fall from how far people aim: risk aversion
+(nested CVaR in every planner), perceptual noise (one percept per decision) and a predictor that knows its
+own hand (answers averaged over motor noise)."""
+
+import itertools
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from overhang_framework.geometry import Action, Block, Geometry, overhang
+from overhang_framework.interfaces import Budget, Predictor, State
+from overhang_framework.plugins import Registry
+from overhang_framework.search import Expander, check_risk, risk_weight, root_scores
+
+from test_participants import participants, replace, simulate_into
+
+
+def tower(blocks) -> Geometry:
+    return Geometry(tuple(Block(float(w), float(x), int(layer)) for w, x, layer in blocks))
+
+
+@pytest.fixture(scope="module")
+def registry():
+    return Registry()
+
+
+@pytest.fixture(scope="module")
+def world(registry):
+    return registry.create("world", {"name": "overhang", "physics": "static"})
+
+
+class Stub(Predictor):
+    """A deterministic predictor whose answer is a fixed, irregular function of the tower after the action."""
+
+    deterministic = True
+
+    def __init__(self, salt: int = 0):
+        self.salt = salt
+
+    def p(self, geometry: Geometry) -> float:
+        key = sum(round(b.x * 10) * (7 + 3 * i) + b.layer * 13 for i, b in enumerate(geometry.blocks))
+        wobble = (math.sin(key * 12.9898 + self.salt * 78.233) * 43758.5453) % 1.0
+        return float(np.clip(1.15 - 0.45 * overhang(geometry) + 0.5 * (wobble - 0.5), 0.0, 1.0))
+
+    def predict(self, state, actions, rng):
+        return np.array([self.p(state.geometry.add(Block(state.next_width, a.x, a.layer))) for a in actions])
+
+
+STATES = [
+    State(tower([(1.2, 0.0, 0)]), (0.6, 1.8, 0.6)),
+    State(tower([(1.8, 0.0, 0), (0.6, 0.5, 1)]), (1.2, 0.6, 1.2)),
+    State(tower([(0.6, 0.0, 0), (1.2, 0.2, 1), (0.6, -0.3, 2)]), (1.8, 0.6)),
+]
+
+
+# --- risk -------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("form", ["power", "cvar"])
+def test_a_risk_weight_is_the_identity_at_zero_and_never_above_p(form):
+    p = np.linspace(0, 1, 101)
+    assert risk_weight(p, 0.0, form) is p
+    previous = p
+    for risk in (0.1, 0.3, 0.5, 0.9):
+        w = risk_weight(p, risk, form)
+        assert w[0] == 0 and w[-1] == 1
+        assert np.all(w <= p + 1e-15) and np.all(np.diff(w) >= 0)
+        assert np.all(w <= previous + 1e-15)  # more averse, never more weight
+        previous = w
+    assert np.isnan(risk_weight(np.array([np.nan]), 0.3, form)).all()
+
+
+def test_the_power_weight_is_a_product_of_repeated_checks_and_cvar_its_definition():
+    assert risk_weight(0.8, 0.5, "power") == pytest.approx(0.8 * 0.8)
+    assert risk_weight(0.9, 0.75, "power") == pytest.approx(0.9 ** 4)
+    assert risk_weight(0.3, 0.4, "cvar") == 0 and risk_weight(0.4, 0.4, "cvar") == 0
+    # the CVaR of the two-outcome gamble {0 w.p. 1 - p, U w.p. p} at level alpha, from its definition
+    for p0, risk in itertools.product((0.2, 0.55, 0.9), (0.1, 0.4, 0.7)):
+        alpha, u = 1 - risk, 2.0
+        tail_zero = min(alpha, 1 - p0)
+        cvar = (tail_zero * 0.0 + (alpha - tail_zero) * u) / alpha
+        assert risk_weight(p0, risk, "cvar") * u == pytest.approx(cvar)
+
+
+@pytest.mark.parametrize("bad", [1, 1.0, -0.1, "0.2", True, None])
+def test_a_risk_outside_zero_to_one_is_refused_in_a_line(bad, registry, world):
+    with pytest.raises(ValueError, match="risk must be a number from 0"):
+        check_risk(bad)
+    with pytest.raises(ValueError, match="risk must be a number from 0"):
+        registry.create("planner", {"name": "lookahead", "risk": bad}, world=world)
+
+
+def _nested(world, predictor, state, depth, risk, form):
+    """Every root action's score, each placement's p weighted, by plain recursion over every action sequence."""
+    def value(s, d):
+        if d == 0 or s.done:
+            return overhang(s.geometry)
+        actions = world.legal_actions(s)
+        if not actions:
+            return 0.0
+        p = predictor.predict(s, actions, None)
+        return max(risk_weight(pi, risk, form) * value(world.successor(s, a), d - 1) for a, pi in zip(actions, p))
+
+    actions = world.legal_actions(state)
+    p = predictor.predict(state, actions, None)
+    return np.array([risk_weight(pi, risk, form) * value(world.successor(state, a), depth - 1)
+                     for a, pi in zip(actions, p)])
+
+
+@pytest.mark.parametrize("risk, form", [(0.0, "power"), (0.35, "power"), (0.35, "cvar")])
+def test_the_search_scores_each_sequence_by_its_weighted_product(world, risk, form):
+    state = STATES[0]
+    stub = Stub()
+    expected = _nested(world, stub, state, 2, risk, form)
+    expander = Expander(world, stub, Budget(), seed=0, risk=risk, risk_form=form)
+    found = root_scores(expander, world_value(world), state, 2, exact_all=True)
+    assert np.allclose(found, expected, rtol=1e-12, atol=1e-12)
+    if risk:
+        assert not np.allclose(found, _nested(world, stub, state, 2, 0.0, form))
+
+
+def world_value(world):
+    from overhang_builtins.values import OverhangValue
+
+    return OverhangValue(world)
+
+
+@pytest.mark.parametrize("planner", [{"name": "myopic"}, {"name": "lookahead", "depth": 2},
+                                     {"name": "lookahead", "depth": 2, "choice": "softmax", "beta": 3.0},
+                                     {"name": "mcts", "iterations": 30}])
+def test_risk_zero_gives_todays_decisions_and_a_positive_risk_changes_some(registry, world, planner):
+    predictor = registry.create("predictor", {"name": "ipe", "K": 10, "sigma": 0.1}, world=world)
+    value = world_value(world)
+    today = registry.create("planner", planner, world=world)
+    neutral = registry.create("planner", {**planner, "risk": 0.0}, world=world)
+    averse = registry.create("planner", {**planner, "risk": 0.6}, world=world)
+    changed = 0
+    for k, state in enumerate(STATES):
+        a = today.plan(state, predictor, value, Budget(), np.random.default_rng(k))
+        b = neutral.plan(state, predictor, value, Budget(), np.random.default_rng(k))
+        assert (a.action, a.predicted_stability, a.choice_probability, a.choice_rank) == \
+            (b.action, b.predicted_stability, b.choice_probability, b.choice_rank)
+        c = averse.plan(state, predictor, value, Budget(), np.random.default_rng(k))
+        assert 0 <= c.predicted_stability <= 1
+        changed += (c.action, c.choice_probability) != (a.action, a.choice_probability)
+    assert changed >= 1
+
+
+@pytest.mark.parametrize("salt", range(6))
+@pytest.mark.parametrize("form", ["power", "cvar"])
+def test_a_higher_risk_never_chooses_a_less_stable_placement(registry, world, salt, form):
+    stub = Stub(salt)
+    value = world_value(world)
+    for state in STATES:
+        chosen = []
+        # (with cvar, only while some placement is surer than the risk: below that every weight is 0)
+        top = max(stub.predict(state, world.legal_actions(state), None))
+        for risk in [r for r in (0.0, 0.1, 0.2, 0.3, 0.45, 0.6, 0.75, 0.9, 0.97) if form == "power" or r < top]:
+            planner = registry.create("planner", {"name": "myopic", "risk": risk, "risk_form": form}, world=world)
+            decision = planner.plan(state, stub, value, Budget(), np.random.default_rng(0))
+            chosen.append((decision.predicted_stability, overhang(world.successor(state, decision.action).geometry)))
+        stabilities = [c[0] for c in chosen]
+        assert all(b >= a - 1e-12 for a, b in zip(stabilities, stabilities[1:])), chosen
+        assert chosen[-1][1] <= chosen[0][1] + 1e-12  # and never aims further
+
+
+@pytest.mark.parametrize("form", ["power", "cvar"])
+def test_a_higher_risk_gives_up_a_further_but_shakier_plan_on_a_constructed_case(registry, world, form):
+    # from a 1.2 base, a 0.6 block at the edge (x = 0.8) reaches 1.1 with p 0.8; centred it reaches 0.6 with
+    # p 1. The edge is worth 0.88 risk-neutral; at risk 0.3 0.80 (power: 0.8 ** (1 / 0.7) * 1.1) or 0.79
+    # (cvar: 0.5 / 0.7 * 1.1), still above 0.6; at 0.75 0.45 (0.8 ** 4 * 1.1) or 0.22 (0.05 / 0.25 * 1.1)
+    class Edge(Predictor):
+        deterministic = True
+
+        def predict(self, state, actions, rng):
+            return np.array([0.8 if abs(a.x) >= 0.75 else (1.0 if abs(a.x) < 0.05 else 0.0) for a in actions])
+
+    state = State(tower([(1.2, 0.0, 0)]), (0.6,))
+    value = world_value(world)
+    plays = {}
+    for risk in (0.0, 0.3, 0.75):
+        planner = registry.create("planner", {"name": "lookahead", "depth": 1, "risk": risk, "risk_form": form},
+                                  world=world)
+        plays[risk] = planner.plan(state, Edge(), value, Budget(), np.random.default_rng(0)).action.x
+    assert abs(plays[0.0]) >= 0.75 and abs(plays[0.3]) >= 0.75 and plays[0.75] == 0.0
+
+
+# --- the hand ---------------------------------------------------------------------------------------------
+
+def test_a_hand_of_zero_is_its_inner_predictor_exactly(registry, world):
+    inner = registry.create("predictor", {"name": "ipe", "K": 20}, world=world)
+    hand = registry.create("predictor", {"name": "hand", "inner": "ipe", "inner_params": {"K": 20}, "sd": 0.0},
+                           world=world)
+    for state in STATES:
+        actions = world.legal_actions(state)
+        assert np.array_equal(hand.predict(state, actions, np.random.default_rng(5)),
+                              inner.predict(state, actions, np.random.default_rng(5)))
+
+
+def test_an_unsteady_hand_lowers_the_edge_and_aims_lower(registry, world):
+    veridical = registry.create("predictor", {"name": "veridical", "backend": "static"}, world=world)
+    hand = registry.create("predictor", {"name": "hand", "inner": "veridical",
+                                         "inner_params": {"backend": "static"}, "sd": 0.06, "nodes": 5},
+                           world=world)
+    value = world_value(world)
+    myopic = registry.create("planner", {"name": "myopic"}, world=world)
+    lower = 0
+    for state in STATES:
+        actions = world.legal_actions(state)
+        p, q = veridical.predict(state, actions, None), hand.predict(state, actions, None)
+        assert set(np.unique(p)) <= {0.0, 1.0} and np.all((q >= 0) & (q <= 1))
+        # the last placement that stands before the edge is less sure with the hand
+        edge = [i for i, a in enumerate(actions) if p[i] == 1 and any(
+            b.layer == a.layer and abs(b.x - a.x) < 0.11 and p[j] == 0 for j, b in enumerate(actions))]
+        assert edge and all(q[i] < 1 for i in edge)
+        steady = myopic.plan(state, veridical, value, Budget(), np.random.default_rng(0))
+        shaky = myopic.plan(state, hand, value, Budget(), np.random.default_rng(0))
+        reach = lambda d: overhang(world.successor(state, d.action).geometry)  # noqa: E731
+        assert reach(shaky) <= reach(steady) + 1e-12
+        lower += reach(shaky) < reach(steady) - 1e-12
+    assert lower >= 1
+
+
+def test_a_shift_the_rules_forbid_counts_as_the_placement_itself(registry, world):
+    hand = registry.create("predictor", {"name": "hand", "inner": "veridical",
+                                         "inner_params": {"backend": "static"}, "sd": 0.3}, world=world)
+    state = State(tower([(1.2, 0.0, 0), (0.6, -0.3, 1)]), (0.6,))
+    actions = [Action(0.3, 1)]  # touching the block at -0.3: a shift left would overlap it
+    shifted = hand.shifted(state, actions)
+    assert len(shifted) == 3 and Action(0.3, 1) in shifted
+    assert all(world.is_legal(state, a) for a in shifted)
+
+
+@pytest.mark.parametrize("config, words", [
+    ({"inner": "nope"}, "unknown inner predictor 'nope'"), ({"sd": -1}, "sd must be a number"),
+    ({"nodes": 0}, "nodes must be a whole number"), ({"inner": "hand"}, "unknown inner predictor 'hand'")])
+def test_a_bad_hand_is_refused_in_a_line(registry, world, config, words):
+    with pytest.raises(ValueError, match=words):
+        registry.create("predictor", {"name": "hand", "inner": "veridical", **config}, world=world)
+
+
+# --- perception -------------------------------------------------------------------------------------------
+
+def test_a_percept_moves_only_the_placed_blocks_and_keeps_them_apart():
+    from overhang_framework.behaviour.participants import perceive
+    from overhang_framework.geometry import overlap_length
+
+    state = State(tower([(1.8, 0.0, 0), (0.6, -0.6, 1), (0.6, 0.0, 1), (1.2, 0.3, 2)]), (0.6,))
+    assert perceive(state, 0.0, np.random.default_rng(0)) is state
+    moved = 0
+    for seed in range(30):
+        seen = perceive(state, 0.2, np.random.default_rng(seed))
+        assert seen.remaining == state.remaining
+        assert seen.geometry.blocks[0] == state.geometry.blocks[0]
+        assert [(b.width, b.layer) for b in seen.geometry.blocks] == [(b.width, b.layer) for b in state.geometry.blocks]
+        for a, b in itertools.combinations(seen.geometry.blocks, 2):
+            if a.layer == b.layer:
+                assert overlap_length(a.left, a.right, b.left, b.right) <= 1e-9
+        moved += seen.geometry != state.geometry
+        again = perceive(state, 0.2, np.random.default_rng(seed))
+        assert again == seen
+    assert moved == 30
+
+
+def test_cohorts_that_draw_none_of_the_new_axes_or_draw_them_at_zero_write_the_same_log(tmp_path):
+    base = simulate_into(tmp_path, name="base")
+    zero = simulate_into(tmp_path, "+cohort.parameters.risk={dist: fixed, value: 0.0}",
+                         "+cohort.parameters.percept={dist: fixed, value: 0.0}",
+                         "+cohort.parameters.hand={dist: fixed, value: 0.0}", name="zero")
+    assert (zero / "log.jsonl").read_bytes() == (base / "log.jsonl").read_bytes()
+    assert "percept" not in participants(base)[0] and participants(zero)[0]["percept"] == "0.0"
+
+
+def test_perceptual_noise_changes_choices_and_every_placement_stays_legal(tmp_path, world):
+    from overhang_framework.behaviour import read_log
+
+    base = simulate_into(tmp_path, name="base")
+    noisy = simulate_into(tmp_path, "+cohort.parameters.percept={dist: fixed, value: 0.15}", name="noisy")
+    a, b = read_log(base / "log.jsonl"), read_log(noisy / "log.jsonl")
+    assert list(a["grid_x"]) != list(b["grid_x"])
+    for r in b.to_dict("records"):
+        if r["x"] is not None and not pd.isna(r["x"]):
+            state = State(tower(r["tower_before"]), (r["width"],))
+            assert world.is_legal(state, Action(r["x"], r["layer"]))
+
+
+@pytest.mark.parametrize("overrides, words", [
+    (["+cohort.parameters.risk={dist: fixed, value: 1.0}"], "cohort.parameters.risk must give a risk aversion"),
+    (["+cohort.parameters.percept={dist: normal, mean: 0.02, sd: 0.01}"], "cohort.parameters.percept must give"),
+    (["+cohort.parameters.hand={dist: uniform, low: -0.1, high: 0.1}"], "cohort.parameters.hand must give"),
+])
+def test_a_bad_axis_in_a_cohort_is_one_line(overrides, words):
+    from overhang_framework.config import compose_config
+    from overhang_framework.errors import ConfigError
+    from overhang_framework.participants import CONFIG_NAME, check_config
+
+    from test_participants import TINY
+
+    cfg = compose_config([*TINY, *overrides], config_name=CONFIG_NAME)
+    with pytest.raises(ConfigError, match=words):
+        check_config(cfg)
+
+
+def test_a_risk_averse_cohort_aims_lower(tmp_path):
+    neutral = simulate_into(tmp_path, *replace("cohort.parameters.beta", "{dist: fixed, value: 30.0}"), name="neutral")
+    averse = simulate_into(tmp_path, *replace("cohort.parameters.beta", "{dist: fixed, value: 30.0}"),
+                           "+cohort.parameters.risk={dist: fixed, value: 0.7}", name="averse")
+    from overhang_framework.behaviour import read_log
+
+    def reach(out):
+        log = read_log(out / "log.jsonl")
+        return log["overhang"].dropna().mean()
+
+    assert reach(averse) < reach(neutral)
