@@ -166,9 +166,10 @@ class Expansion:
         if todo:
             stage = np.asarray(self._classify(todo))
             known = stage >= 0
-            self._p[np.asarray(todo)[known]] = stage[known].astype(float)  # 0 or 1: its own weight
+            where, answers = np.asarray(todo)[known], stage[known].astype(float)
             if self._stability is not self._p:
-                self._stability[np.asarray(todo)[known]] = stage[known].astype(float)
+                self._stability[where] = answers
+            self._p[where] = risk_weight(answers, self.risk, self.risk_form)
             self._looked[todo] = True
 
     def settle(self, indices) -> None:

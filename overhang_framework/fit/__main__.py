@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -108,6 +108,14 @@ def check_config(cfg: DictConfig) -> dict:
             "shards": shards, "logs": [str(Path(p).resolve()) for p in logs], "truth": truth}
 
 
+def model_entry(model, predictor: Mapping) -> list:
+    """A model as fit.json lists it: its label and predictor config, and its risk when it has one."""
+    entry = [model.label, predictor]
+    if model.risk:
+        entry.append({"risk": model.risk, "risk_form": model.risk_form})
+    return entry
+
+
 def truth_files(truth: Any, logs: Sequence[str]) -> list[Path]:
     """The ``participants.csv`` files that hold the simulated participants' true parameters: ``truth``
     (a path or a list of them), or when it is null the one next to each log that has one."""
@@ -141,7 +149,7 @@ def run(cfg: DictConfig) -> dict:
     context = {"world": _plain(cfg.world), "value": _plain(cfg.value)}
     # the models as their tables are keyed: settings of how they are computed (ENGINE_KEYS) left out
     description = {"logs": checked["logs"],
-                   "models": [[m.label, _strip(dict(m.predictor), ENGINE_KEYS)] for i in space for m in i.variants],
+                   "models": [model_entry(m, _strip(dict(m.predictor), ENGINE_KEYS)) for i in space for m in i.variants],
                    "context": context, "pooled": cfg.pooled, "shards": checked["shards"],
                    "states": cfg.states, "cv": cfg.cv}
     check_directory(out, description)

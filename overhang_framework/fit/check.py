@@ -146,6 +146,8 @@ class Fitted:
             parts.append(f"σ {self.model.sigma:g}")
         if self.model.switch is not None:
             parts.append(f"switch {self.model.switch}")
+        if self.model.risk:
+            parts.append(f"risk {self.model.risk:g}" + (f" ({self.model.risk_form})" if self.model.risk_form != "power" else ""))
         return ", ".join(parts) + f", β {self.beta:.3g}, lapse {self.lapse:.3g}"
 
 
@@ -194,20 +196,25 @@ def fitted_models(spec: Mapping[str, Any], fits: pd.DataFrame, model: Optional[s
         if model not in labels:
             raise CheckError(f"--model {model!r} is not a model of this fit; models: {', '.join(labels)}")
         rows = people[people["model"] == model].reset_index(drop=True)
-    variants: dict[str, list[dict]] = {}
-    for label, config in spec["models"]:
-        variants.setdefault(str(label), []).append(dict(config))
+    variants: dict[str, list[tuple[dict, dict]]] = {}
+    for label, config, *risk in spec["models"]:
+        variants.setdefault(str(label), []).append((dict(config), dict(risk[0]) if risk else {}))
     out = []
     for index, r in enumerate(rows.sort_values("participant", kind="stable").itertuples(index=False)):
         switch = getattr(r, "switch", None)
-        found = [c for c in variants.get(str(r.model), [])
+        risk = getattr(r, "risk", None)
+        risk = 0.0 if risk is None or pd.isna(risk) else float(risk)
+        found = [(c, k) for c, k in variants.get(str(r.model), [])
                  if _same(c.get("sigma") if "sigma" in c else None, r.sigma if "sigma" in c else None)
-                 and ("switch" not in c or pd.isna(switch) or int(c["switch"]) == int(switch))]
+                 and ("switch" not in c or pd.isna(switch) or int(c["switch"]) == int(switch))
+                 and _same(float(k.get("risk", 0.0)), risk)]
         if not found:
-            raise CheckError(f"fits.csv's {r.model} of {r.participant} (sigma {r.sigma}, switch {switch}) is not among "
-                             "the models of fit.json; the directory mixes two fits")
+            raise CheckError(f"fits.csv's {r.model} of {r.participant} (sigma {r.sigma}, switch {switch}, risk {risk}) "
+                             "is not among the models of fit.json; the directory mixes two fits")
+        config, k = found[0]
         out.append(Fitted(str(r.participant), str(r.condition), str(r.model),
-                          Model(found[0], int(r.depth), str(r.family)), float(r.beta), float(r.lapse), index))
+                          Model(config, int(r.depth), str(r.family), float(k.get("risk", 0.0)),
+                                str(k.get("risk_form", "power"))), float(r.beta), float(r.lapse), index))
     return out
 
 
@@ -275,10 +282,11 @@ def spec_models(spec: Mapping[str, Any]) -> list:
     from overhang_framework.fit.scores import Model
 
     out = []
-    for label, config in spec.get("models", []):
+    for label, config, *risk in spec.get("models", []):
         family, _, planner = str(label).rpartition("/")
         depth = 1 if planner == "myopic" else int(planner.lstrip("D"))
-        out.append(Model(dict(config), depth, family))
+        k = dict(risk[0]) if risk else {}
+        out.append(Model(dict(config), depth, family, float(k.get("risk", 0.0)), str(k.get("risk_form", "power"))))
     return out
 
 

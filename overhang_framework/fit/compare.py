@@ -29,7 +29,7 @@ ALPHA = 0.05
 TRUTH = "participants.csv"
 #: The columns of a truth table (:func:`read_truth`).
 TRUTH_COLUMNS = ["participant", "true_predictor", "true_family", "true_model", "true_depth", "depth_reached",
-                 "true_sigma", "true_beta", "true_lapse", "true_switch"]
+                 "true_sigma", "true_beta", "true_lapse", "true_switch", "true_risk"]
 
 
 def per_participant(fits: pd.DataFrame) -> pd.DataFrame:
@@ -98,10 +98,13 @@ def read_truth(paths: Sequence[Path], families: Mapping[str, str],
             switch = _number(getattr(r, "switch", None))
             if switch is None:
                 switch = _number(predictor.get("switch"))
+            risk = _number(getattr(r, "risk", None))
+            if risk is None:
+                risk = _number(planner.get("risk"))
             label = Model({"name": name}, int(depth), family).label if family and depth else None
             rows.append({"participant": str(r.id), "true_predictor": name, "true_family": family, "true_model": label,
                          "true_depth": depth, "depth_reached": None, "true_sigma": sigma, "true_beta": beta,
-                         "true_lapse": _number(r.lapse), "true_switch": switch})
+                         "true_lapse": _number(r.lapse), "true_switch": switch, "true_risk": risk})
     if not rows:
         return None
     truth = pd.DataFrame(rows, columns=TRUTH_COLUMNS).drop_duplicates("participant", keep="first")
@@ -116,6 +119,11 @@ def _run_config(path: Path) -> dict:
         return dict(json.loads(path.read_text()).get("config") or {})
     except (OSError, ValueError, AttributeError):
         return {}
+
+
+def _blank(value) -> str:
+    """``value`` as a short number, or empty when it is missing."""
+    return "" if value is None or pd.isna(value) else f"{float(value):g}"
 
 
 def _number(value) -> Optional[float]:
@@ -193,13 +201,16 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     if truth is not None:
         lines += ["", "## Simulated participants: true and fitted", ""] + _truth_table(truth, win)
     pooled = fits[fits["participant"].astype(str).str.startswith(POOLED)]
+    risked = "risk" in fits.columns and fits["risk"].notna().any()
     if len(pooled):
         best = pooled.loc[pooled.groupby("participant")["bic"].idxmin()]
         lines += ["", "## Each condition pooled", "",
-                  markdown_table(["condition", "best model", "sigma", "switch", "beta", "lapse", "BIC"],
+                  markdown_table(["condition", "best model", "sigma", "switch"] + (["risk"] if risked else [])
+                                 + ["beta", "lapse", "BIC"],
                                  [[r.condition, r.model, "" if pd.isna(r.sigma) else f"{r.sigma:g}",
-                                   "" if pd.isna(getattr(r, "switch", None)) else f"{int(r.switch)}", f"{r.beta:.2f}",
-                                   f"{r.lapse:.3f}", f"{r.bic:.1f}"] for r in best.itertuples()])]
+                                   "" if pd.isna(getattr(r, "switch", None)) else f"{int(r.switch)}"]
+                                  + ([_blank(getattr(r, "risk", None))] if risked else [])
+                                  + [f"{r.beta:.2f}", f"{r.lapse:.3f}", f"{r.bic:.1f}"] for r in best.itertuples()])]
     lines += ["", "Files: `fits.csv` (every participant x model), `comparison.csv`, `comparison.png`.", "",
               "![comparison.png](comparison.png)"]
     _figure(table, win, result is not None, out)
@@ -390,16 +401,20 @@ def _truth_table(truth: pd.DataFrame, win: pd.DataFrame) -> list[str]:
     def num(x, digits=3) -> str:
         return "–" if x is None or (isinstance(x, float) and not np.isfinite(x)) or pd.isna(x) else f"{x:.{digits}g}"
 
+    # the risk's columns only where the truth or the fit has a risk
+    risked = truth["true_risk"].notna().any() or ("risk" in win.columns and win["risk"].notna().any())
     rows = []
     for r in truth.itertuples(index=False):
         fit = best.loc[r.participant]
         depth = num(r.true_depth) + ("" if pd.isna(r.depth_reached) else f" ({num(r.depth_reached)})")
         rows.append([r.participant, fit["condition"], r.true_model or f"{r.true_predictor} (not fitted)", depth,
-                     num(r.true_sigma), num(r.true_switch), num(r.true_beta), num(r.true_lapse), fit["model"],
-                     num(fit["sigma"]), num(fit.get("switch")), num(fit["beta"]), num(fit["lapse"])])
+                     num(r.true_sigma), num(r.true_switch)] + ([num(r.true_risk)] if risked else [])
+                    + [num(r.true_beta), num(r.true_lapse), fit["model"], num(fit["sigma"]), num(fit.get("switch"))]
+                    + ([num(fit.get("risk"))] if risked else []) + [num(fit["beta"]), num(fit["lapse"])])
     return [markdown_table(["participant", "condition", "true model", "true depth (reached)", "true sigma",
-                            "true switch", "true beta", "true lapse", "best model", "fitted sigma", "fitted switch",
-                            "fitted beta", "fitted lapse"], rows), "",
+                            "true switch"] + (["true risk"] if risked else []) + [
+                            "true beta", "true lapse", "best model", "fitted sigma", "fitted switch"]
+                           + (["fitted risk"] if risked else []) + ["fitted beta", "fitted lapse"], rows), "",
             "True: the participants command's draws (participants.csv) and the generating model (run.json beside "
             "it); reached: the median depth the participant's searches completed in the log. Fitted: the best "
             "model's parameters (sigma and the hybrid's switch point on the fitted grids)."]

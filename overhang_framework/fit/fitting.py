@@ -151,6 +151,8 @@ class ModelFit:
     n: int
     unmapped: int
     switch: Optional[int] = None
+    #: The planner's risk aversion of the best grid point (None: the model space has no risk grid).
+    risk: Optional[float] = None
     #: Held-out log-likelihood summed over the folds of a cross-validation (None: not cross-validated).
     heldout: Optional[float] = None
     folds: Optional[int] = None
@@ -165,7 +167,8 @@ class ModelFit:
 
     def row(self) -> dict:
         return {"participant": self.participant, "condition": self.condition, "model": self.label,
-                "family": self.family, "depth": self.depth, "sigma": self.sigma, "switch": self.switch, "beta": self.beta,
+                "family": self.family, "depth": self.depth, "sigma": self.sigma, "switch": self.switch,
+                "risk": self.risk, "beta": self.beta,
                 "lapse": self.lapse, "loglik": self.loglik, "k": self.k, "n": self.n, "bic": self.bic,
                 "aic": self.aic, "unmapped": self.unmapped, "heldout_loglik": self.heldout, "folds": self.folds}
 
@@ -240,8 +243,9 @@ def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables],
     every = [_decisions(t, mapped) for t in variants]
     best, which = _best(every)
     model = variants[which].model
-    grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch")]
+    grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch", "risk")]
     heldout = _heldout(every, mapped.trials, folds, seed) if folds >= 2 else None
+    risked = any(t.model.risk for t in variants)
     return ModelFit(participant, condition, model.label, model.family, model.depth, model.sigma, best.beta,
                     best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch,
-                    heldout, folds if folds >= 2 else None)
+                    model.risk if risked else None, heldout, folds if folds >= 2 else None)

@@ -41,8 +41,8 @@ PARTS = "parts"
 FITS = "fits.csv"
 FIT_JSON = "fit.json"
 #: The columns of fits.csv, in order.
-COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "beta", "lapse", "loglik", "k", "n",
-           "bic", "aic", "unmapped", "heldout_loglik", "folds"]
+COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "risk", "beta", "lapse", "loglik",
+           "k", "n", "bic", "aic", "unmapped", "heldout_loglik", "folds"]
 POOLED = "pooled:"
 log = logging.getLogger("overhang_framework.fit")
 

@@ -79,15 +79,22 @@ def _strip_noise(config: Any) -> Any:
 
 @dataclass(frozen=True)
 class Model:
-    """One model of the model space: a predictor config (as ``conf/predictor/*.yaml`` gives it) and a depth."""
+    """One model of the model space: a predictor config (as ``conf/predictor/*.yaml`` gives it), a depth, and
+    the planner's risk aversion (``risk``, ``risk_form``: :func:`overhang_framework.search.risk_weight`; 0,
+    risk-neutral, by default)."""
 
     predictor: Mapping[str, Any]
     depth: int
     family: str = ""
+    risk: float = 0.0
+    risk_form: str = "power"
 
     def __post_init__(self):
+        from overhang_framework.search import check_risk
+
         if isinstance(self.depth, bool) or not isinstance(self.depth, int) or self.depth < 1:
             raise ValueError(f"depth must be a whole number >= 1, got {self.depth!r}")
+        object.__setattr__(self, "risk", check_risk(self.risk, self.risk_form))
         if not self.family:
             object.__setattr__(self, "family", str(self.predictor["name"]))
 
@@ -115,6 +122,8 @@ class Model:
         """The key of this model's tables: every setting that changes a score (``context``: world and value)."""
         data = {"predictor": _strip(dict(self.predictor), ENGINE_KEYS), "depth": self.depth,
                 "context": _strip(dict(context), ENGINE_KEYS)}
+        if self.risk:  # a risk-neutral model's key is what it was before risk existed
+            data["risk"] = [self.risk, self.risk_form]
         shared = [k for k in SHARED_DRAW_KEYS if k in self.predictor]
         if shared:  # these tables' draws leave those settings out (tables keyed before that are not reused)
             data["draws_without"] = shared
@@ -133,7 +142,7 @@ class Model:
 
     def draw_seed(self, context: Mapping[str, Any]) -> int:
         """The seed of the predictor's draws: the settings of :meth:`draw_settings` without the noise levels
-        and the switch point."""
+        and the switch point (and without the risk, which weighs the same answers)."""
         digest = _digest({"predictor": _strip_noise(dict(self.draw_settings())),
                           "context": _strip(dict(context), ENGINE_KEYS)})
         return int(digest[:16], 16)
@@ -288,7 +297,8 @@ class ScoreTables:
         self._tables: dict[tuple, np.ndarray] = {}
 
     def _new_expander(self) -> Expander:
-        return Expander(self.world, self.predictor, Budget(), seed=self.model.draw_seed(self.context), auto_lazy=False)
+        return Expander(self.world, self.predictor, Budget(), seed=self.model.draw_seed(self.context), auto_lazy=False,
+                        risk=self.model.risk, risk_form=self.model.risk_form)
 
     def owner(self, state: State) -> "ScoreTables":
         """The tables that compute this model's table of ``state``: these, or others whose table there is the
@@ -388,6 +398,10 @@ def _switch_stage(members: Mapping[int, ScoreTables], late: Optional[ScoreTables
     return members.get(stage)
 
 
+def _same_risk(a: Model, b: Model) -> bool:
+    return (a.risk, a.risk_form if a.risk else "") == (b.risk, b.risk_form if b.risk else "")
+
+
 def share_tables(tables: Sequence[ScoreTables]) -> None:
     """Let the tables of ``tables`` that are the same numbers in a state be computed once.
 
@@ -411,7 +425,7 @@ def share_tables(tables: Sequence[ScoreTables]) -> None:
             continue
         top = {k: v for k, v in dict(t.model.predictor).items() if k != "switch"}
         key = _digest({"predictor": _strip(top, ENGINE_KEYS), "depth": t.model.depth, "family": t.model.family,
-                       "context": t.context})
+                       "context": t.context, "risk": [t.model.risk, t.model.risk_form]})
         group = groups.setdefault(key, {})
         if t.model.switch in group and group[t.model.switch] is not t:
             collided.add(key)
@@ -424,8 +438,9 @@ def share_tables(tables: Sequence[ScoreTables]) -> None:
             late = None
             if getattr(part, "deterministic", False):
                 late = next((u for u in tables if u.predictor is part and u.model.depth == t.model.depth
-                             and u.context == t.context), None)
+                             and u.context == t.context and _same_risk(u.model, t.model)), None)
             part, seed = getattr(t.predictor, "early", None), t.model.draw_seed(t.context)
             early = next((u for u in tables if part is not None and u.predictor is part and u.model.depth == t.model.depth
-                          and u.context == t.context and u.model.draw_seed(u.context) == seed), None)
+                          and u.context == t.context and u.model.draw_seed(u.context) == seed
+                          and _same_risk(u.model, t.model)), None)
             t.same_as = functools.partial(_switch_stage, members, late, early, t.predictor, t.model.depth)

@@ -1,5 +1,5 @@
-"""The model space of a fit: predictor families (with an optional sigma grid, and a hybrid's switch points)
-crossed with planning depths."""
+"""The model space of a fit: predictor families (with an optional sigma grid, a hybrid's switch points, and a
+grid of the planner's risk aversion) crossed with planning depths."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ MAX_DEPTH = 5
 
 @dataclass
 class ModelIndex:
-    """One model index (a family and a depth) and its variants: one model per sigma of the grid and switch
-    point of the hybrid's grid, else one."""
+    """One model index (a family and a depth) and its variants: one model per sigma of the grid, switch
+    point of the hybrid's grid and risk of the risk grid, else one."""
 
     family: str
     depth: int
@@ -43,6 +43,21 @@ def _predictor_config(name: str, overrides: Mapping[str, Any]) -> dict:
                           f"settings: {', '.join(sorted(base))}")
     base.update(overrides)
     return base
+
+
+def risk_grid(grid: Any, form: Any, family: str) -> tuple[list[float], str]:
+    """The risks of ``fit.models.<family>.risk`` (``[0.0]`` when not set) and the form of their weight."""
+    from overhang_framework.search import RISK_FORMS
+
+    if form not in RISK_FORMS:
+        raise ConfigError(f"fit.models.{family}.risk_form must be one of {', '.join(RISK_FORMS)}, got {form!r}")
+    if grid is None:
+        return [0.0], str(form)
+    values = list(grid) if isinstance(grid, (list, tuple)) else [grid]
+    if not values or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1 for v in values):
+        raise ConfigError(f"fit.models.{family}.risk must be a risk aversion from 0 (risk-neutral) to below 1, or a "
+                          f"list of them, got {grid!r}")
+    return sorted({float(v) for v in values}), str(form)
 
 
 #: ``switch: all``: every switch point a task of ``blocks`` widths allows, from the late predictor judging every
@@ -71,8 +86,9 @@ def switch_grid(grid: Any, family: str, blocks: Optional[int], check_only: bool 
 def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Optional[int] = None,
                 check_only: bool = False) -> list[ModelIndex]:
     """The model indices of ``models`` (``family: {predictor: name, sigma: [grid], switch: [grid] or all,
-    <setting>: value}``) x ``depths``; ``blocks`` is the largest number of widths of a task (for ``switch: all``).
-    ``check_only`` checks every setting without resolving ``switch: all``."""
+    risk: [grid], risk_form: power or cvar, <setting>: value}``) x ``depths``; ``blocks`` is the largest number
+    of widths of a task (for ``switch: all``). ``check_only`` checks every setting without resolving
+    ``switch: all``. ``risk`` is the planner's risk aversion (0, risk-neutral, when not given)."""
     if not models:
         raise ConfigError("fit.models is empty; give at least one predictor family")
     if not depths:
@@ -92,6 +108,7 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Option
             if not sigmas or any(isinstance(s, bool) or not isinstance(s, (int, float)) or s < 0 for s in sigmas):
                 raise ConfigError(f"fit.models.{family}.sigma must be a number >= 0 or a list of them, got {grid!r}")
         switches = switch_grid(spec.pop("switch", None), str(family), blocks, check_only)
+        risks, form = risk_grid(spec.pop("risk", None), spec.pop("risk_form", "power"), str(family))
         configs = []
         for sigma, switch in itertools.product(sigmas, switches):
             overrides = dict(spec)
@@ -101,5 +118,6 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Option
                 overrides["switch"] = int(switch)
             configs.append(_predictor_config(str(name), overrides))
         for depth in depths:
-            out.append(ModelIndex(str(family), int(depth), [Model(c, int(depth), str(family)) for c in configs]))
+            out.append(ModelIndex(str(family), int(depth), [Model(c, int(depth), str(family), risk, form)
+                                                            for c in configs for risk in risks]))
     return out
