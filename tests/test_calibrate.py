@@ -226,3 +226,50 @@ def test_a_small_draw_of_the_calibrated_cohort_under_time_pressure_has_the_paper
     assert got["decision_time"] == pytest.approx(paper["decision_time"], abs=0.15)
     assert got["stable_pct"] < paper["stable_pct"]
     assert got["avg_overhang"] > paper["avg_overhang"] + 4 * table1.PAPER["avg_overhang"][1]
+
+
+def test_a_library_that_draws_the_new_axes_fits_them_and_writes_them_into_the_cohort(tmp_path):
+    """A known world in which risk aversion lowers the reach of standing towers and raises how many stand: a
+    library drawn over the whole range of risk predicts a risk-averse cohort on an effective sample of 30 or
+    more, its loss singles out the true mean risk, and the cohort config it writes draws risk, percept and hand."""
+    import yaml
+
+    from overhang_framework.behaviour.participants import cohort_from_config
+
+    proposal = {**PROPOSAL, "risk": Distribution("uniform", (0.0, 0.95)),
+                "percept": Distribution("lognormal", (0.02, 1.0)), "hand": Distribution("lognormal", (0.03, 1.0))}
+    rng = np.random.default_rng(3)
+
+    def trials_of(people):
+        rows = []
+        for p in people.itertuples():
+            for t in range(20):
+                stood = rng.random() < min(0.97, 0.45 + 0.1 * p.depth - p.lapse + 0.4 * p.risk - 2 * p.percept)
+                rows.append({"participant": p.participant, "condition": p.condition, "trial": t + 1,
+                             "reward": (1.7 - 0.6 * p.risk + 0.05 * rng.standard_normal()) if stood else 0.0,
+                             "stood": stood, "gamma": 0.3 - 0.2 * p.risk if stood else np.nan,
+                             "calls": json.dumps([4] * 5), **{k: getattr(p, k) for k in proposal}})
+        return pd.DataFrame(rows)
+
+    library = calibrate.Library(trials_of(synthetic_people(proposal, 1500, rng)), proposal, "time_limited")
+    assert library.axes == ("risk", "percept", "hand") and len(library.free) == len(calibrate.FREE) + 3
+    truth = [0.0, 0.0, math.log(0.03), math.log(4.0), calibrate.logit(0.08), 2.2, 0.01,
+             calibrate.logit(0.7), math.log(0.01), math.log(0.03)]
+    candidate = library.candidate(truth)
+    assert dict(candidate.axes) == pytest.approx({"risk": 0.7, "percept": 0.01, "hand": 0.03})
+    predicted = library.predict(candidate, 5.0)
+    assert predicted["ess"] >= 30
+    targets = {k: (v, 0.02 * abs(v) + 1e-3) for k, v in predicted.items() if k != "ess"}
+    # the truth scores best along the risk axis: its loss is 0, a cohort of other mean risk is far off
+    losses = {r: calibrate.loss(truth[:7] + [calibrate.logit(r)] + truth[8:], library, targets, 5.0)
+              for r in (0.2, 0.45, 0.7, 0.85)}
+    assert losses[0.7] < 1 and min(losses[0.2], losses[0.45], losses[0.85]) > 10 * max(losses[0.7], 0.1), losses
+    node = candidate.config()
+    assert set(node["parameters"]) == {"depth", "sigma", "beta", "lapse", "risk", "percept", "hand"}
+    cohort = cohort_from_config({"name": "x", "participants": {"time_limited": 2},
+                                 "decision_time": {"t0": 2.0, "per_call": 0.07, "noise": 0.3},
+                                 "motor": {"sd": 0.02, "retries": 5},
+                                 "by_condition": {"time_limited": node}}, {"time_limited": {"time_limit": 5.0}})
+    assert cohort.parameters_for("time_limited")["risk"].kind == "beta"
+    with pytest.raises(Exception, match="must give its distribution"):
+        library.weights(CANDIDATE)

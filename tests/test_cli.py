@@ -178,10 +178,10 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
     (["seed=1,2"], "error: 'seed=1,2' gives several values: add -m (--multirun) to sweep over them, or write "
                    "seed=[...] for a list"),
     (["predictor=hybird", "planner=lookahaed", "planner.depth=3"],
-     "error: unknown predictor 'hybird' and planner 'lookahaed'; installed predictors: cnn, hybrid, ipe, veridical; "
+     "error: unknown predictor 'hybird' and planner 'lookahaed'; installed predictors: cnn, hand, hybrid, ipe, veridical; "
      "installed planners: lookahead, mcts, myopic, optimal"),
     (["-m", "predictor=veridical,nope", "value=nada"],
-     "error: unknown predictor 'nope' and value 'nada'; installed predictors: cnn, hybrid, ipe, veridical; installed values:"),
+     "error: unknown predictor 'nope' and value 'nada'; installed predictors: cnn, hand, hybrid, ipe, veridical; installed values:"),
     (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),
     (["hydra/launcher=nope"], "error: unknown hydra/launcher 'nope'; available: basic, joblib"),
     (["planer=myopic", "predicter=ipe"], "error: unknown config key 'planer' (did you mean 'planner'?); top-level "

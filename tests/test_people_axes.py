@@ -286,7 +286,7 @@ def test_perceptual_noise_changes_choices_and_every_placement_stays_legal(tmp_pa
 
 
 @pytest.mark.parametrize("overrides, words", [
-    (["+cohort.parameters.risk={dist: fixed, value: 1.0}"], "cohort.parameters.risk must give a risk aversion"),
+    (["+cohort.parameters.risk={dist: fixed, value: 1.5}"], "cohort.parameters.risk must give a risk aversion"),
     (["+cohort.parameters.percept={dist: normal, mean: 0.02, sd: 0.01}"], "cohort.parameters.percept must give"),
     (["+cohort.parameters.hand={dist: uniform, low: -0.1, high: 0.1}"], "cohort.parameters.hand must give"),
 ])

@@ -63,6 +63,14 @@ FREE = (("depth2", -4.0, 4.0), ("depth3", -4.0, 4.0), ("log_sigma", math.log(0.0
 #: Fixed spreads of a candidate's distributions (the paper's cohort's): σ and β lognormal, lapse beta.
 SIGMA_SPREAD, BETA_SPREAD, LAPSE_CONCENTRATION = 0.3, 0.5, 31.0
 PARAMS = ("sigma", "depth", "beta", "lapse")
+#: The axes that separate why towers fall from how far people aim (docs/participants.md): a library whose
+#: participants draw one makes it a free number of every candidate, with the box the search stays in.
+AXES = {"risk": ("logit_risk", logit(0.01), logit(0.94)), "percept": ("log_percept", math.log(0.002), math.log(0.2)),
+        "hand": ("log_hand", math.log(0.002), math.log(0.2))}
+#: Fixed spreads of the axes' distributions: risk beta (mean and this concentration), percept and hand lognormal.
+RISK_CONCENTRATION, AXIS_SPREAD = 4.0, 0.8
+#: The least effective sample (participants) a candidate's prediction may rest on.
+MIN_ESS = 30.0
 
 
 @dataclass(frozen=True)
@@ -76,21 +84,28 @@ class Candidate:
     t0: float
     per_call: float
     noise: float = 0.3
+    #: The axes of :data:`AXES` the candidate draws: the mean risk, the medians of percept and hand.
+    axes: tuple[tuple[str, float], ...] = ()
 
     @classmethod
-    def from_vector(cls, v: Sequence[float], noise: float = 0.3) -> "Candidate":
+    def from_vector(cls, v: Sequence[float], noise: float = 0.3, axes: Sequence[str] = ()) -> "Candidate":
         z = np.array([0.0, v[0], v[1]])
         p = np.exp(z - z.max())
         p /= p.sum()
+        drawn = tuple((name, float(expit(x) if name == "risk" else math.exp(x))) for name, x in zip(axes, v[7:]))
         return cls(tuple(float(x) for x in p), float(math.exp(v[2])), float(math.exp(v[3])), float(expit(v[4])),
-                   float(v[5]), float(v[6]), noise)
+                   float(v[5]), float(v[6]), noise, drawn)
 
     def distributions(self) -> dict[str, Distribution]:
         k = LAPSE_CONCENTRATION
-        return {"depth": Distribution("categorical", ((1, 2, 3), self.depth_p)),
-                "sigma": Distribution("lognormal", (self.sigma, SIGMA_SPREAD)),
-                "beta": Distribution("lognormal", (self.beta, BETA_SPREAD)),
-                "lapse": Distribution("beta", (self.lapse * k, (1 - self.lapse) * k))}
+        out = {"depth": Distribution("categorical", ((1, 2, 3), self.depth_p)),
+               "sigma": Distribution("lognormal", (self.sigma, SIGMA_SPREAD)),
+               "beta": Distribution("lognormal", (self.beta, BETA_SPREAD)),
+               "lapse": Distribution("beta", (self.lapse * k, (1 - self.lapse) * k))}
+        for name, value in self.axes:
+            out[name] = Distribution("beta", (value * RISK_CONCENTRATION, (1 - value) * RISK_CONCENTRATION)) \
+                if name == "risk" else Distribution("lognormal", (value, AXIS_SPREAD))
+        return out
 
     @property
     def time(self) -> TimeModel:
@@ -108,8 +123,55 @@ class Candidate:
                       + [round(1 - round(self.depth_p[0], 4) - round(self.depth_p[1], 4), 4)]},
             "sigma": {"dist": "lognormal", "median": round(self.sigma, 5), "sigma": SIGMA_SPREAD},
             "beta": {"dist": "lognormal", "median": round(self.beta, 4), "sigma": BETA_SPREAD},
-            "lapse": {"dist": "beta", "a": round(self.lapse * k, 4), "b": round((1 - self.lapse) * k, 4)}},
+            "lapse": {"dist": "beta", "a": round(self.lapse * k, 4), "b": round((1 - self.lapse) * k, 4)},
+            **{name: ({"dist": "beta", "a": round(value * RISK_CONCENTRATION, 4),
+                       "b": round((1 - value) * RISK_CONCENTRATION, 4)} if name == "risk"
+                      else {"dist": "lognormal", "median": round(value, 5), "sigma": AXIS_SPREAD})
+               for name, value in self.axes}},
             "decision_time": {"t0": round(self.t0, 4), "per_call": round(self.per_call, 5), "noise": self.noise}}
+
+
+# ----------------------------------------------------------------------------------------------- measured
+
+def measured(df: pd.DataFrame, world) -> dict[str, dict[str, tuple[float, float]]]:
+    """The ten measures of a simulated (or real) cohort's log, measured directly: per condition, the mean and
+    SEM over participants of reward per trial, stable proportion, average overhang of successful trials,
+    decision time and Γ (of completed towers), as the paper's Table 1 and Fig. 3b report them."""
+    from overhang_framework.behaviour.analysis import with_groups
+    from overhang_framework.behaviour.gamma import per_participant as gamma_people
+    from overhang_framework.behaviour.gamma import tower_gammas
+    from overhang_framework.behaviour.table1 import per_participant
+
+    df = with_groups(df)
+    people = per_participant(df).set_index("participant")
+    gammas = gamma_people(tower_gammas(df, world)).set_index("participant")["gamma"]
+    people["gamma"] = gammas.reindex(people.index)
+    condition = df.drop_duplicates("participant").set_index("participant")["condition"]
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    for name in sorted(set(condition), key=lambda c: (c not in TARGETS, list(TARGETS).index(c) if c in TARGETS else 0, c)):
+        group = people[condition.reindex(people.index) == name]
+        row = {}
+        for metric in METRICS:
+            v = group[metric].dropna().to_numpy(dtype=float)
+            row[metric] = (float(v.mean()) if len(v) else math.nan,
+                           float(v.std(ddof=1) / math.sqrt(len(v))) if len(v) > 1 else math.nan)
+        out[name] = row
+    return out
+
+
+def measured_table(result: Mapping[str, Mapping[str, tuple[float, float]]]) -> str:
+    """The measures beside the paper's, with each one's distance in the paper's SEMs (a markdown table)."""
+    from overhang_framework.behaviour.analysis import markdown_table
+
+    rows = []
+    for condition, row in result.items():
+        for metric in METRICS:
+            mean, sem = row[metric]
+            paper = TARGETS.get(condition, {}).get(metric)
+            z = (mean - paper[0]) / paper[1] if paper else math.nan
+            rows.append([condition, metric, f"{mean:.3f} ± {sem:.3f}",
+                         f"{paper[0]:.3f} ± {paper[1]:.3f}" if paper else "", "" if math.isnan(z) else f"{z:+.2f}"])
+    return markdown_table(["condition", "measure", "simulated", "paper", "distance (paper SEMs)"], rows)
 
 
 # ----------------------------------------------------------------------------------------------- library
@@ -162,7 +224,11 @@ class Library:
         if missing:
             raise ConfigError(f"the library's participants do not all draw {', '.join(missing)}; the proposal "
                               "must draw sigma, depth, beta and lapse")
-        self.log_q = sum(proposal[name].log_density(self.theta[name]) for name in PARAMS)
+        #: the axes of :data:`AXES` every participant of the library draws (each a free number of a candidate)
+        self.axes = tuple(name for name in AXES if name in people and people[name].notna().all())
+        for name in self.axes:
+            self.theta[name] = people[name].to_numpy(dtype=float)
+        self.log_q = sum(proposal[name].log_density(self.theta[name]) for name in (*PARAMS, *self.axes))
         self.reward = t["reward"].to_numpy(dtype=float)
         self.stood = t["stood"].to_numpy(dtype=bool).astype(float)
         self.gamma = t["gamma"].to_numpy(dtype=float)
@@ -172,9 +238,20 @@ class Library:
         for i, c in enumerate(lists):
             self.calls[i, :len(c)] = c
 
+    @property
+    def free(self) -> list[tuple[str, float, float]]:
+        """A candidate's free numbers with this library: :data:`FREE` and one per axis it draws."""
+        return list(FREE) + [AXES[name] for name in self.axes]
+
+    def candidate(self, vector: Sequence[float], noise: float = 0.3) -> Candidate:
+        return Candidate.from_vector(vector, noise, self.axes)
+
     def weights(self, candidate: Candidate) -> np.ndarray:
         dists = candidate.distributions()
-        log_p = sum(dists[name].log_density(self.theta[name]) for name in PARAMS)
+        missing = [name for name in self.axes if name not in dists]
+        if missing:
+            raise ConfigError(f"the library draws {', '.join(missing)}: a candidate must give its distribution")
+        log_p = sum(dists[name].log_density(self.theta[name]) for name in (*PARAMS, *self.axes))
         log_w = log_p - self.log_q
         if not np.isfinite(log_w).any():
             return np.zeros_like(log_w)
@@ -229,8 +306,8 @@ def distances(predicted: Mapping[str, float], targets: Mapping[str, tuple[float,
 
 
 def loss(vector: Sequence[float], library: Library, targets: Mapping[str, tuple[float, float]],
-         time_limit: Optional[float], min_ess: float = 10.0, noise: float = 0.3) -> float:
-    cand = Candidate.from_vector(vector, noise)
+         time_limit: Optional[float], min_ess: float = MIN_ESS, noise: float = 0.3) -> float:
+    cand = library.candidate(vector, noise)
     got = library.predict(cand, time_limit)
     z = distances(got, targets)
     if any(not np.isfinite(v) for v in z.values()):
@@ -240,7 +317,7 @@ def loss(vector: Sequence[float], library: Library, targets: Mapping[str, tuple[
 
 
 def fit_condition(library: Library, targets: Optional[Mapping[str, tuple[float, float]]] = None,
-                  time_limit: Optional[float] = math.nan, seed: int = 0, maxiter: int = 200, min_ess: float = 10.0,
+                  time_limit: Optional[float] = math.nan, seed: int = 0, maxiter: int = 200, min_ess: float = MIN_ESS,
                   abc_draws: int = 20_000) -> dict:
     """The best candidate of one condition (differential evolution) and the ABC region: the candidates of a
     seeded uniform draw whose measures all lie within one SEM of the targets (default: the paper's, with the
@@ -250,16 +327,16 @@ def fit_condition(library: Library, targets: Optional[Mapping[str, tuple[float, 
     targets = dict(targets or TARGETS[library.condition])
     if time_limit is not None and math.isnan(time_limit):
         time_limit = TIME_LIMITS.get(library.condition)
-    bounds = [(lo, hi) for _, lo, hi in FREE]
+    bounds = [(lo, hi) for _, lo, hi in library.free]
     best = differential_evolution(loss, bounds, args=(library, targets, time_limit, min_ess), seed=seed,
                                   maxiter=maxiter, tol=1e-8, polish=True, updating="immediate")
-    cand = Candidate.from_vector(best.x)
+    cand = library.candidate(best.x)
     predicted = library.predict(cand, time_limit)
     rng = np.random.default_rng(seed)
     draws = rng.uniform([lo for lo, _ in bounds], [hi for _, hi in bounds], size=(abc_draws, len(bounds)))
     accepted = []
     for v in draws:
-        c = Candidate.from_vector(v)
+        c = library.candidate(v)
         got = library.predict(c, time_limit)
         z = distances(got, targets)
         if got["ess"] >= min_ess and all(np.isfinite(x) and abs(x) <= 1 for x in z.values()):
@@ -267,14 +344,15 @@ def fit_condition(library: Library, targets: Optional[Mapping[str, tuple[float, 
     region = {}
     if accepted:
         for name, values in (("mean_depth", [c.mean_depth for c in accepted]), ("sigma", [c.sigma for c in accepted]),
-                             ("beta", [c.beta for c in accepted]), ("lapse", [c.lapse for c in accepted])):
+                             ("beta", [c.beta for c in accepted]), ("lapse", [c.lapse for c in accepted]),
+                             *((axis, [dict(c.axes)[axis] for c in accepted]) for axis in library.axes)):
             region[name] = [float(np.quantile(values, q)) for q in (0.05, 0.5, 0.95)]
     return {"candidate": cand, "loss": float(best.fun), "predicted": predicted,
             "z": distances(predicted, targets), "accepted": len(accepted), "draws": abc_draws,
             "region": region}
 
 
-def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Distribution]:
+def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Optional[Distribution]]:
     """The proposal's distributions, from the shipped cohort config."""
     from overhang_framework.config import compose_config
     from overhang_framework.participants import CONFIG_NAME, check_config
@@ -285,24 +363,30 @@ def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Distribut
 
 
 def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_draws: int = 20_000,
-        proposal: Optional[Mapping[str, Distribution]] = None) -> dict:
-    """Fit both conditions; write ``calibration.json`` and ``paper_calibrated.yaml`` (a cohort config) to ``out``."""
+        proposal: Optional[Mapping[str, Distribution]] = None, min_ess: float = MIN_ESS,
+        name: str = "paper_calibrated") -> dict:
+    """Fit each of the paper's conditions the library has; write ``calibration.json`` and ``<name>.yaml`` (a
+    cohort config) to ``out``."""
     import yaml
 
     from overhang_framework.results import atomic_write_json, atomic_write_text
 
     proposal = dict(proposal or proposal_distributions())
     results = {}
-    for condition in TARGETS:
+    conditions = [c for c in TARGETS if c in set(trials["condition"])]
+    if not conditions:
+        raise ConfigError(f"the library has no trial of the paper's conditions ({', '.join(TARGETS)})")
+    for condition in conditions:
         results[condition] = fit_condition(Library(trials, proposal, condition), seed=seed, maxiter=maxiter,
-                                           abc_draws=abc_draws)
+                                           abc_draws=abc_draws, min_ess=min_ess)
     out.mkdir(parents=True, exist_ok=True)
     summary = {c: {"candidate": r["candidate"].config(), "mean_depth": r["candidate"].mean_depth,
                    "loss": r["loss"], "predicted": r["predicted"], "z": r["z"], "paper": TARGETS[c],
                    "abc": {"accepted": r["accepted"], "draws": r["draws"], "region": r["region"]}}
                for c, r in results.items()}
     atomic_write_json(out / "calibration.json", summary)
-    cohort = {"name": "paper_calibrated", "participants": {"time_limited": 43, "unconstrained": 38},
+    cohort = {"name": name, "participants": {c: n for c, n in (("time_limited", 43), ("unconstrained", 38))
+                                             if c in results},
               "n_tasks": None, "parameters": {"switch": {"dist": "categorical", "values": [3, 4, 5],
                                                           "p": [0.25, 0.5, 0.25]}},
               "by_condition": {c: r["candidate"].config() for c, r in results.items()},
@@ -311,9 +395,10 @@ def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_
               "# (docs/fidelity.md): python -m overhang_framework.behaviour.calibrate fit TRIALS --out DIR.",
               "# Each measure's distance from the paper's, in the paper's SEMs (+ above, - below):"]
     header += [f"#   {c}: " + ", ".join(f"{k} {v:+.2f}" for k, v in r["z"].items()) for c, r in summary.items()]
-    header += ["# Needs predictor=hybrid (its IPE takes each participant's sigma):",
-               "#   python -m overhang_framework.participants cohort=paper_calibrated predictor=hybrid"]
-    atomic_write_text(out / "paper_calibrated.yaml",
+    header += ["# The cohort selects its predictor, the hybrid (its IPE takes each participant's sigma):",
+               f"#   python -m overhang_framework.participants cohort={name}",
+               "defaults:", "  - override /predictor@_global_.predictor: hybrid"]
+    atomic_write_text(out / f"{name}.yaml",
                       "\n".join(header) + "\n" + yaml.safe_dump(cohort, sort_keys=False, default_flow_style=None))
     return summary
 
@@ -332,8 +417,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--maxiter", type=int, default=200)
     f.add_argument("--abc-draws", type=int, default=20_000)
+    f.add_argument("--proposal", default="proposal", help="the cohort the library was drawn from")
+    f.add_argument("--min-ess", type=float, default=MIN_ESS, help="the least effective sample of a candidate")
+    f.add_argument("--name", default="paper_calibrated", help="the name of the cohort written")
+    m = sub.add_parser("measure", help="the ten measures of a participants run, beside the paper's")
+    m.add_argument("run_dir", type=Path)
+    m.add_argument("--world", nargs="*", default=["world.physics=static"], help="world overrides for Γ")
     args = parser.parse_args(argv)
     try:
+        if args.command == "measure":
+            from overhang_framework.behaviour import read_log
+            from overhang_framework.behaviour.analysis import build_world
+
+            if not (args.run_dir / "log.jsonl").exists():
+                raise ConfigError(f"{args.run_dir} has no log.jsonl: give the directory of a participants run")
+            print(measured_table(measured(read_log(args.run_dir / "log.jsonl"), build_world(args.world))))
+            return 0
         if args.command == "library":
             from overhang_framework.results import atomic_output
 
@@ -344,12 +443,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         if not args.trials.exists():
             raise ConfigError(f"{args.trials}: no such file (make it with the library command)")
-        summary = fit(pd.read_csv(args.trials), args.out, args.seed, args.maxiter, args.abc_draws)
+        summary = fit(pd.read_csv(args.trials), args.out, args.seed, args.maxiter, args.abc_draws,
+                      proposal_distributions(args.proposal), args.min_ess, args.name)
         for condition, r in summary.items():
             z = ", ".join(f"{k} {v:+.2f}" for k, v in r["z"].items())
             print(f"{condition}: mean depth {r['mean_depth']:.2f}; distance from the paper in its SEMs: {z}; "
                   f"ABC kept {r['abc']['accepted']} of {r['abc']['draws']}")
-        print(f"written: {args.out / 'calibration.json'}, {args.out / 'paper_calibrated.yaml'}")
+        print(f"written: {args.out / 'calibration.json'}, {args.out / (args.name + '.yaml')}")
         return 0
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)

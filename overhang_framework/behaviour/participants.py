@@ -69,6 +69,8 @@ PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "h
 #: Where a drawn parameter goes: (model group, parameter name).
 TARGETS = {"sigma": ("predictor", "sigma"), "depth": ("planner", "depth"), "beta": ("planner", "beta"),
            "switch": ("predictor", "switch"), "risk": ("planner", "risk")}
+#: The largest risk aversion a participant draws (the planner's ``risk`` must be below 1).
+MAX_RISK = 0.999
 #: Parameters whose column ``participants.csv`` has only when some participant draws them.
 OPTIONAL = ("switch", "risk", "percept", "hand")
 #: The deepest search a participant may have (a paper20 trial has 5 placements).
@@ -297,6 +299,8 @@ def _keys(where: str, node: Mapping, allowed: Sequence[str]) -> None:
 
 def cohort_from_config(cohort: Mapping[str, Any], conditions: Mapping[str, Any]) -> Cohort:
     """The checked cohort of the ``cohort`` and ``conditions`` config nodes (plain mappings)."""
+    # ``defaults`` (a cohort file's choice of predictor, as Hydra reads it) is not the cohort's own
+    cohort = {k: v for k, v in cohort.items() if k != "defaults"}
     _keys("cohort", cohort, ("name", "participants", "n_tasks", "parameters", "by_condition", "decision_time", "motor"))
     counts = cohort.get("participants")
     if not isinstance(counts, Mapping) or not counts:
@@ -373,7 +377,8 @@ def _distributions(where_all: str, params: Mapping[str, Any]) -> dict[str, Optio
             elif name == "switch":
                 _check_range(where, dist, 1, math.inf, "a whole number of blocks >= 1", whole=True)
             elif name == "risk":
-                _check_range(where, dist, 0.0, 0.999, "a risk aversion from 0 (risk-neutral) to 0.999")
+                _check_range(where, dist, 0.0, 1.0, "a risk aversion from 0 (risk-neutral) to 1 (a draw above "
+                             f"{MAX_RISK} counts as {MAX_RISK})")
             else:
                 _check_range(where, dist, 0.0, math.inf, "a number >= 0")
         dists[name] = dist
@@ -425,7 +430,8 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
                 sigma=drawn["sigma"], depth=None if drawn["depth"] is None else int(drawn["depth"]),
                 beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"]),
                 switch=None if drawn.get("switch") is None else int(drawn["switch"]),
-                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("risk", "percept", "hand")}))
+                risk=None if drawn.get("risk") is None else min(float(drawn["risk"]), MAX_RISK),
+                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("percept", "hand")}))
     return out
 
 
