@@ -385,7 +385,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             order = [settings.tasks[i].id for i in rng.permutation(len(settings.tasks))]
             return Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
                                token_hash=token_hash(token), condition=condition, order=order,
-                               time_limit=settings.time_limit if condition == "time_limited" else None)
+                               time_limit=settings.limit_of(condition))
 
         p = store.add_newcomer(settings.conditions, newcomer)
         if p is None:

@@ -100,14 +100,10 @@ def _override(key: str, value: Any) -> list[str]:
 
 def server_overrides(p: Plan, time_scale: float, run_dir: Path, port: int) -> list[str]:
     """The ``conf/serve.yaml`` overrides of the pilot's own server: the cohort's world, tasks, conditions and
-    time limit (scaled), the pilot's seed; :class:`ConfigError` when the server cannot run the cohort."""
+    time limits (scaled; a condition other than ``time_limited`` and ``unconstrained`` by ``time_limits``), the
+    pilot's seed; :class:`ConfigError` when the server cannot run the cohort."""
     cohort = p.checked.cohort
-    allowed = ("time_limited", "unconstrained")
     specs = [s for s in cohort.conditions if s.n > 0]
-    other = [s.name for s in specs if s.name not in allowed]
-    if other:
-        raise ConfigError(f"the experiment server has the conditions {', '.join(allowed)}; cohort "
-                          f"{cohort.name!r} has participants in {', '.join(other)}")
     if len({s.n for s in specs}) > 1:
         counts = ", ".join(f"{s.name}: {s.n}" for s in specs)
         raise ConfigError(f"the server assigns conditions balanced, so a pilot's cohort has as many participants in "
@@ -121,6 +117,10 @@ def server_overrides(p: Plan, time_scale: float, run_dir: Path, port: int) -> li
               "source=simulated"]  # the study's records say who took part
     if limited is not None and limited.time_limit is not None:
         words.append(f"time_limit={limited.time_limit * time_scale!r}")
+    for spec in specs:  # any other condition (a graded-budget study's levels) with its own limit
+        if spec.name not in ("time_limited", "unconstrained"):
+            limit = "null" if spec.time_limit is None else repr(spec.time_limit * time_scale)
+            words.append(f"+time_limits.{spec.name}={limit}")
     return words
 
 

@@ -43,6 +43,7 @@ def study_settings(settings: Settings) -> dict:
         "practice_max_attempts": settings.practice_max_attempts,
         "conditions": list(settings.conditions),
         "time_limit": settings.time_limit,
+        **({"time_limits": dict(settings.time_limits)} if settings.time_limits else {}),
         "time_grace": settings.time_grace,
         "bonus_per_unit": settings.bonus_per_unit,
         "currency": settings.currency,

@@ -72,6 +72,17 @@ class Settings:
     keep_alive: float = 75.0
     forwarded_allow_ips: str = "127.0.0.1"
     extra: dict = field(default_factory=dict)
+    #: The time limit (seconds, None: none) of each condition other than ``time_limited`` and ``unconstrained``.
+    time_limits: dict = field(default_factory=dict)
+
+    def limit_of(self, condition: str) -> Optional[float]:
+        """The time limit of ``condition``'s participants: ``time_limit`` for ``time_limited``, none for
+        ``unconstrained``, else its entry of ``time_limits``."""
+        if condition == "time_limited":
+            return self.time_limit
+        if condition == "unconstrained":
+            return None
+        return self.time_limits[condition]
 
 
 def compose(overrides: Sequence[str] = ()) -> DictConfig:
@@ -184,10 +195,11 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         raise ConfigError(f"world: {err}") from None
     tasks = tasks_from_config(cfg.tasks)
     conditions = list(cfg.conditions or [])
-    allowed = ("time_limited", "unconstrained")
+    limits = time_limits(cfg.get("time_limits"))
+    allowed = ("time_limited", "unconstrained", *limits)
     if not conditions or any(c not in allowed for c in conditions) or len(set(conditions)) != len(conditions):
-        raise ConfigError(f"conditions must be a non-empty list of distinct names from {', '.join(allowed)}, "
-                          f"got {conditions!r}")
+        raise ConfigError(f"conditions must be a non-empty list of distinct names from {', '.join(allowed)} "
+                          f"(another condition needs its entry in time_limits), got {conditions!r}")
     run_dir = Path(str(cfg.run_dir))
     database = cfg.database or f"sqlite:///{(run_dir / 'experiment.sqlite').resolve()}"
     if not isinstance(database, str) or "://" not in database:
@@ -249,7 +261,30 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         bonus_per_unit=_number(cfg, "bonus_per_unit", strict=False), currency=str(cfg.currency),
         mouse_hz=_number(cfg, "mouse_hz"), animation_fps=_number(cfg, "animation_fps"), seed=int(cfg.seed),
         run_dir=run_dir, web_dir=web_dir, host=str(cfg.host), port=int(port), **counts,
-        keep_alive=_number(cfg, "keep_alive"), forwarded_allow_ips=forwarded)
+        keep_alive=_number(cfg, "keep_alive"), forwarded_allow_ips=forwarded,
+        time_limits={c: limits[c] for c in conditions if c in limits})
+
+
+def time_limits(value) -> dict:
+    """``time_limits`` checked: a mapping of condition names (letters, digits and ``_``, not the two built-in
+    ones) to seconds > 0 or null (no limit)."""
+    import re
+
+    value = OmegaConf.to_container(value) if OmegaConf.is_config(value) else (value or {})
+    if not isinstance(value, dict):
+        raise ConfigError(f"time_limits must map condition names to seconds or null, got {value!r}")
+    out = {}
+    for name, seconds in value.items():
+        if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_]{0,39}", name) \
+                or name in ("time_limited", "unconstrained"):
+            raise ConfigError(f"time_limits: {name!r} is not a name for a condition: lowercase letters, digits and _ "
+                              "(at most 40), other than time_limited (its limit is time_limit) and unconstrained")
+        if seconds is not None and (isinstance(seconds, bool) or not isinstance(seconds, (int, float))
+                                    or not seconds > 0):
+            raise ConfigError(f"time_limits.{name} must be a number of seconds > 0 or null (no limit), "
+                              f"got {seconds!r}")
+        out[name] = None if seconds is None else float(seconds)
+    return out
 
 
 def forwarded_ips(value) -> str:
