@@ -378,7 +378,9 @@ def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_fal
     the overhang far below what any cohort without the new axes reaches at that stable proportion (1.45,
     docs/fidelity.md): the paper's people aim low and still fall.
 
-    Tolerances, measured over seeds 1-4 of this draw: SMALL_MEASURED. At the paper's size (43, seeds 0-2) the
+    Tolerances, measured over seeds 1-4 of this draw: stable proportion 65.0-75.5% (the paper's 70.2),
+    average overhang 1.327-1.358 (1.321), reward per trial 0.868-1.018 (0.913), decision time 2.43-2.46 s
+    (2.47); so within 10 points, 0.06, 0.15 and 0.15 s of the paper's. At the paper's size (43, seeds 0-2) the
     cohort is within one SEM of the paper on every measure but Γ (docs/people.md)."""
     from overhang_framework.behaviour import table1
     from overhang_framework.behaviour.log import read_log
@@ -396,8 +398,8 @@ def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_fal
     assert len(people) == 10 and (people["trials"] == 20).all()
     paper = {k: v[0] for k, v in table1.PAPER.items()}
     got = people[["reward_per_trial", "stable_pct", "avg_overhang", "decision_time"]].mean()
-    assert got["stable_pct"] == pytest.approx(paper["stable_pct"], abs=STABLE_TOL)
-    assert got["avg_overhang"] == pytest.approx(paper["avg_overhang"], abs=OVERHANG_TOL)
-    assert got["reward_per_trial"] == pytest.approx(paper["reward_per_trial"], abs=REWARD_TOL)
+    assert got["stable_pct"] == pytest.approx(paper["stable_pct"], abs=10)
+    assert got["avg_overhang"] == pytest.approx(paper["avg_overhang"], abs=0.06)
+    assert got["reward_per_trial"] == pytest.approx(paper["reward_per_trial"], abs=0.15)
     assert got["decision_time"] == pytest.approx(paper["decision_time"], abs=0.15)
     assert got["avg_overhang"] < 1.45
