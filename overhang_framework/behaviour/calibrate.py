@@ -86,15 +86,19 @@ class Candidate:
     noise: float = 0.3
     #: The axes of :data:`AXES` the candidate draws: the mean risk, the medians of percept and hand.
     axes: tuple[tuple[str, float], ...] = ()
+    #: The spreads of the axes' distributions: the risk's beta concentration, percept's and hand's lognormal sigma.
+    risk_concentration: float = RISK_CONCENTRATION
+    axis_spread: float = AXIS_SPREAD
 
     @classmethod
-    def from_vector(cls, v: Sequence[float], noise: float = 0.3, axes: Sequence[str] = ()) -> "Candidate":
+    def from_vector(cls, v: Sequence[float], noise: float = 0.3, axes: Sequence[str] = (),
+                    risk_concentration: float = RISK_CONCENTRATION, axis_spread: float = AXIS_SPREAD) -> "Candidate":
         z = np.array([0.0, v[0], v[1]])
         p = np.exp(z - z.max())
         p /= p.sum()
         drawn = tuple((name, float(expit(x) if name == "risk" else math.exp(x))) for name, x in zip(axes, v[7:]))
         return cls(tuple(float(x) for x in p), float(math.exp(v[2])), float(math.exp(v[3])), float(expit(v[4])),
-                   float(v[5]), float(v[6]), noise, drawn)
+                   float(v[5]), float(v[6]), noise, drawn, risk_concentration, axis_spread)
 
     def distributions(self) -> dict[str, Distribution]:
         k = LAPSE_CONCENTRATION
@@ -102,9 +106,10 @@ class Candidate:
                "sigma": Distribution("lognormal", (self.sigma, SIGMA_SPREAD)),
                "beta": Distribution("lognormal", (self.beta, BETA_SPREAD)),
                "lapse": Distribution("beta", (self.lapse * k, (1 - self.lapse) * k))}
+        k = self.risk_concentration
         for name, value in self.axes:
-            out[name] = Distribution("beta", (value * RISK_CONCENTRATION, (1 - value) * RISK_CONCENTRATION)) \
-                if name == "risk" else Distribution("lognormal", (value, AXIS_SPREAD))
+            out[name] = Distribution("beta", (value * k, (1 - value) * k)) if name == "risk" \
+                else Distribution("lognormal", (value, self.axis_spread))
         return out
 
     @property
@@ -124,9 +129,9 @@ class Candidate:
             "sigma": {"dist": "lognormal", "median": round(self.sigma, 5), "sigma": SIGMA_SPREAD},
             "beta": {"dist": "lognormal", "median": round(self.beta, 4), "sigma": BETA_SPREAD},
             "lapse": {"dist": "beta", "a": round(self.lapse * k, 4), "b": round((1 - self.lapse) * k, 4)},
-            **{name: ({"dist": "beta", "a": round(value * RISK_CONCENTRATION, 4),
-                       "b": round((1 - value) * RISK_CONCENTRATION, 4)} if name == "risk"
-                      else {"dist": "lognormal", "median": round(value, 5), "sigma": AXIS_SPREAD})
+            **{name: ({"dist": "beta", "a": round(value * self.risk_concentration, 4),
+                       "b": round((1 - value) * self.risk_concentration, 4)} if name == "risk"
+                      else {"dist": "lognormal", "median": round(value, 5), "sigma": self.axis_spread})
                for name, value in self.axes}},
             "decision_time": {"t0": round(self.t0, 4), "per_call": round(self.per_call, 5), "noise": self.noise}}
 
@@ -243,8 +248,13 @@ class Library:
         """A candidate's free numbers with this library: :data:`FREE` and one per axis it draws."""
         return list(FREE) + [AXES[name] for name in self.axes]
 
+    #: The spreads of a candidate's axes (set for a library drawn narrowly, so that a candidate is no wider
+    #: than the proposal it is predicted from).
+    risk_concentration: float = RISK_CONCENTRATION
+    axis_spread: float = AXIS_SPREAD
+
     def candidate(self, vector: Sequence[float], noise: float = 0.3) -> Candidate:
-        return Candidate.from_vector(vector, noise, self.axes)
+        return Candidate.from_vector(vector, noise, self.axes, self.risk_concentration, self.axis_spread)
 
     def weights(self, candidate: Candidate) -> np.ndarray:
         dists = candidate.distributions()
@@ -364,7 +374,8 @@ def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Optional[
 
 def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_draws: int = 20_000,
         proposal: Optional[Mapping[str, Distribution]] = None, min_ess: float = MIN_ESS,
-        name: str = "paper_calibrated") -> dict:
+        name: str = "paper_calibrated", risk_concentration: float = RISK_CONCENTRATION,
+        axis_spread: float = AXIS_SPREAD) -> dict:
     """Fit each of the paper's conditions the library has; write ``calibration.json`` and ``<name>.yaml`` (a
     cohort config) to ``out``."""
     import yaml
@@ -377,8 +388,9 @@ def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_
     if not conditions:
         raise ConfigError(f"the library has no trial of the paper's conditions ({', '.join(TARGETS)})")
     for condition in conditions:
-        results[condition] = fit_condition(Library(trials, proposal, condition), seed=seed, maxiter=maxiter,
-                                           abc_draws=abc_draws, min_ess=min_ess)
+        library = Library(trials, proposal, condition)
+        library.risk_concentration, library.axis_spread = risk_concentration, axis_spread
+        results[condition] = fit_condition(library, seed=seed, maxiter=maxiter, abc_draws=abc_draws, min_ess=min_ess)
     out.mkdir(parents=True, exist_ok=True)
     summary = {c: {"candidate": r["candidate"].config(), "mean_depth": r["candidate"].mean_depth,
                    "loss": r["loss"], "predicted": r["predicted"], "z": r["z"], "paper": TARGETS[c],
@@ -420,6 +432,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     f.add_argument("--proposal", default="proposal", help="the cohort the library was drawn from")
     f.add_argument("--min-ess", type=float, default=MIN_ESS, help="the least effective sample of a candidate")
     f.add_argument("--name", default="paper_calibrated", help="the name of the cohort written")
+    f.add_argument("--risk-concentration", type=float, default=RISK_CONCENTRATION,
+                   help="the concentration of a candidate's beta distribution of risk")
+    f.add_argument("--axis-spread", type=float, default=AXIS_SPREAD,
+                   help="the lognormal sigma of a candidate's percept and hand")
     m = sub.add_parser("measure", help="the ten measures of a participants run, beside the paper's")
     m.add_argument("run_dir", type=Path)
     m.add_argument("--world", nargs="*", default=["world.physics=static"], help="world overrides for Γ")
@@ -444,7 +460,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if not args.trials.exists():
             raise ConfigError(f"{args.trials}: no such file (make it with the library command)")
         summary = fit(pd.read_csv(args.trials), args.out, args.seed, args.maxiter, args.abc_draws,
-                      proposal_distributions(args.proposal), args.min_ess, args.name)
+                      proposal_distributions(args.proposal), args.min_ess, args.name, args.risk_concentration,
+                      args.axis_spread)
         for condition, r in summary.items():
             z = ", ".join(f"{k} {v:+.2f}" for k, v in r["z"].items())
             print(f"{condition}: mean depth {r['mean_depth']:.2f}; distance from the paper in its SEMs: {z}; "
