@@ -166,10 +166,7 @@ class Expansion:
         if todo:
             stage = np.asarray(self._classify(todo))
             known = stage >= 0
-            where, answers = np.asarray(todo)[known], stage[known].astype(float)
-            if self._stability is not self._p:
-                self._stability[where] = answers
-            self._p[where] = risk_weight(answers, self.risk, self.risk_form)
+            self._store(np.asarray(todo)[known], stage[known].astype(float))
             self._looked[todo] = True
 
     def settle(self, indices) -> None:
@@ -177,11 +174,14 @@ class Expansion:
         self.look(indices)
         todo = [int(i) for i in indices if np.isnan(self._p[int(i)])]
         if todo:
-            answers = np.asarray(self._settle(todo), dtype=float)
-            if self._stability is not self._p:
-                self._stability[todo] = answers
-            self._p[todo] = risk_weight(answers, self.risk, self.risk_form)
+            self._store(todo, np.asarray(self._settle(todo), dtype=float))
             self.settled += len(todo)
+
+    def _store(self, where, answers: np.ndarray) -> None:
+        """Keep the predictor's ``answers`` for the children ``where``, and their weights for the search."""
+        if self._stability is not self._p:
+            self._stability[where] = answers
+        self._p[where] = risk_weight(answers, self.risk, self.risk_form)
 
     def is_known(self, i: int) -> bool:
         """Whether child ``i``'s answer is known (looked at and sure, or settled)."""

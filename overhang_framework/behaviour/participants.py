@@ -581,7 +581,7 @@ def decide(participant: Participant, spec: ConditionSpec, cohort: Cohort, state,
     seen = perceive(state, participant.percept, rng) if participant.percept else state
     decision = planner.plan(seen, predictor, value, budget, rng)
     action, lapsed = decision.action, bool(rng.random() < participant.lapse)
-    if seen is not state:
+    if seen is not state and not lapsed:
         action = _nearest_legal(world, state, action)
     if lapsed:
         legal = world.legal_actions(state)
