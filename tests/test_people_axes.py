@@ -370,6 +370,46 @@ def test_the_fit_recovers_each_participants_risk_on_a_grid(tmp_path):
     assert [len(m) for m in spec["models"]] == [2, 3] and spec["models"][1][2] == {"risk": 0.7, "risk_form": "power"}
 
 
+def test_the_fit_recovers_the_hand_each_participant_plans_for_on_a_grid(tmp_path):
+    """8 participants whose planners know a steady (0) or an unsteady (0.15 m) hand, with the student network,
+    depth 1, beta 20, 8 tasks each, fitted with the hand on the grid [0, 0.15] (each model of the grid judges
+    with ``predictor=hand`` around the student). Measured: 8 of 8 hands recovered (6 unsteady, 2 steady); the test asks for 6."""
+    import subprocess
+    import sys
+
+    sim, fit = tmp_path / "sim", tmp_path / "fit"
+    common = ["world.physics=static", "progress=false"]
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", *common, "predictor=cnn",
+                           "predictor.checkpoint=student", "cohort.participants={time_limited: 0, unconstrained: 8}",
+                           "cohort.n_tasks=8", *replace("cohort.parameters.depth", "{dist: fixed, value: 1}"),
+                           *replace("cohort.parameters.beta", "{dist: fixed, value: 20}"),
+                           *replace("cohort.parameters.lapse", "{dist: fixed, value: 0.02}"), "~cohort.parameters.sigma",
+                           "+cohort.parameters.hand={dist: categorical, values: [0.0, 0.15], p: [0.5, 0.5]}",
+                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(sim / "log.jsonl"), "--out", str(fit),
+                           *common, "~models.ipe", "~models.hybrid", "~models.cnn",
+                           "+models.cnn={predictor: cnn, checkpoint: student, hand: [0.0, 0.15]}", "depths=[1]",
+                           f"cache={tmp_path / 'scores.sqlite'}"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    truth = pd.read_csv(sim / "participants.csv").set_index("id")["hand"]
+    fits = pd.read_csv(fit / "fits.csv")
+    people = fits[~fits["participant"].str.startswith("pooled:")].set_index("participant")
+    assert set(people["hand"]) <= {0.0, 0.15} and (people["k"] == 3).all() and people["risk"].isna().all()
+    assert set(truth) == {0.0, 0.15}
+    hits = sum(people.loc[p, "hand"] == truth[p] for p in truth.index)
+    assert hits >= 6, people[["hand", "beta", "lapse"]]
+    text = (fit / "comparison.md").read_text()
+    assert "| true hand |" in text and "| fitted hand |" in text
+    spec = __import__("json").loads((fit / "fit.json").read_text())
+    configs = [m[1] for m in spec["models"]]
+    assert [c["name"] for c in configs] == ["cnn", "hand"] and configs[1]["inner"] == "cnn" \
+        and configs[1]["sd"] == 0.15 and configs[1]["inner_params"]["checkpoint"] == "student"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.check", str(fit), "--replicas", "1"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+
+
 # --- cohort=paper_people ----------------------------------------------------------------------------------
 
 def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_falls(tmp_path):

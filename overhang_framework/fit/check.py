@@ -148,6 +148,8 @@ class Fitted:
             parts.append(f"switch {self.model.switch}")
         if self.model.risk:
             parts.append(f"risk {self.model.risk:g}" + (f" ({self.model.risk_form})" if self.model.risk_form != "power" else ""))
+        if self.model.hand:
+            parts.append(f"hand {self.model.hand:g} m")
         return ", ".join(parts) + f", β {self.beta:.3g}, lapse {self.lapse:.3g}"
 
 
@@ -204,17 +206,18 @@ def fitted_models(spec: Mapping[str, Any], fits: pd.DataFrame, model: Optional[s
         switch = getattr(r, "switch", None)
         risk = getattr(r, "risk", None)
         risk = 0.0 if risk is None or pd.isna(risk) else float(risk)
-        found = [(c, k) for c, k in variants.get(str(r.model), [])
-                 if _same(c.get("sigma") if "sigma" in c else None, r.sigma if "sigma" in c else None)
-                 and ("switch" not in c or pd.isna(switch) or int(c["switch"]) == int(switch))
-                 and _same(float(k.get("risk", 0.0)), risk)]
+        hand = getattr(r, "hand", None)
+        hand = 0.0 if hand is None or pd.isna(hand) else float(hand)
+        found = [m for m in (Model(c, int(r.depth), str(r.family), float(k.get("risk", 0.0)),
+                                   str(k.get("risk_form", "power"))) for c, k in variants.get(str(r.model), []))
+                 if _same(m.sigma, r.sigma if m.sigma is not None else None)
+                 and (m.switch is None or pd.isna(switch) or m.switch == int(switch))
+                 and _same(m.risk, risk) and _same(m.hand, hand)]
         if not found:
-            raise CheckError(f"fits.csv's {r.model} of {r.participant} (sigma {r.sigma}, switch {switch}, risk {risk}) "
-                             "is not among the models of fit.json; the directory mixes two fits")
-        config, k = found[0]
-        out.append(Fitted(str(r.participant), str(r.condition), str(r.model),
-                          Model(config, int(r.depth), str(r.family), float(k.get("risk", 0.0)),
-                                str(k.get("risk_form", "power"))), float(r.beta), float(r.lapse), index))
+            raise CheckError(f"fits.csv's {r.model} of {r.participant} (sigma {r.sigma}, switch {switch}, risk {risk}, "
+                             f"hand {hand}) is not among the models of fit.json; the directory mixes two fits")
+        out.append(Fitted(str(r.participant), str(r.condition), str(r.model), found[0], float(r.beta), float(r.lapse),
+                          index))
     return out
 
 

@@ -1,11 +1,11 @@
-"""Fitting models to behaviour: ``beta`` and the lapse by optimisation over score tables, ``sigma`` and a
-hybrid's switch point on grids.
+"""Fitting models to behaviour: ``beta`` and the lapse by optimisation over score tables, ``sigma``, a
+hybrid's switch point, the planner's risk aversion and the hand it plans for on grids.
 
 A *model index* is a predictor family and a depth (``ipe/D2``, ``cnn/myopic``).
 Its free parameters are the softmax's ``beta`` and the ``lapse`` (always), the
 predictor's ``sigma`` when the model space gives a grid of several values
-(``ipe`` by default), and a hybrid's ``switch`` point likewise (``hybrid`` by default: every
-switch point the tasks allow). For each grid point the tables are fixed, so ``beta`` and
+(``ipe`` by default), a hybrid's ``switch`` point likewise (``hybrid`` by default: every
+switch point the tasks allow), and the ``risk`` and ``hand`` of their grids when given. For each grid point the tables are fixed, so ``beta`` and
 ``lapse`` are fitted by L-BFGS-B (SciPy) from several starts; the grid point
 with the highest likelihood is kept. Each fit reports its log-likelihood, its
 number of parameters ``k`` (2, plus one for each grid of several values), the number of
@@ -153,6 +153,8 @@ class ModelFit:
     switch: Optional[int] = None
     #: The planner's risk aversion of the best grid point (None: the model space has no risk grid).
     risk: Optional[float] = None
+    #: The motor noise the best grid point plans for (None: the model space has no hand grid).
+    hand: Optional[float] = None
     #: Held-out log-likelihood summed over the folds of a cross-validation (None: not cross-validated).
     heldout: Optional[float] = None
     folds: Optional[int] = None
@@ -168,7 +170,7 @@ class ModelFit:
     def row(self) -> dict:
         return {"participant": self.participant, "condition": self.condition, "model": self.label,
                 "family": self.family, "depth": self.depth, "sigma": self.sigma, "switch": self.switch,
-                "risk": self.risk, "beta": self.beta,
+                "risk": self.risk, "hand": self.hand, "beta": self.beta,
                 "lapse": self.lapse, "loglik": self.loglik, "k": self.k, "n": self.n, "bic": self.bic,
                 "aic": self.aic, "unmapped": self.unmapped, "heldout_loglik": self.heldout, "folds": self.folds}
 
@@ -243,9 +245,10 @@ def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables],
     every = [_decisions(t, mapped) for t in variants]
     best, which = _best(every)
     model = variants[which].model
-    grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch", "risk")]
+    grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch", "risk", "hand")]
     heldout = _heldout(every, mapped.trials, folds, seed) if folds >= 2 else None
     risked = any(t.model.risk for t in variants)
+    handed = any(t.model.hand for t in variants)
     return ModelFit(participant, condition, model.label, model.family, model.depth, model.sigma, best.beta,
                     best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch,
-                    model.risk if risked else None, heldout, folds if folds >= 2 else None)
+                    model.risk if risked else None, model.hand if handed else None, heldout, folds if folds >= 2 else None)

@@ -31,7 +31,7 @@ import pandas as pd
 
 from overhang_framework.errors import OverhangError
 from overhang_framework.fit.fitting import ModelFit, Placement, fit_index, log_placements, map_placements
-from overhang_framework.fit.scores import ScoreCache, ScoreTables, TableStats, share_memory, share_tables
+from overhang_framework.fit.scores import HAND, ScoreCache, ScoreTables, TableStats, share_memory, share_tables, without_hand
 from overhang_framework.interfaces import State
 from overhang_framework.search import state_key
 from overhang_framework.fit.space import ModelIndex
@@ -41,7 +41,7 @@ PARTS = "parts"
 FITS = "fits.csv"
 FIT_JSON = "fit.json"
 #: The columns of fits.csv, in order.
-COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "risk", "beta", "lapse", "loglik",
+COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "risk", "hand", "beta", "lapse", "loglik",
            "k", "n", "bic", "aic", "unmapped", "heldout_loglik", "folds"]
 POOLED = "pooled:"
 log = logging.getLogger("overhang_framework.fit")
@@ -220,6 +220,8 @@ class Predictors:
         key = self.key(config)
         if key not in self.built:
             predictor = self.registry.create("predictor", dict(config), world=self.world)
+            if config.get("name") == HAND and hasattr(predictor, "inner"):  # a hand asks the family's predictor
+                predictor.inner = self(without_hand(config))
             self.built[key] = predictor
             for other in list(self.built.values()):
                 self._share(other)

@@ -55,6 +55,8 @@ from overhang_framework.search import Expander, root_scores, state_key
 
 #: Predictor settings that set a noise level; the draw seed leaves them out (common random numbers).
 NOISE_KEYS = ("sigma", "sigma_position", "sigma_gravity", "sigma_friction")
+#: The predictor that knows its hand (``predictor=hand``): a model with a hand wraps its family's predictor in it.
+HAND = "hand"
 #: Other fitted settings the draw seed leaves out: a hybrid's switch point, so that the hybrids of every
 #: switch point ask their parts the same questions with the same draws and share the answers.
 SHARED_DRAW_KEYS = ("switch",)
@@ -74,7 +76,26 @@ def _strip(config: Any, keys: tuple) -> Any:
 
 
 def _strip_noise(config: Any) -> Any:
+    if isinstance(config, Mapping) and config.get("name") == HAND:  # the hands of a grid share their draws too
+        config = {k: v for k, v in config.items() if k != "sd"}
     return _strip(config, NOISE_KEYS + SHARED_DRAW_KEYS + ENGINE_KEYS)
+
+
+def with_hand(config: Mapping[str, Any], hand: float, nodes: int = 3) -> dict:
+    """``config`` (a predictor's, with its ``name``) as a planner with motor noise ``hand`` (metres) judges:
+    wrapped in ``predictor=hand``; ``config`` itself when ``hand`` is 0."""
+    config = dict(config)
+    if not hand:
+        return config
+    return {"name": HAND, "inner": config["name"], "inner_params": {k: v for k, v in config.items() if k != "name"},
+            "sd": float(hand), "nodes": int(nodes)}
+
+
+def without_hand(config: Mapping[str, Any]) -> Mapping[str, Any]:
+    """The predictor config inside a hand (:func:`with_hand`), or ``config`` itself."""
+    if config.get("name") == HAND and "inner" in config:
+        return {"name": config["inner"], **dict(config.get("inner_params") or {})}
+    return config
 
 
 @dataclass(frozen=True)
@@ -96,17 +117,27 @@ class Model:
             raise ValueError(f"depth must be a whole number >= 1, got {self.depth!r}")
         object.__setattr__(self, "risk", check_risk(self.risk, self.risk_form))
         if not self.family:
-            object.__setattr__(self, "family", str(self.predictor["name"]))
+            object.__setattr__(self, "family", str(without_hand(self.predictor)["name"]))
+
+    @property
+    def judged_by(self) -> Mapping[str, Any]:
+        """The family's predictor config: :attr:`predictor` without the hand around it."""
+        return without_hand(self.predictor)
+
+    @property
+    def hand(self) -> float:
+        """The motor noise (metres) the planner plans for: ``predictor=hand``'s ``sd``, else 0."""
+        return float(self.predictor.get("sd", 0.0)) if self.predictor.get("name") == HAND else 0.0
 
     @property
     def sigma(self) -> Optional[float]:
-        value = self.predictor.get("sigma")
+        value = self.judged_by.get("sigma")
         return None if value is None else float(value)
 
     @property
     def switch(self) -> Optional[int]:
         """The hybrid's switch point (towers of fewer blocks go to its early predictor), or None."""
-        value = self.predictor.get("switch")
+        value = self.judged_by.get("switch")
         return None if value is None else int(value)
 
     @property

@@ -1,5 +1,5 @@
-"""The model space of a fit: predictor families (with an optional sigma grid, a hybrid's switch points, and a
-grid of the planner's risk aversion) crossed with planning depths."""
+"""The model space of a fit: predictor families (with an optional sigma grid, a hybrid's switch points, a
+grid of the planner's risk aversion and one of the motor noise it plans for) crossed with planning depths."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
 from overhang_framework.errors import ConfigError
-from overhang_framework.fit.scores import Model
+from overhang_framework.fit.scores import HAND, Model, with_hand
 
 #: Depths a model may have (1: myopic).
 MAX_DEPTH = 5
@@ -17,7 +17,7 @@ MAX_DEPTH = 5
 @dataclass
 class ModelIndex:
     """One model index (a family and a depth) and its variants: one model per sigma of the grid, switch
-    point of the hybrid's grid and risk of the risk grid, else one."""
+    point of the hybrid's grid, risk of the risk grid and hand of the hand grid, else one."""
 
     family: str
     depth: int
@@ -60,6 +60,18 @@ def risk_grid(grid: Any, form: Any, family: str) -> tuple[list[float], str]:
     return sorted({float(v) for v in values}), str(form)
 
 
+def hand_grid(grid: Any, family: str) -> list[float]:
+    """The motor noises (metres) of ``fit.models.<family>.hand`` that the planner plans for (``[0.0]``, none,
+    when not set): each model of the grid judges with ``predictor=hand`` around the family's predictor."""
+    if grid is None:
+        return [0.0]
+    values = list(grid) if isinstance(grid, (list, tuple)) else [grid]
+    if not values or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1 for v in values):
+        raise ConfigError(f"fit.models.{family}.hand must be the motor noise a planner plans for, in metres from 0 "
+                          f"(none) to 1, or a list of them, got {grid!r}")
+    return sorted({float(v) for v in values})
+
+
 #: ``switch: all``: every switch point a task of ``blocks`` widths allows, from the late predictor judging every
 #: tower (2: the first placement makes a tower of 2 blocks) to the early one judging every tower (``blocks + 1``).
 ALL = "all"
@@ -86,9 +98,10 @@ def switch_grid(grid: Any, family: str, blocks: Optional[int], check_only: bool 
 def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Optional[int] = None,
                 check_only: bool = False) -> list[ModelIndex]:
     """The model indices of ``models`` (``family: {predictor: name, sigma: [grid], switch: [grid] or all,
-    risk: [grid], risk_form: power or cvar, <setting>: value}``) x ``depths``; ``blocks`` is the largest number
-    of widths of a task (for ``switch: all``). ``check_only`` checks every setting without resolving
-    ``switch: all``. ``risk`` is the planner's risk aversion (0, risk-neutral, when not given)."""
+    risk: [grid], risk_form: power or cvar, hand: [grid], <setting>: value}``) x ``depths``; ``blocks`` is the
+    largest number of widths of a task (for ``switch: all``). ``check_only`` checks every setting without
+    resolving ``switch: all``. ``risk`` is the planner's risk aversion (0, risk-neutral, when not given);
+    ``hand`` the motor noise its predictor averages over (``predictor=hand``; 0, none, when not given)."""
     if not models:
         raise ConfigError("fit.models is empty; give at least one predictor family")
     if not depths:
@@ -109,6 +122,10 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Option
                 raise ConfigError(f"fit.models.{family}.sigma must be a number >= 0 or a list of them, got {grid!r}")
         switches = switch_grid(spec.pop("switch", None), str(family), blocks, check_only)
         risks, form = risk_grid(spec.pop("risk", None), spec.pop("risk_form", "power"), str(family))
+        hands = hand_grid(spec.pop("hand", None), str(family))
+        if name == HAND and hands != [0.0]:
+            raise ConfigError(f"fit.models.{family}: a family of predictor {HAND!r} has its hand already; give "
+                              f"fit.models.{family}.hand with the predictor it wraps instead")
         configs = []
         for sigma, switch in itertools.product(sigmas, switches):
             overrides = dict(spec)
@@ -118,6 +135,6 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Option
                 overrides["switch"] = int(switch)
             configs.append(_predictor_config(str(name), overrides))
         for depth in depths:
-            out.append(ModelIndex(str(family), int(depth), [Model(c, int(depth), str(family), risk, form)
-                                                            for c in configs for risk in risks]))
+            out.append(ModelIndex(str(family), int(depth), [Model(with_hand(c, hand), int(depth), str(family), risk, form)
+                                                            for c in configs for hand in hands for risk in risks]))
     return out
