@@ -410,6 +410,77 @@ def test_the_fit_recovers_the_hand_each_participant_plans_for_on_a_grid(tmp_path
     assert proc.returncode == 0, proc.stderr
 
 
+def test_a_likelihood_over_percepts_that_all_see_the_real_tower_is_the_plain_likelihood(world):
+    """Percepts that each see the real tower give every decision the plain softmax-with-lapse probability."""
+    from overhang_framework.fit.likelihood import Decisions, log_likelihood
+    from overhang_framework.fit.percept import PerceivedDecisions, seen_to_real
+
+    rng = np.random.default_rng(3)
+    tables = [rng.normal(size=len(world.legal_actions(s))) for s in STATES]
+    chosen = [int(rng.integers(len(t))) for t in tables]
+    plain = Decisions.of(tables, chosen)
+    seen = PerceivedDecisions.of([[t] * 4 for t in tables], [[seen_to_real(world, s, s)] * 4 for s in STATES], chosen,
+                                 [len(t) for t in tables])
+    for beta, lapse in ((0.5, 0.0), (7.0, 0.1), (40.0, 0.5)):
+        assert log_likelihood(seen, beta, lapse) == pytest.approx(log_likelihood(plain, beta, lapse), rel=1e-12)
+    rows = np.array([0, 2])
+    assert log_likelihood(seen.subset(rows), 7.0, 0.1) == pytest.approx(log_likelihood(plain.subset(rows), 7.0, 0.1))
+
+
+def test_the_fits_percepts_are_a_function_of_the_state_and_share_their_draws_across_the_grid():
+    from overhang_framework.fit.percept import percepts
+
+    state = next(s for s in STATES if len(s.geometry.blocks) >= 3)
+    small, large = percepts(state, 0.01), percepts(state, 0.02)
+    assert [x.geometry for x in small] == [x.geometry for x in percepts(state, 0.01)]
+    assert len(small) == 8 and len({x.geometry for x in small}) > 1
+    assert all(a.geometry.blocks[0] == state.geometry.blocks[0] for a in small)  # the ground block is seen as it is
+    moved = lambda seen: np.array([b.x - r.x for b, r in zip(seen.geometry.blocks, state.geometry.blocks)])  # noqa: E731
+    # one set of draws, scaled (in the percepts where no overlap had to be separated)
+    assert sum(np.allclose(2 * moved(a), moved(b), atol=2e-6) for a, b in zip(small, large)) >= 4
+    assert percepts(state, 0.0) == [state] * 8
+
+
+def test_the_fit_recovers_each_participants_perceptual_noise_on_a_grid(tmp_path):
+    """8 participants who see the tower as it is or with an error of 0.1 m, with the student network, depth 1,
+    beta 20, 8 tasks each, fitted with the percept on the grid [0, 0.1] (each decision's choice averaged over 8
+    percepts). Measured: 7 of 8 recovered (6 with the error, 2 without; the miss, one with the error fitted
+    without it, has a fitted lapse of 0.05 that takes its odd choices); the test asks for 6."""
+    import subprocess
+    import sys
+
+    sim, fit = tmp_path / "sim", tmp_path / "fit"
+    common = ["world.physics=static", "progress=false"]
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", *common, "predictor=cnn",
+                           "predictor.checkpoint=student", "cohort.participants={time_limited: 0, unconstrained: 8}",
+                           "cohort.n_tasks=8", *replace("cohort.parameters.depth", "{dist: fixed, value: 1}"),
+                           *replace("cohort.parameters.beta", "{dist: fixed, value: 20}"),
+                           *replace("cohort.parameters.lapse", "{dist: fixed, value: 0.02}"), "~cohort.parameters.sigma",
+                           "+cohort.parameters.percept={dist: categorical, values: [0.0, 0.1], p: [0.5, 0.5]}",
+                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(sim / "log.jsonl"), "--out", str(fit),
+                           *common, "~models.ipe", "~models.hybrid", "~models.cnn",
+                           "+models.cnn={predictor: cnn, checkpoint: student, percept: [0.0, 0.1]}", "depths=[1]",
+                           f"cache={tmp_path / 'scores.sqlite'}"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    truth = pd.read_csv(sim / "participants.csv").set_index("id")["percept"]
+    fits = pd.read_csv(fit / "fits.csv")
+    people = fits[~fits["participant"].str.startswith("pooled:")].set_index("participant")
+    assert set(people["percept"]) <= {0.0, 0.1} and (people["k"] == 3).all()
+    assert set(truth) == {0.0, 0.1}
+    hits = sum(people.loc[p, "percept"] == truth[p] for p in truth.index)
+    assert hits >= 6, people[["percept", "beta", "lapse"]]
+    text = (fit / "comparison.md").read_text()
+    assert "| true percept |" in text and "| fitted percept |" in text
+    spec = __import__("json").loads((fit / "fit.json").read_text())
+    assert [len(m) for m in spec["models"]] == [2, 3] and spec["models"][1][2] == {"percept": 0.1}
+    assert spec["models"][0][1] == spec["models"][1][1]  # one predictor, asked in other towers
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.check", str(fit), "--replicas", "2"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+
+
 # --- cohort=paper_people ----------------------------------------------------------------------------------
 
 def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_falls(tmp_path):

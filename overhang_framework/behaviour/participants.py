@@ -518,6 +518,14 @@ def perceive(state, sd: float, rng: np.random.Generator):
     placement order; blocks of a layer that would then overlap are moved apart by the least displacement
     that makes them touch (as the IPE's perturbed scenes are). The layers, widths and blocks still to come
     are seen as they are."""
+    if sd <= 0 or len(state.geometry.blocks) < 2:
+        return state
+    return perceive_with(state, sd, rng.standard_normal(len(state.geometry.blocks) - 1))
+
+
+def perceive_with(state, sd: float, z: np.ndarray):
+    """:func:`perceive` with the standard normal draws ``z`` given, one per block after the first: the percepts
+    of every ``sd`` from one set of draws (the fit's common random numbers)."""
     from overhang_framework.geometry import Block, Geometry, separate_overlaps
     from overhang_framework.interfaces import State
 
@@ -526,7 +534,7 @@ def perceive(state, sd: float, rng: np.random.Generator):
         return state
     xs = np.array([b.x for b in blocks], dtype=float)
     seen = xs.copy()
-    seen[1:] = xs[1:] + sd * rng.standard_normal(len(blocks) - 1)
+    seen[1:] = xs[1:] + sd * np.asarray(z, dtype=float)[: len(blocks) - 1]
     widths = np.array([b.width for b in blocks], dtype=float)
     layers = np.array([b.layer for b in blocks], dtype=int)
     seen = separate_overlaps(seen[None, :], widths, layers, xs)[0]
@@ -534,7 +542,7 @@ def perceive(state, sd: float, rng: np.random.Generator):
     return State(Geometry(tuple(Block(b.width, float(x), b.layer) for b, x in zip(blocks, seen))), state.remaining)
 
 
-def _nearest_legal(world: World, state, action: Action) -> Action:
+def nearest_legal(world: World, state, action: Action) -> Action:
     """The legal grid action of ``state`` nearest ``action`` (same layer first, then by |x|), for a choice made
     on a misperceived tower that the real one does not allow."""
     if world.is_legal(state, action):
@@ -582,7 +590,7 @@ def decide(participant: Participant, spec: ConditionSpec, cohort: Cohort, state,
     decision = planner.plan(seen, predictor, value, budget, rng)
     action, lapsed = decision.action, bool(rng.random() < participant.lapse)
     if seen is not state and not lapsed:
-        action = _nearest_legal(world, state, action)
+        action = nearest_legal(world, state, action)
     if lapsed:
         legal = world.legal_actions(state)
         action = legal[int(rng.integers(len(legal)))]

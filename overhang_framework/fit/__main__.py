@@ -101,18 +101,26 @@ def check_config(cfg: DictConfig) -> dict:
     registry = Registry()
     world = registry.create("world", _plain(cfg.world))
     value = registry.create("value", _plain(cfg.value), world=world)
+    built = set()
     for index in space:  # a setting a predictor refuses stops the command here
         for model in index.variants:
-            registry.create("predictor", dict(model.predictor), world=world)
+            if repr(sorted(model.predictor.items())) not in built:
+                built.add(repr(sorted(model.predictor.items())))
+                registry.create("predictor", dict(model.predictor), world=world)
     return {"df": df, "space": space, "world": world, "value": value, "registry": registry, "shard": shard,
             "shards": shards, "logs": [str(Path(p).resolve()) for p in logs], "truth": truth}
 
 
 def model_entry(model, predictor: Mapping) -> list:
-    """A model as fit.json lists it: its label and predictor config, and its risk when it has one."""
+    """A model as fit.json lists it: its label and predictor config, and its risk and percept when it has them."""
     entry = [model.label, predictor]
+    extra = {}
     if model.risk:
-        entry.append({"risk": model.risk, "risk_form": model.risk_form})
+        extra.update(risk=model.risk, risk_form=model.risk_form)
+    if model.percept:
+        extra.update(percept=model.percept)
+    if extra:
+        entry.append(extra)
     return entry
 
 
@@ -185,7 +193,7 @@ def run(cfg: DictConfig) -> dict:
     journal.remove()
     fits = aggregate(out, checked["shards"])
     if fits is not None:
-        families = {i.family: str(i.variants[0].predictor.get("name")) for i in space}
+        families = {i.family: str(i.variants[0].judged_by.get("name")) for i in space}
         truth = read_truth(checked["truth"], families, checked["df"]) if checked["truth"] else None
         comparison(fits, out, truth=truth)
     stats = {label: vars(s) for label, s in result.stats.items()}

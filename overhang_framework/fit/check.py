@@ -40,6 +40,7 @@ already scored cost nothing.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -150,6 +151,8 @@ class Fitted:
             parts.append(f"risk {self.model.risk:g}" + (f" ({self.model.risk_form})" if self.model.risk_form != "power" else ""))
         if self.model.hand:
             parts.append(f"hand {self.model.hand:g} m")
+        if self.model.percept:
+            parts.append(f"percept {self.model.percept:g} m")
         return ", ".join(parts) + f", β {self.beta:.3g}, lapse {self.lapse:.3g}"
 
 
@@ -208,14 +211,18 @@ def fitted_models(spec: Mapping[str, Any], fits: pd.DataFrame, model: Optional[s
         risk = 0.0 if risk is None or pd.isna(risk) else float(risk)
         hand = getattr(r, "hand", None)
         hand = 0.0 if hand is None or pd.isna(hand) else float(hand)
+        percept = getattr(r, "percept", None)
+        percept = 0.0 if percept is None or pd.isna(percept) else float(percept)
         found = [m for m in (Model(c, int(r.depth), str(r.family), float(k.get("risk", 0.0)),
-                                   str(k.get("risk_form", "power"))) for c, k in variants.get(str(r.model), []))
+                                   str(k.get("risk_form", "power")), float(k.get("percept", 0.0)))
+                             for c, k in variants.get(str(r.model), []))
                  if _same(m.sigma, r.sigma if m.sigma is not None else None)
                  and (m.switch is None or pd.isna(switch) or m.switch == int(switch))
-                 and _same(m.risk, risk) and _same(m.hand, hand)]
+                 and _same(m.risk, risk) and _same(m.hand, hand) and _same(m.percept, percept)]
         if not found:
             raise CheckError(f"fits.csv's {r.model} of {r.participant} (sigma {r.sigma}, switch {switch}, risk {risk}, "
-                             f"hand {hand}) is not among the models of fit.json; the directory mixes two fits")
+                             f"hand {hand}, percept {percept}) is not among the models of fit.json; the directory "
+                             "mixes two fits")
         out.append(Fitted(str(r.participant), str(r.condition), str(r.model), found[0], float(r.beta), float(r.lapse),
                           index))
     return out
@@ -241,9 +248,14 @@ def replicate(tables, world, trials: Sequence[tuple[str, tuple]], fitted: Fitted
             if not actions:
                 break
             scores = np.asarray(tables.table(state), dtype=float)
-            p = choice_probabilities(scores, fitted.beta, fitted.lapse)
-            i = int(rng.choice(len(p), p=p / p.sum()))
-            probs.append(float(p[i]))
+            if fitted.model.percept:
+                i = _perceived_choice(tables, world, state, fitted, rng)
+                probs.append(decision_probability(tables, world, state, i, fitted.model.percept, fitted.beta,
+                                                  fitted.lapse))
+            else:
+                p = choice_probabilities(scores, fitted.beta, fitted.lapse)
+                i = int(rng.choice(len(p), p=p / p.sum()))
+                probs.append(float(p[i]))
             firsts.append(bool(i in set(ties(scores).tolist())))
             action = actions[i]
             before = [[b.width, b.x, b.layer] for b in state.geometry.blocks]
@@ -265,6 +277,31 @@ def replicate(tables, world, trials: Sequence[tuple[str, tuple]], fitted: Fitted
     return records, probs, firsts
 
 
+def _perceived_choice(tables, world, state, fitted: Fitted, rng: np.random.Generator) -> int:
+    """The index in ``world.legal_actions(state)`` of a choice of a participant with perceptual noise: a lapse,
+    or a softmax choice on the tower it sees, placed at the nearest placement the real tower allows."""
+    from overhang_framework.behaviour.participants import perceive
+    from overhang_framework.fit.likelihood import choice_probabilities
+    from overhang_framework.fit.percept import seen_to_real
+
+    if rng.random() < fitted.lapse:
+        return int(rng.integers(len(world.legal_actions(state))))
+    seen = perceive(state, fitted.model.percept, rng)
+    p = choice_probabilities(np.asarray(tables.table(seen), dtype=float), fitted.beta, 0.0)
+    return int(seen_to_real(world, state, seen)[int(rng.choice(len(p), p=p / p.sum()))])
+
+
+def decision_probability(tables, world, state, chosen: int, percept: float, beta: float, lapse: float) -> float:
+    """The probability of the action of index ``chosen`` in ``state`` under a model with perceptual noise
+    ``percept`` (the fit's estimate over its percepts, :mod:`overhang_framework.fit.percept`)."""
+    from overhang_framework.fit.percept import PerceivedDecisions, percepts, seen_to_real
+
+    seen = percepts(state, percept)
+    d = PerceivedDecisions.of([[tables.table(x) for x in seen]], [[seen_to_real(world, state, x) for x in seen]],
+                              [chosen], [len(world.legal_actions(state))])
+    return float(d.probabilities(beta, lapse)[0])
+
+
 def observed_agreement(tables, world, placements, states: str, fitted: Fitted) -> tuple[list[float], list[bool]]:
     """The probability the fitted model gives each executed (mapped) placement, and whether it ranks it first."""
     from overhang_framework.fit.fitting import map_placements
@@ -275,7 +312,11 @@ def observed_agreement(tables, world, placements, states: str, fitted: Fitted) -
     probs, firsts = [], []
     for state, chosen in zip(mapped.states, mapped.chosen):
         scores = np.asarray(tables.table(state), dtype=float)
-        probs.append(float(choice_probabilities(scores, fitted.beta, fitted.lapse)[chosen]))
+        if fitted.model.percept:
+            probs.append(decision_probability(tables, world, state, chosen, fitted.model.percept, fitted.beta,
+                                              fitted.lapse))
+        else:
+            probs.append(float(choice_probabilities(scores, fitted.beta, fitted.lapse)[chosen]))
         firsts.append(bool(chosen in set(ties(scores).tolist())))
     return probs, firsts
 
@@ -289,7 +330,8 @@ def spec_models(spec: Mapping[str, Any]) -> list:
         family, _, planner = str(label).rpartition("/")
         depth = 1 if planner == "myopic" else int(planner.lstrip("D"))
         k = dict(risk[0]) if risk else {}
-        out.append(Model(dict(config), depth, family, float(k.get("risk", 0.0)), str(k.get("risk_form", "power"))))
+        out.append(Model(dict(config), depth, family, float(k.get("risk", 0.0)), str(k.get("risk_form", "power")),
+                         float(k.get("percept", 0.0))))
     return out
 
 
@@ -322,9 +364,9 @@ def _tables(env: dict, model):
                 or (late is not None and predictors.built.get(predictors.key(dict(m.predictor))) is late))]
         for m in wanted:
             k = m.key(env["context"])
-            if k not in env["tables"]:
-                env["tables"][k] = ScoreTables(env["world"], env["value"], predictors(dict(m.predictor)), m,
-                                               env["context"], env["cache"])
+            if k not in env["tables"]:  # a model with a percept asks the tables of the same model without it
+                env["tables"][k] = ScoreTables(env["world"], env["value"], predictors(dict(m.predictor)),
+                                               dataclasses.replace(m, percept=0.0), env["context"], env["cache"])
         share_memory(list(env["tables"].values()))
         share_tables(list(env["tables"].values()))
     return env["tables"][key]

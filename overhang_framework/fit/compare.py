@@ -29,7 +29,7 @@ ALPHA = 0.05
 TRUTH = "participants.csv"
 #: The columns of a truth table (:func:`read_truth`).
 TRUTH_COLUMNS = ["participant", "true_predictor", "true_family", "true_model", "true_depth", "depth_reached",
-                 "true_sigma", "true_beta", "true_lapse", "true_switch", "true_risk", "true_hand"]
+                 "true_sigma", "true_beta", "true_lapse", "true_switch", "true_risk", "true_hand", "true_percept"]
 
 
 def per_participant(fits: pd.DataFrame) -> pd.DataFrame:
@@ -105,7 +105,8 @@ def read_truth(paths: Sequence[Path], families: Mapping[str, str],
             rows.append({"participant": str(r.id), "true_predictor": name, "true_family": family, "true_model": label,
                          "true_depth": depth, "depth_reached": None, "true_sigma": sigma, "true_beta": beta,
                          "true_lapse": _number(r.lapse), "true_switch": switch, "true_risk": risk,
-                         "true_hand": _number(getattr(r, "hand", None))})
+                         "true_hand": _number(getattr(r, "hand", None)),
+                         "true_percept": _number(getattr(r, "percept", None))})
     if not rows:
         return None
     truth = pd.DataFrame(rows, columns=TRUTH_COLUMNS).drop_duplicates("participant", keep="first")
@@ -404,22 +405,26 @@ def _truth_table(truth: pd.DataFrame, win: pd.DataFrame) -> list[str]:
 
     # the risk's columns only where the truth or the fit has a risk
     risked = truth["true_risk"].notna().any() or ("risk" in win.columns and win["risk"].notna().any())
-    # and the hand's likewise
+    # and the hand's and the percept's likewise
     handed = truth["true_hand"].notna().any() or ("hand" in win.columns and win["hand"].notna().any())
+    seen = truth["true_percept"].notna().any() or ("percept" in win.columns and win["percept"].notna().any())
     rows = []
     for r in truth.itertuples(index=False):
         fit = best.loc[r.participant]
         depth = num(r.true_depth) + ("" if pd.isna(r.depth_reached) else f" ({num(r.depth_reached)})")
         rows.append([r.participant, fit["condition"], r.true_model or f"{r.true_predictor} (not fitted)", depth,
                      num(r.true_sigma), num(r.true_switch)] + ([num(r.true_risk)] if risked else [])
-                    + ([num(r.true_hand)] if handed else [])
+                    + ([num(r.true_hand)] if handed else []) + ([num(r.true_percept)] if seen else [])
                     + [num(r.true_beta), num(r.true_lapse), fit["model"], num(fit["sigma"]), num(fit.get("switch"))]
                     + ([num(fit.get("risk"))] if risked else []) + ([num(fit.get("hand"))] if handed else [])
+                    + ([num(fit.get("percept"))] if seen else [])
                     + [num(fit["beta"]), num(fit["lapse"])])
     return [markdown_table(["participant", "condition", "true model", "true depth (reached)", "true sigma",
-                            "true switch"] + (["true risk"] if risked else []) + (["true hand"] if handed else []) + [
+                            "true switch"] + (["true risk"] if risked else []) + (["true hand"] if handed else [])
+                           + (["true percept"] if seen else []) + [
                             "true beta", "true lapse", "best model", "fitted sigma", "fitted switch"]
                            + (["fitted risk"] if risked else []) + (["fitted hand"] if handed else [])
+                           + (["fitted percept"] if seen else [])
                            + ["fitted beta", "fitted lapse"], rows), "",
             "True: the participants command's draws (participants.csv) and the generating model (run.json beside "
             "it); reached: the median depth the participant's searches completed in the log. Fitted: the best "

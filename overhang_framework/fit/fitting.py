@@ -5,7 +5,8 @@ A *model index* is a predictor family and a depth (``ipe/D2``, ``cnn/myopic``).
 Its free parameters are the softmax's ``beta`` and the ``lapse`` (always), the
 predictor's ``sigma`` when the model space gives a grid of several values
 (``ipe`` by default), a hybrid's ``switch`` point likewise (``hybrid`` by default: every
-switch point the tasks allow), and the ``risk`` and ``hand`` of their grids when given. For each grid point the tables are fixed, so ``beta`` and
+switch point the tasks allow), and the ``risk``, ``hand`` and ``percept`` of their grids when given
+(a percept's likelihood: :mod:`overhang_framework.fit.percept`). For each grid point the tables are fixed, so ``beta`` and
 ``lapse`` are fitted by L-BFGS-B (SciPy) from several starts; the grid point
 with the highest likelihood is kept. Each fit reports its log-likelihood, its
 number of parameters ``k`` (2, plus one for each grid of several values), the number of
@@ -155,6 +156,8 @@ class ModelFit:
     risk: Optional[float] = None
     #: The motor noise the best grid point plans for (None: the model space has no hand grid).
     hand: Optional[float] = None
+    #: The perceptual noise of the best grid point (None: the model space has no percept grid).
+    percept: Optional[float] = None
     #: Held-out log-likelihood summed over the folds of a cross-validation (None: not cross-validated).
     heldout: Optional[float] = None
     folds: Optional[int] = None
@@ -170,7 +173,7 @@ class ModelFit:
     def row(self) -> dict:
         return {"participant": self.participant, "condition": self.condition, "model": self.label,
                 "family": self.family, "depth": self.depth, "sigma": self.sigma, "switch": self.switch,
-                "risk": self.risk, "hand": self.hand, "beta": self.beta,
+                "risk": self.risk, "hand": self.hand, "percept": self.percept, "beta": self.beta,
                 "lapse": self.lapse, "loglik": self.loglik, "k": self.k, "n": self.n, "bic": self.bic,
                 "aic": self.aic, "unmapped": self.unmapped, "heldout_loglik": self.heldout, "folds": self.folds}
 
@@ -196,7 +199,16 @@ def fold_of(trials: Sequence[tuple[str, int]], folds: int, seed: int = 0) -> np.
 
 
 def _decisions(tables: ScoreTables, mapped: Mapped) -> Decisions:
-    return Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
+    percept = tables.model.percept
+    if not percept:
+        return Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
+    from overhang_framework.fit.percept import PerceivedDecisions, percepts, seen_to_real
+
+    world = tables.world
+    seen = [percepts(s, percept) for s in mapped.states]
+    return PerceivedDecisions.of([[tables.table(x) for x in row] for row in seen],
+                                 [[seen_to_real(world, s, x) for x in row] for s, row in zip(mapped.states, seen)],
+                                 mapped.chosen, [len(world.legal_actions(s)) for s in mapped.states])
 
 
 def _best(decisions: Sequence[Decisions]) -> tuple[SoftmaxFit, int]:
@@ -234,7 +246,7 @@ def _heldout(every: Sequence[Decisions], trials: Sequence[tuple[str, int]], fold
 
 
 def _subset(d: Decisions, rows: np.ndarray) -> Decisions:
-    return Decisions(d.scores[rows], d.sizes[rows], d.chosen[rows])
+    return d.subset(rows)
 
 
 def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables], mapped: Mapped,
@@ -245,10 +257,13 @@ def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables],
     every = [_decisions(t, mapped) for t in variants]
     best, which = _best(every)
     model = variants[which].model
-    grids = [len({getattr(t.model, name) for t in variants}) > 1 for name in ("sigma", "switch", "risk", "hand")]
+    grids = [len({getattr(t.model, name) for t in variants}) > 1
+             for name in ("sigma", "switch", "risk", "hand", "percept")]
     heldout = _heldout(every, mapped.trials, folds, seed) if folds >= 2 else None
     risked = any(t.model.risk for t in variants)
     handed = any(t.model.hand for t in variants)
+    perceived = any(t.model.percept for t in variants)
     return ModelFit(participant, condition, model.label, model.family, model.depth, model.sigma, best.beta,
                     best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch,
-                    model.risk if risked else None, model.hand if handed else None, heldout, folds if folds >= 2 else None)
+                    model.risk if risked else None, model.hand if handed else None, model.percept if perceived else None,
+                    heldout, folds if folds >= 2 else None)

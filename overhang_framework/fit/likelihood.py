@@ -69,6 +69,9 @@ class Decisions:
     def __len__(self) -> int:
         return len(self.chosen)
 
+    def subset(self, rows: np.ndarray) -> "Decisions":
+        return Decisions(self.scores[rows], self.sizes[rows], self.chosen[rows])
+
     def concat(self, other: "Decisions") -> "Decisions":
         m = max(self.scores.shape[1], other.scores.shape[1])
         pad = lambda s: np.pad(s, ((0, 0), (0, m - s.shape[1])), constant_values=-np.inf)  # noqa: E731
@@ -85,7 +88,10 @@ def choice_probabilities(scores: np.ndarray, beta: float, lapse: float) -> np.nd
 
 
 def log_likelihood(decisions: Decisions, beta: float, lapse: float) -> float:
-    """The sum over decisions of ``log P(executed action)``."""
+    """The sum over decisions of ``log P(executed action)`` (of a model with perceptual noise too:
+    :class:`~overhang_framework.fit.percept.PerceivedDecisions`)."""
+    if not isinstance(decisions, Decisions):
+        return decisions.log_likelihood(beta, lapse)
     if len(decisions) == 0:
         return 0.0
     s = decisions.scores

@@ -41,7 +41,7 @@ PARTS = "parts"
 FITS = "fits.csv"
 FIT_JSON = "fit.json"
 #: The columns of fits.csv, in order.
-COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "risk", "hand", "beta", "lapse", "loglik",
+COLUMNS = ["participant", "condition", "model", "family", "depth", "sigma", "switch", "risk", "hand", "percept", "beta", "lapse", "loglik",
            "k", "n", "bic", "aic", "unmapped", "heldout_loglik", "folds"]
 POOLED = "pooled:"
 log = logging.getLogger("overhang_framework.fit")
@@ -148,10 +148,10 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
     one ``shards`` is not used)."""
     started = time.perf_counter()
     mapped = {u.name: map_placements(world, u.placements, states) for u in units}
-    tables = [[ScoreTables(world, value, build_predictor(m.predictor), m, context, cache) for m in index.variants]
-              for index in space]
-    share_memory([t for variants in tables for t in variants])
-    share_tables([t for variants in tables for t in variants])
+    tables = model_tables(space, world, value, context, cache, build_predictor)
+    distinct = list({id(t.tables): t.tables for variants in tables for t in variants}.values())
+    share_memory(distinct)
+    share_tables(distinct)
 
     def done(label: str, unit: Unit) -> Optional[ModelFit]:
         return journal.get(label, unit.name) if journal is not None else None
@@ -159,8 +159,14 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
     todo = [u for u in units if any(done(index.label, u) is None for index in space)]
     mine = [s for u in todo for s in mapped[u.name].states]
     sharing = len(shards) > 1 and bool(mine) and cache is not None and cache.path is not None
-    fill_tables([t for variants in tables for t in variants], mine, jobs, on_table, on_total,
+    fill_tables(distinct, mine, jobs, on_table, on_total,
                 _shards_states(world, shards, shard, mine, states) if sharing else (), shard)
+    seen = seen_states(space, tables, mine)
+    if seen:
+        log.info("score tables: %d percepts of the decision states for %d models with perceptual noise",
+                 sum(len(s) for _, s in seen), len(seen))
+        for base, percepts_ in seen:
+            fill_tables([base], percepts_, jobs, on_table, on_total)
     fits: list[ModelFit] = []
     stats: dict[str, TableStats] = {}
     resumed = 0
@@ -175,11 +181,57 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
             fits.append(fit)
             on_unit(index.label, unit)
         total = TableStats()
-        for v in variants:
+        for v in {id(v.tables): v.tables for v in variants}.values():
             for name in ("asked", "computed", "cached", "predictor_calls", "seconds"):
                 setattr(total, name, getattr(total, name) + getattr(v.stats, name))
         stats[index.label] = total
     return JobResult(fits, stats, time.perf_counter() - started, resumed)
+
+
+class Variant:
+    """A model of the space and the score tables it asks: its own, or, for a model with perceptual noise, those of
+    the same model without it (asked in the towers the participant may have seen), shared with that model."""
+
+    def __init__(self, model, tables: ScoreTables):
+        self.model, self.tables, self.world = model, tables, tables.world
+
+    def table(self, state: State):
+        return self.tables.table(state)
+
+
+def model_tables(space: Sequence[ModelIndex], world, value, context: Mapping[str, Any], cache: Optional[ScoreCache],
+                 build_predictor: Callable[[Mapping[str, Any]], Any]) -> list[list[Variant]]:
+    """The variants of every model index of ``space``, one :class:`ScoreTables` per distinct table key."""
+    by_key: dict[str, ScoreTables] = {}
+    out = []
+    for index in space:
+        variants = []
+        for m in index.variants:
+            base = dataclasses.replace(m, percept=0.0)
+            key = base.key(context)
+            if key not in by_key:
+                by_key[key] = ScoreTables(world, value, build_predictor(base.predictor), base, context, cache)
+            variants.append(Variant(m, by_key[key]))
+        out.append(variants)
+    return out
+
+
+def seen_states(space: Sequence[ModelIndex], tables: Sequence[Sequence[Variant]], states: Sequence[State]
+                ) -> list[tuple[ScoreTables, list[State]]]:
+    """The towers the participants may have seen in ``states`` that each model with perceptual noise asks its
+    tables about, by tables (distinct seen towers, in the decision states' order)."""
+    from overhang_framework.fit.percept import percepts
+
+    out: dict[int, tuple[ScoreTables, dict]] = {}
+    for variants in tables:
+        for v in variants:
+            if not v.model.percept:
+                continue
+            base, seen = out.setdefault(id(v.tables), (v.tables, {}))
+            for s in states:
+                for x in percepts(s, v.model.percept):
+                    seen.setdefault(state_key(x), x)
+    return [(base, list(seen.values())) for base, seen in out.values()]
 
 
 def _shards_states(world, shards: Sequence[Sequence[Unit]], shard: int, mine: Sequence[State],

@@ -100,15 +100,18 @@ def without_hand(config: Mapping[str, Any]) -> Mapping[str, Any]:
 
 @dataclass(frozen=True)
 class Model:
-    """One model of the model space: a predictor config (as ``conf/predictor/*.yaml`` gives it), a depth, and
-    the planner's risk aversion (``risk``, ``risk_form``: :func:`overhang_framework.search.risk_weight`; 0,
-    risk-neutral, by default)."""
+    """One model of the model space: a predictor config (as ``conf/predictor/*.yaml`` gives it), a depth, the
+    planner's risk aversion (``risk``, ``risk_form``: :func:`overhang_framework.search.risk_weight`; 0,
+    risk-neutral, by default), and the participant's perceptual noise (``percept``; 0, none, by default)."""
 
     predictor: Mapping[str, Any]
     depth: int
     family: str = ""
     risk: float = 0.0
     risk_form: str = "power"
+    #: The perceptual noise (metres) of the participant the model describes: its tables are the model's without
+    #: it, asked in the towers the participant may have seen (:mod:`overhang_framework.fit.percept`).
+    percept: float = 0.0
 
     def __post_init__(self):
         from overhang_framework.search import check_risk
@@ -116,6 +119,10 @@ class Model:
         if isinstance(self.depth, bool) or not isinstance(self.depth, int) or self.depth < 1:
             raise ValueError(f"depth must be a whole number >= 1, got {self.depth!r}")
         object.__setattr__(self, "risk", check_risk(self.risk, self.risk_form))
+        if isinstance(self.percept, bool) or not isinstance(self.percept, (int, float)) \
+                or not np.isfinite(self.percept) or self.percept < 0:
+            raise ValueError(f"percept must be a number of metres >= 0, got {self.percept!r}")
+        object.__setattr__(self, "percept", float(self.percept))
         if not self.family:
             object.__setattr__(self, "family", str(without_hand(self.predictor)["name"]))
 
@@ -150,7 +157,8 @@ class Model:
         return f"{self.family}/{self.planner}"
 
     def key(self, context: Mapping[str, Any]) -> str:
-        """The key of this model's tables: every setting that changes a score (``context``: world and value)."""
+        """The key of this model's tables: every setting that changes a score (``context``: world and value); not
+        the percept, which changes the states a table is asked in, not the table."""
         data = {"predictor": _strip(dict(self.predictor), ENGINE_KEYS), "depth": self.depth,
                 "context": _strip(dict(context), ENGINE_KEYS)}
         if self.risk:  # a risk-neutral model's key is what it was before risk existed

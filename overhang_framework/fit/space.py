@@ -17,7 +17,8 @@ MAX_DEPTH = 5
 @dataclass
 class ModelIndex:
     """One model index (a family and a depth) and its variants: one model per sigma of the grid, switch
-    point of the hybrid's grid, risk of the risk grid and hand of the hand grid, else one."""
+    point of the hybrid's grid, risk of the risk grid, hand of the hand grid and percept of the percept grid,
+    else one."""
 
     family: str
     depth: int
@@ -72,6 +73,17 @@ def hand_grid(grid: Any, family: str) -> list[float]:
     return sorted({float(v) for v in values})
 
 
+def percept_grid(grid: Any, family: str) -> list[float]:
+    """The perceptual noises (metres) of ``fit.models.<family>.percept`` (``[0.0]``, none, when not set)."""
+    if grid is None:
+        return [0.0]
+    values = list(grid) if isinstance(grid, (list, tuple)) else [grid]
+    if not values or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1 for v in values):
+        raise ConfigError(f"fit.models.{family}.percept must be a perceptual noise in metres from 0 (none) to 1, or "
+                          f"a list of them, got {grid!r}")
+    return sorted({float(v) for v in values})
+
+
 #: ``switch: all``: every switch point a task of ``blocks`` widths allows, from the late predictor judging every
 #: tower (2: the first placement makes a tower of 2 blocks) to the early one judging every tower (``blocks + 1``).
 ALL = "all"
@@ -98,10 +110,11 @@ def switch_grid(grid: Any, family: str, blocks: Optional[int], check_only: bool 
 def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Optional[int] = None,
                 check_only: bool = False) -> list[ModelIndex]:
     """The model indices of ``models`` (``family: {predictor: name, sigma: [grid], switch: [grid] or all,
-    risk: [grid], risk_form: power or cvar, hand: [grid], <setting>: value}``) x ``depths``; ``blocks`` is the
+    risk: [grid], risk_form: power or cvar, hand: [grid], percept: [grid], <setting>: value}``) x ``depths``; ``blocks`` is the
     largest number of widths of a task (for ``switch: all``). ``check_only`` checks every setting without
     resolving ``switch: all``. ``risk`` is the planner's risk aversion (0, risk-neutral, when not given);
-    ``hand`` the motor noise its predictor averages over (``predictor=hand``; 0, none, when not given)."""
+    ``hand`` the motor noise its predictor averages over (``predictor=hand``; 0, none, when not given);
+    ``percept`` the participant's perceptual noise (0, none, when not given)."""
     if not models:
         raise ConfigError("fit.models is empty; give at least one predictor family")
     if not depths:
@@ -123,6 +136,7 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Option
         switches = switch_grid(spec.pop("switch", None), str(family), blocks, check_only)
         risks, form = risk_grid(spec.pop("risk", None), spec.pop("risk_form", "power"), str(family))
         hands = hand_grid(spec.pop("hand", None), str(family))
+        seen = percept_grid(spec.pop("percept", None), str(family))
         if name == HAND and hands != [0.0]:
             raise ConfigError(f"fit.models.{family}: a family of predictor {HAND!r} has its hand already; give "
                               f"fit.models.{family}.hand with the predictor it wraps instead")
@@ -135,6 +149,7 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Option
                 overrides["switch"] = int(switch)
             configs.append(_predictor_config(str(name), overrides))
         for depth in depths:
-            out.append(ModelIndex(str(family), int(depth), [Model(with_hand(c, hand), int(depth), str(family), risk, form)
-                                                            for c in configs for hand in hands for risk in risks]))
+            out.append(ModelIndex(str(family), int(depth), [
+                Model(with_hand(c, hand), int(depth), str(family), risk, form, percept)
+                for c in configs for hand in hands for risk in risks for percept in seen]))
     return out
