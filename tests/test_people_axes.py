@@ -481,6 +481,72 @@ def test_the_fit_recovers_each_participants_perceptual_noise_on_a_grid(tmp_path)
     assert proc.returncode == 0, proc.stderr
 
 
+def test_the_explanations_recovery_gives_each_generator_its_explanations_family_and_own_parameters():
+    from overhang_framework.config import compose_config
+    from overhang_framework.fit.recovery import check_config, participants_config
+
+    cfg = compose_config([], config_name="recovery_explanations")
+    cfg.out = "/tmp/unused"
+    checked = check_config(cfg)
+    assert checked["families"] == {"none": "plain", "shallow": "plain", "noise": "noise", "risk": "risk",
+                                   "hand": "hand", "percept": "percept"}
+    labels = [index.label for index in checked["space"]]
+    assert labels == [f"{f}/{d}" for f in ("plain", "noise", "risk", "hand", "percept") for d in ("myopic", "D2")]
+    for name, axis, expected in (("shallow", "depth", {"dist": "fixed", "value": 1}),
+                                 ("risk", "risk", {"dist": "uniform", "low": 0.5, "high": 0.9}),
+                                 ("none", "depth", {"dist": "fixed", "value": 2})):
+        sim = participants_config(cfg, name, cfg.generators[name], 0)
+        assert dict(sim.cohort.parameters[axis]) == expected
+        assert "family" not in sim.predictor and "parameters" not in sim.predictor and sim.predictor.K == 20
+    assert "risk" not in participants_config(cfg, "none", cfg.generators["none"], 0).cohort.parameters
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--config-name", "nosuch"], "--config-name 'nosuch' is not a recovery config; allowed: recovery, "
+                                  "recovery_explanations"),
+    (["--config-name", "recovery_explanations", "generators.risk.family=crystal"],
+     "generators.risk.family: 'crystal' is not a fitted family; fitted families: hand, noise, percept, plain, risk"),
+    (["--config-name", "recovery_explanations", "generators.risk.parameters=3"],
+     "generators.risk.parameters must be a mapping"),
+])
+def test_a_bad_explanations_recovery_is_refused_in_one_line(tmp_path, args, words):
+    import subprocess
+    import sys
+
+    out = tmp_path / "rec"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.recovery", "--out", str(out), *args],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1, proc.stderr
+    assert words in proc.stderr, proc.stderr
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_the_explanations_recovery_runs_end_to_end_and_reports_the_new_axes_and_each_generators_bms(tmp_path):
+    """Three generators (none, shallow, risk), 3 participants each, 3 tasks: about 2 minutes here."""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "rec"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.recovery", "--config-name",
+                           "recovery_explanations", "--out", str(out), "participants=3", "n_tasks=3", "progress=false",
+                           "~generators.noise", "~generators.hand", "~generators.percept", "~models.hand",
+                           "~models.percept", f"cache={tmp_path / 'scores.sqlite'}"],
+                          capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "recovery.json").read_text())
+    table = pd.read_csv(out / "recovery.csv")
+    assert summary["participants"] == 9 and set(table["generator"]) == {"none", "shallow", "risk"}
+    assert set(table.loc[table["generator"] == "shallow", "true_depth"]) == {1}
+    risky = table[table["generator"] == "risk"]
+    assert risky["true_risk"].between(0.5, 0.9).all() and risky["fitted_risk"].isin([0.5, 0.7, 0.9]).all()
+    assert table.loc[table["generator"] != "risk", "true_risk"].isna().all()
+    assert set(summary["bms"]) == {"none", "shallow", "risk"} and summary["risk"]["n"] == 3
+    text = (out / "recovery.md").read_text()
+    assert "## Each generator's participants compared by random-effects BMS" in text and "| risk | 3 |" in text
+
+
 # --- cohort=paper_people ----------------------------------------------------------------------------------
 
 def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_falls(tmp_path):

@@ -23,6 +23,11 @@ score cache). Overrides are Hydra's, on ``conf/recovery.yaml``::
     python -m overhang_framework.fit.recovery --out runs/recovery
     python -m overhang_framework.fit.recovery --out runs/recovery participants=40 jobs=2 \\
         '~generators.hybrid' '~models.hybrid'
+
+``--config-name recovery_explanations`` recovers explanations instead of predictor families: one generator
+per source of error (shallow planning, dynamics noise, risk aversion, a hand planned for, perceptual noise),
+each generator's ``family`` naming the fitted family that stands for it and its ``parameters`` replacing
+those it draws differently; the report adds the new axes' recovery and each generator's BMS.
 """
 
 from __future__ import annotations
@@ -44,10 +49,15 @@ from overhang_framework.results import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("overhang_framework.fit.recovery")
 CONFIG_NAME = "recovery"
+#: The recovery configs ``--config-name`` may choose: the predictor families', and the explanations' of
+#: docs/people.md (``conf/recovery_explanations.yaml``).
+CONFIGS = (CONFIG_NAME, "recovery_explanations")
 TOP = ("world", "value", "out", "seed", "generators", "participants", "tasks", "n_tasks", "parameters", "models",
        "depths", "states", "cache", "jobs", "progress")
 #: The condition every simulated participant does.
 CONDITION = "unconstrained"
+#: The axes of a participant beyond the paper's whose truth and fit (on a grid) the report sets side by side.
+AXES = ("risk", "hand", "percept")
 #: The targets of the issue this command reports against (share of participants, correlation).
 TARGETS = {"depth": 0.8, "family": 0.8, "sigma_r": 0.8}
 
@@ -69,6 +79,9 @@ def check_config(cfg: DictConfig) -> dict:
     if not isinstance(generators, Mapping) or not generators:
         raise ConfigError("generators must name at least one generating model, e.g. {ipe: {predictor: ipe}}")
     for name, spec in generators.items():
+        if isinstance(spec, Mapping) and spec.get("parameters") is not None and not isinstance(spec["parameters"], Mapping):
+            raise ConfigError(f"generators.{name}.parameters must be a mapping of parameter names to distributions "
+                              f"(as cohort.parameters), got {spec['parameters']!r}")
         if not isinstance(spec, Mapping):
             raise ConfigError(f"generators.{name} must be a mapping with a predictor name and its settings, "
                               f"got {spec!r}")
@@ -93,8 +106,15 @@ def check_config(cfg: DictConfig) -> dict:
     for family, spec in (_plain(cfg.models) or {}).items():
         fitted.setdefault(str((spec or {}).get("predictor", family)), str(family))
     families = {}
+    labels = {index.family for index in space}
     for name, spec in generators.items():
         predictor = str(spec.get("predictor", name))
+        if spec.get("family") is not None:  # the fitted family that stands for this generator's explanation
+            if str(spec["family"]) not in labels:
+                raise ConfigError(f"generators.{name}.family: {spec['family']!r} is not a fitted family; fitted "
+                                  f"families: {', '.join(sorted(labels))}")
+            families[str(name)] = str(spec["family"])
+            continue
         if predictor not in fitted:
             raise ConfigError(f"generators.{name} uses the predictor {predictor!r}, which no fitted family uses; "
                               f"fitted families: {', '.join(f'{f} ({p})' for p, f in fitted.items())}")
@@ -110,11 +130,13 @@ def participants_config(cfg: DictConfig, name: str, spec: Mapping[str, Any], ind
 
     settings = dict(spec)
     predictor = str(settings.pop("predictor", name))
+    settings.pop("family", None)
+    own = dict(settings.pop("parameters", None) or {})
     registry = Registry()  # check_config has refused unknown predictors
     shipped = predictor in _predictor_configs()
     base = compose_config([f"predictor={predictor}"] if shipped else [], config_name="participants")
     base.predictor = OmegaConf.merge(base.predictor if shipped else {"name": predictor}, settings)
-    parameters = dict(_plain(cfg.parameters))
+    parameters = {**dict(_plain(cfg.parameters)), **own}
     takes = accepted_parameters(registry.get("predictor", predictor).factory)
     if takes is not None and "sigma" not in takes:
         parameters["sigma"] = None
@@ -211,6 +233,8 @@ def recovery_table(fits: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
             "fitted_beta": None if true_fit is None else float(true_fit["beta"]),
             "fitted_lapse": None if true_fit is None else float(true_fit["lapse"]),
             "n": int(win["n"]),
+            **{f"{k}_{axis}": _num(v) for axis in AXES for k, v in (
+                ("true", getattr(t, axis, None)), ("fitted", None if true_fit is None else true_fit.get(axis)))},
         })
     return pd.DataFrame(rows)
 
@@ -246,8 +270,8 @@ def correlation(x: Sequence[float], y: Sequence[float]) -> dict:
     return out
 
 
-def summarise(table: pd.DataFrame, models: Sequence[str]) -> dict:
-    """The headline figures of a recovery table."""
+def summarise(table: pd.DataFrame, models: Sequence[str], bms_of: Optional[dict] = None) -> dict:
+    """The headline figures of a recovery table (``bms_of``: :func:`bms_by_generator`'s, when computed)."""
     family_ok = table["winner_family"] == table["true_family"]
     depth_ok = table["fitted_depth"] == table["true_depth"]
     has_sigma = table["true_sigma"].notna() & table["fitted_sigma"].notna()
@@ -264,6 +288,14 @@ def summarise(table: pd.DataFrame, models: Sequence[str]) -> dict:
         "lapse": correlation(table["true_lapse"], table["fitted_lapse"]),
         "models": list(models),
     }
+    for axis in AXES:
+        both = table[f"true_{axis}"].notna() & table[f"fitted_{axis}"].notna() if f"true_{axis}" in table else []
+        if len(table) and f"true_{axis}" in table and both.any():
+            summary[axis] = correlation(table.loc[both, f"true_{axis}"], table.loc[both, f"fitted_{axis}"])
+            summary[axis]["median_bias"] = float(np.median(table.loc[both, f"fitted_{axis}"]
+                                                           - table.loc[both, f"true_{axis}"]))
+    if bms_of is not None:
+        summary["bms"] = bms_of
     summary["targets"] = {
         "depth": {"target": TARGETS["depth"], "value": summary["depth_recovered"],
                   "met": bool(summary["depth_recovered"] >= TARGETS["depth"])},
@@ -274,6 +306,29 @@ def summarise(table: pd.DataFrame, models: Sequence[str]) -> dict:
         summary["targets"]["sigma_r"] = {"target": TARGETS["sigma_r"], "value": summary["sigma"]["r"],
                                          "met": bool(summary["sigma"]["r"] >= TARGETS["sigma_r"])}
     return summary
+
+
+def bms_by_generator(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
+    """Each generator's participants alone, compared by random-effects BMS over the fitted models (log evidence
+    ``-BIC / 2``): the model frequencies' most frequent model, its protected exceedance probability, and the
+    Bayesian omnibus risk."""
+    from overhang_framework.fit.bms import bms
+    from overhang_framework.fit.compare import per_participant
+
+    df = per_participant(fits)
+    out = {}
+    for generator, group in truth.groupby("generator", sort=False):
+        mine = df[df["participant"].isin(set(group["participant"]))]
+        wide = mine.pivot_table(index="participant", columns="model", values="bic", aggfunc="first").dropna()
+        if len(wide) < 2 or wide.shape[1] < 2:
+            continue
+        result = bms(-wide.to_numpy(dtype=float) / 2)
+        pxp = np.asarray(result.pxp, dtype=float)
+        best = int(np.argmax(pxp))
+        out[str(generator)] = {"participants": int(len(wide)), "model": str(wide.columns[best]),
+                               "pxp": float(pxp[best]), "bor": float(result.bor),
+                               "frequency": float(np.asarray(result.frequencies, dtype=float)[best])}
+    return out
 
 
 def _matrix_md(matrix: pd.DataFrame) -> str:
@@ -314,6 +369,19 @@ def report(table: pd.DataFrame, summary: dict, out: Path) -> str:
                              [[p, summary[p]["n"], _fmt(summary[p].get("r")), _fmt(summary[p].get("r_log")),
                                _fmt(summary[p].get("median_abs_error"), 4), _fmt(summary[p].get("median_ratio"))]
                               for p in ("sigma", "beta", "lapse")]), ""]
+    axes = [a for a in AXES if a in summary]
+    if axes:
+        lines += ["## The new axes under the generating model index (on their grids)", "",
+                  markdown_table(["parameter", "n", "r", "median abs. error", "median bias (fitted - true)"],
+                                 [[a, summary[a]["n"], _fmt(summary[a].get("r")),
+                                   _fmt(summary[a].get("median_abs_error"), 4), _fmt(summary[a].get("median_bias"), 4)]
+                                  for a in axes]), ""]
+    if summary.get("bms"):
+        lines += ["## Each generator's participants compared by random-effects BMS", "",
+                  markdown_table(["generator", "participants", "most frequent model", "its frequency", "its PXP",
+                                  "omnibus risk"],
+                                 [[g, v["participants"], v["model"], _fmt(v["frequency"], 2), _fmt(v["pxp"], 2),
+                                   _fmt(v["bor"], 3)] for g, v in summary["bms"].items()]), ""]
     lines += ["## Depth: generating against fitted (within the generating family)", "", _matrix_md(depth_matrix), ""]
     lines += ["## Model: generating against winning", "", _matrix_md(model_matrix), "",
               "Off-diagonal cells are models the data cannot tell apart at this size: the winning model "
@@ -377,7 +445,7 @@ def run(cfg: DictConfig) -> dict:
     log_path, truth = simulate(cfg, out, checked["generators"], checked["families"])
     fits = fit(cfg, out, log_path)
     table = recovery_table(fits, truth)
-    summary = summarise(table, [index.label for index in space])
+    summary = summarise(table, [index.label for index in space], bms_by_generator(fits, truth))
     report(table, summary, out)
     return summary
 
@@ -389,13 +457,17 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     if "--help" in args or "-h" in args:
         print(__doc__)
         return
-    words, out = [], None
+    words, out, name = [], None, CONFIG_NAME
     it = iter(args)
     for word in it:
         if word == "--out":
             out = next(it, None)
         elif word.startswith("--out="):
             out = word.split("=", 1)[1]
+        elif word in ("--config-name", "-cn"):
+            name = next(it, None) or ""
+        elif word.startswith("--config-name="):
+            name = word.split("=", 1)[1]
         else:
             words.append(word)
     try:
@@ -405,7 +477,9 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             raise ConfigError(f"recovery takes overrides only, not {' '.join(flags)}")
         if out is not None:
             overrides.append(f"out='{Path(out).resolve()}'")
-        cfg = compose_checked(overrides, config_name=CONFIG_NAME)
+        if name not in CONFIGS:
+            raise ConfigError(f"--config-name {name!r} is not a recovery config; allowed: {', '.join(CONFIGS)}")
+        cfg = compose_checked(overrides, config_name=name)
         check_config(cfg)
         Path(cfg.out).mkdir(parents=True, exist_ok=True)
         logging.basicConfig(filename=str(Path(cfg.out) / "recovery.log"), level=logging.INFO,
