@@ -1,4 +1,5 @@
-"""Planted and null studies: ``python -m overhang_framework.study {dual_transition,null,paper_calibrated} --out DIR``.
+"""Planted and null studies: ``python -m overhang_framework.study {dual_transition,null,paper_calibrated,paper_people}
+--out DIR``.
 
 Can the whole pipeline find the paper's dual transition where it is present, and not find it where
 it is absent? A study simulates a cohort of known participants, analyses their log as a lab would
@@ -15,6 +16,9 @@ analyse people's, fits the models, checks the fits, and reports the paper's find
   (:mod:`overhang_framework.behaviour.calibrate`; docs/fidelity.md says which it matches and which not).
   A fit of one family (the others deleted from the fit's ``models``) leaves the family finding untested,
   and says so.
+* ``paper_people`` (``cohort=paper_people``, which names its own predictor, the hybrid): the paper's people
+  with the axes of docs/people.md (risk aversion, a hand planned for, perceptual noise), each condition
+  calibrated to the paper's Table 1 and Γ by direct simulation.
 
 The steps, each continued where it stopped when the command is run again with the same settings:
 ``sim/`` (:mod:`overhang_framework.participants`), ``analysis/`` (Table 1, Γ, Fig. 4 of
@@ -77,7 +81,8 @@ from overhang_framework.results import atomic_write_json, atomic_write_text
 #: Study name -> (cohort config, participants overrides, planted).
 STUDIES = {"dual_transition": ("dual_transition", ["predictor=hybrid"], True),
            "null": ("null_effect", ["predictor=ipe"], False),
-           "paper_calibrated": ("paper_calibrated", ["predictor=hybrid"], True)}
+           "paper_calibrated": ("paper_calibrated", ["predictor=hybrid"], True),
+           "paper_people": ("paper_people", [], True)}
 ALPHA = 0.05
 #: Towers of at most EARLY blocks are early, of at least LATE blocks late (Fig. 4's crossover).
 EARLY, LATE = 3, 5
