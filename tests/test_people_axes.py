@@ -334,73 +334,60 @@ def test_a_lazy_predictors_remembered_answers_are_weighted_as_its_fresh_ones(reg
         assert not np.array_equal(averse, neutral)
 
 
-def test_the_fit_recovers_each_participants_risk_on_a_grid(tmp_path):
-    """8 risk-neutral or risk-averse (0.7) participants with the student network (graded, deterministic answers,
-    so the fit sees the agents' own scores), depth 1, beta 20, 8 tasks each, fitted with risk on the grid
-    [0, 0.7]. Measured: 7 of 8 risks recovered (the miss, a risk-averse participant fitted as neutral,
-    has a lapse of 0.09); the test asks for 6."""
+def simulate_and_fit_an_axis(tmp_path, axis: str, values: tuple):
+    """8 participants of the student network (graded, deterministic answers, so the fit sees the agents' own
+    scores), depth 1, beta 20, lapse 0.02, 8 tasks each, with ``axis`` drawn from ``values`` (equally likely),
+    fitted with ``axis`` on the grid ``values``. Returns the fit's directory, each participant's true value
+    and their fits (by participant)."""
     import subprocess
     import sys
 
     sim, fit = tmp_path / "sim", tmp_path / "fit"
     common = ["world.physics=static", "progress=false"]
+    grid = "[" + ", ".join(str(v) for v in values) + "]"
     proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", *common, "predictor=cnn",
                            "predictor.checkpoint=student", "cohort.participants={time_limited: 0, unconstrained: 8}",
                            "cohort.n_tasks=8", *replace("cohort.parameters.depth", "{dist: fixed, value: 1}"),
                            *replace("cohort.parameters.beta", "{dist: fixed, value: 20}"),
                            *replace("cohort.parameters.lapse", "{dist: fixed, value: 0.02}"), "~cohort.parameters.sigma",
-                           "+cohort.parameters.risk={dist: categorical, values: [0.0, 0.7], p: [0.5, 0.5]}",
+                           f"+cohort.parameters.{axis}={{dist: categorical, values: {grid}, p: [0.5, 0.5]}}",
                            f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(sim / "log.jsonl"), "--out", str(fit),
                            *common, "~models.ipe", "~models.hybrid", "~models.cnn",
-                           "+models.cnn={predictor: cnn, checkpoint: student, risk: [0.0, 0.7]}", "depths=[1]",
+                           f"+models.cnn={{predictor: cnn, checkpoint: student, {axis}: {grid}}}", "depths=[1]",
                            f"cache={tmp_path / 'scores.sqlite'}"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
-    truth = pd.read_csv(sim / "participants.csv").set_index("id")["risk"]
+    truth = pd.read_csv(sim / "participants.csv").set_index("id")[axis]
     fits = pd.read_csv(fit / "fits.csv")
     people = fits[~fits["participant"].str.startswith("pooled:")].set_index("participant")
-    assert set(people["risk"]) <= {0.0, 0.7} and (people["k"] == 3).all()
-    assert set(truth) == {0.0, 0.7}
+    assert set(people[axis]) <= set(values) and (people["k"] == 3).all() and set(truth) == set(values)
+    text = (fit / "comparison.md").read_text()
+    assert f"| true {axis} |" in text and f"| fitted {axis} |" in text
+    return fit, truth, people
+
+
+def test_the_fit_recovers_each_participants_risk_on_a_grid(tmp_path):
+    """Risk 0 or 0.7 (:func:`simulate_and_fit_an_axis`). Measured: 7 of 8 risks recovered (the miss, a
+    risk-averse participant fitted as neutral, has a lapse of 0.09); the test asks for 6."""
+    fit, truth, people = simulate_and_fit_an_axis(tmp_path, "risk", (0.0, 0.7))
     hits = sum(people.loc[p, "risk"] == truth[p] for p in truth.index)
     assert hits >= 6, people[["risk", "beta", "lapse"]]
-    text = (fit / "comparison.md").read_text()
-    assert "| true risk |" in text and "| fitted risk |" in text
     spec = __import__("json").loads((fit / "fit.json").read_text())
     assert [len(m) for m in spec["models"]] == [2, 3] and spec["models"][1][2] == {"risk": 0.7, "risk_form": "power"}
 
 
 def test_the_fit_recovers_the_hand_each_participant_plans_for_on_a_grid(tmp_path):
-    """8 participants whose planners know a steady (0) or an unsteady (0.15 m) hand, with the student network,
-    depth 1, beta 20, 8 tasks each, fitted with the hand on the grid [0, 0.15] (each model of the grid judges
-    with ``predictor=hand`` around the student). Measured: 8 of 8 hands recovered (6 unsteady, 2 steady); the test asks for 6."""
+    """A steady (0) or an unsteady (0.15 m) hand planned for (:func:`simulate_and_fit_an_axis`; each model of the
+    grid judges with ``predictor=hand`` around the student). Measured: 8 of 8 hands recovered (6 unsteady, 2
+    steady); the test asks for 6. The fit's check replays the fitted hands."""
     import subprocess
     import sys
 
-    sim, fit = tmp_path / "sim", tmp_path / "fit"
-    common = ["world.physics=static", "progress=false"]
-    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", *common, "predictor=cnn",
-                           "predictor.checkpoint=student", "cohort.participants={time_limited: 0, unconstrained: 8}",
-                           "cohort.n_tasks=8", *replace("cohort.parameters.depth", "{dist: fixed, value: 1}"),
-                           *replace("cohort.parameters.beta", "{dist: fixed, value: 20}"),
-                           *replace("cohort.parameters.lapse", "{dist: fixed, value: 0.02}"), "~cohort.parameters.sigma",
-                           "+cohort.parameters.hand={dist: categorical, values: [0.0, 0.15], p: [0.5, 0.5]}",
-                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(sim / "log.jsonl"), "--out", str(fit),
-                           *common, "~models.ipe", "~models.hybrid", "~models.cnn",
-                           "+models.cnn={predictor: cnn, checkpoint: student, hand: [0.0, 0.15]}", "depths=[1]",
-                           f"cache={tmp_path / 'scores.sqlite'}"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    truth = pd.read_csv(sim / "participants.csv").set_index("id")["hand"]
-    fits = pd.read_csv(fit / "fits.csv")
-    people = fits[~fits["participant"].str.startswith("pooled:")].set_index("participant")
-    assert set(people["hand"]) <= {0.0, 0.15} and (people["k"] == 3).all() and people["risk"].isna().all()
-    assert set(truth) == {0.0, 0.15}
+    fit, truth, people = simulate_and_fit_an_axis(tmp_path, "hand", (0.0, 0.15))
+    assert people["risk"].isna().all()
     hits = sum(people.loc[p, "hand"] == truth[p] for p in truth.index)
     assert hits >= 6, people[["hand", "beta", "lapse"]]
-    text = (fit / "comparison.md").read_text()
-    assert "| true hand |" in text and "| fitted hand |" in text
     spec = __import__("json").loads((fit / "fit.json").read_text())
     configs = [m[1] for m in spec["models"]]
     assert [c["name"] for c in configs] == ["cnn", "hand"] and configs[1]["inner"] == "cnn" \
@@ -442,37 +429,16 @@ def test_the_fits_percepts_are_a_function_of_the_state_and_share_their_draws_acr
 
 
 def test_the_fit_recovers_each_participants_perceptual_noise_on_a_grid(tmp_path):
-    """8 participants who see the tower as it is or with an error of 0.1 m, with the student network, depth 1,
-    beta 20, 8 tasks each, fitted with the percept on the grid [0, 0.1] (each decision's choice averaged over 8
-    percepts). Measured: 7 of 8 recovered (6 with the error, 2 without; the miss, one with the error fitted
-    without it, has a fitted lapse of 0.05 that takes its odd choices); the test asks for 6."""
+    """The tower seen as it is or with an error of 0.1 m (:func:`simulate_and_fit_an_axis`; each decision's
+    choice averaged over 8 percepts). Measured: 7 of 8 recovered (6 with the error, 2 without; the miss, one
+    with the error fitted without it, has a fitted lapse of 0.05 that takes its odd choices); the test asks
+    for 6. The fit's check replays the fitted percepts."""
     import subprocess
     import sys
 
-    sim, fit = tmp_path / "sim", tmp_path / "fit"
-    common = ["world.physics=static", "progress=false"]
-    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", *common, "predictor=cnn",
-                           "predictor.checkpoint=student", "cohort.participants={time_limited: 0, unconstrained: 8}",
-                           "cohort.n_tasks=8", *replace("cohort.parameters.depth", "{dist: fixed, value: 1}"),
-                           *replace("cohort.parameters.beta", "{dist: fixed, value: 20}"),
-                           *replace("cohort.parameters.lapse", "{dist: fixed, value: 0.02}"), "~cohort.parameters.sigma",
-                           "+cohort.parameters.percept={dist: categorical, values: [0.0, 0.1], p: [0.5, 0.5]}",
-                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(sim / "log.jsonl"), "--out", str(fit),
-                           *common, "~models.ipe", "~models.hybrid", "~models.cnn",
-                           "+models.cnn={predictor: cnn, checkpoint: student, percept: [0.0, 0.1]}", "depths=[1]",
-                           f"cache={tmp_path / 'scores.sqlite'}"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    truth = pd.read_csv(sim / "participants.csv").set_index("id")["percept"]
-    fits = pd.read_csv(fit / "fits.csv")
-    people = fits[~fits["participant"].str.startswith("pooled:")].set_index("participant")
-    assert set(people["percept"]) <= {0.0, 0.1} and (people["k"] == 3).all()
-    assert set(truth) == {0.0, 0.1}
+    fit, truth, people = simulate_and_fit_an_axis(tmp_path, "percept", (0.0, 0.1))
     hits = sum(people.loc[p, "percept"] == truth[p] for p in truth.index)
     assert hits >= 6, people[["percept", "beta", "lapse"]]
-    text = (fit / "comparison.md").read_text()
-    assert "| true percept |" in text and "| fitted percept |" in text
     spec = __import__("json").loads((fit / "fit.json").read_text())
     assert [len(m) for m in spec["models"]] == [2, 3] and spec["models"][1][2] == {"percept": 0.1}
     assert spec["models"][0][1] == spec["models"][1][1]  # one predictor, asked in other towers

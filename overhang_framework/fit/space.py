@@ -61,25 +61,19 @@ def risk_grid(grid: Any, form: Any, family: str) -> tuple[list[float], str]:
     return sorted({float(v) for v in values}), str(form)
 
 
-def hand_grid(grid: Any, family: str) -> list[float]:
-    """The motor noises (metres) of ``fit.models.<family>.hand`` that the planner plans for (``[0.0]``, none,
-    when not set): each model of the grid judges with ``predictor=hand`` around the family's predictor."""
+#: The grids of metres a family may give, and what each is: the motor noise its planner plans for (each model
+#: judging with ``predictor=hand`` around the family's predictor) and the participant's perceptual noise.
+METRE_GRIDS = {"hand": "the motor noise a planner plans for", "percept": "a perceptual noise"}
+
+
+def metre_grid(name: str, grid: Any, family: str) -> list[float]:
+    """The values (metres, 0 to 1) of ``fit.models.<family>.<name>`` for a name of :data:`METRE_GRIDS`
+    (``[0.0]``, none, when not set)."""
     if grid is None:
         return [0.0]
     values = list(grid) if isinstance(grid, (list, tuple)) else [grid]
     if not values or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1 for v in values):
-        raise ConfigError(f"fit.models.{family}.hand must be the motor noise a planner plans for, in metres from 0 "
-                          f"(none) to 1, or a list of them, got {grid!r}")
-    return sorted({float(v) for v in values})
-
-
-def percept_grid(grid: Any, family: str) -> list[float]:
-    """The perceptual noises (metres) of ``fit.models.<family>.percept`` (``[0.0]``, none, when not set)."""
-    if grid is None:
-        return [0.0]
-    values = list(grid) if isinstance(grid, (list, tuple)) else [grid]
-    if not values or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1 for v in values):
-        raise ConfigError(f"fit.models.{family}.percept must be a perceptual noise in metres from 0 (none) to 1, or "
+        raise ConfigError(f"fit.models.{family}.{name} must be {METRE_GRIDS[name]}, in metres from 0 (none) to 1, or "
                           f"a list of them, got {grid!r}")
     return sorted({float(v) for v in values})
 
@@ -135,8 +129,8 @@ def model_space(models: Mapping[str, Any], depths: Sequence[int], blocks: Option
                 raise ConfigError(f"fit.models.{family}.sigma must be a number >= 0 or a list of them, got {grid!r}")
         switches = switch_grid(spec.pop("switch", None), str(family), blocks, check_only)
         risks, form = risk_grid(spec.pop("risk", None), spec.pop("risk_form", "power"), str(family))
-        hands = hand_grid(spec.pop("hand", None), str(family))
-        seen = percept_grid(spec.pop("percept", None), str(family))
+        hands = metre_grid("hand", spec.pop("hand", None), str(family))
+        seen = metre_grid("percept", spec.pop("percept", None), str(family))
         if name == HAND and hands != [0.0]:
             raise ConfigError(f"fit.models.{family}: a family of predictor {HAND!r} has its hand already; give "
                               f"fit.models.{family}.hand with the predictor it wraps instead")
