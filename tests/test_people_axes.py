@@ -463,7 +463,7 @@ def test_the_explanations_recovery_gives_each_generator_its_explanations_family_
                                  ("none", "depth", {"dist": "fixed", "value": 2})):
         sim = participants_config(cfg, name, cfg.generators[name], 0)
         assert dict(sim.cohort.parameters[axis]) == expected
-        assert "family" not in sim.predictor and "parameters" not in sim.predictor and sim.predictor.K == 20
+        assert "family" not in sim.predictor and "parameters" not in sim.predictor and sim.predictor.K == 10
     assert "risk" not in participants_config(cfg, "none", cfg.generators["none"], 0).cohort.parameters
 
 
