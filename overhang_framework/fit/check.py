@@ -180,6 +180,11 @@ def read_fit(fitdir: Path) -> tuple[dict, pd.DataFrame]:
     return spec, table
 
 
+def _zero_if_blank(value: Any) -> float:
+    """A grid value of fits.csv: 0 (none) where the model space had no such grid."""
+    return 0.0 if value is None or pd.isna(value) else float(value)
+
+
 def _same(a: Any, b: Any) -> bool:
     a_na = a is None or (isinstance(a, float) and math.isnan(a))
     b_na = b is None or (isinstance(b, float) and math.isnan(b))
@@ -207,12 +212,7 @@ def fitted_models(spec: Mapping[str, Any], fits: pd.DataFrame, model: Optional[s
     out = []
     for index, r in enumerate(rows.sort_values("participant", kind="stable").itertuples(index=False)):
         switch = getattr(r, "switch", None)
-        risk = getattr(r, "risk", None)
-        risk = 0.0 if risk is None or pd.isna(risk) else float(risk)
-        hand = getattr(r, "hand", None)
-        hand = 0.0 if hand is None or pd.isna(hand) else float(hand)
-        percept = getattr(r, "percept", None)
-        percept = 0.0 if percept is None or pd.isna(percept) else float(percept)
+        risk, hand, percept = (_zero_if_blank(getattr(r, name, None)) for name in ("risk", "hand", "percept"))
         found = [m for m in (Model(c, int(r.depth), str(r.family), float(k.get("risk", 0.0)),
                                    str(k.get("risk_form", "power")), float(k.get("percept", 0.0)))
                              for c, k in variants.get(str(r.model), []))
@@ -250,7 +250,7 @@ def replicate(tables, world, trials: Sequence[tuple[str, tuple]], fitted: Fitted
             scores = np.asarray(tables.table(state), dtype=float)
             if fitted.model.percept:
                 i = _perceived_choice(tables, world, state, fitted, rng)
-                probs.append(decision_probability(tables, world, state, i, fitted.model.percept, fitted.beta,
+                probs.append(decision_probability(tables, state, i, fitted.model.percept, fitted.beta,
                                                   fitted.lapse))
             else:
                 p = choice_probabilities(scores, fitted.beta, fitted.lapse)
@@ -291,15 +291,12 @@ def _perceived_choice(tables, world, state, fitted: Fitted, rng: np.random.Gener
     return int(seen_to_real(world, state, seen)[int(rng.choice(len(p), p=p / p.sum()))])
 
 
-def decision_probability(tables, world, state, chosen: int, percept: float, beta: float, lapse: float) -> float:
+def decision_probability(tables, state, chosen: int, percept: float, beta: float, lapse: float) -> float:
     """The probability of the action of index ``chosen`` in ``state`` under a model with perceptual noise
     ``percept`` (the fit's estimate over its percepts, :mod:`overhang_framework.fit.percept`)."""
-    from overhang_framework.fit.percept import PerceivedDecisions, percepts, seen_to_real
+    from overhang_framework.fit.percept import perceived_decisions
 
-    seen = percepts(state, percept)
-    d = PerceivedDecisions.of([[tables.table(x) for x in seen]], [[seen_to_real(world, state, x) for x in seen]],
-                              [chosen], [len(world.legal_actions(state))])
-    return float(d.probabilities(beta, lapse)[0])
+    return float(perceived_decisions(tables, [state], [chosen], percept).probabilities(beta, lapse)[0])
 
 
 def observed_agreement(tables, world, placements, states: str, fitted: Fitted) -> tuple[list[float], list[bool]]:
@@ -313,7 +310,7 @@ def observed_agreement(tables, world, placements, states: str, fitted: Fitted) -
     for state, chosen in zip(mapped.states, mapped.chosen):
         scores = np.asarray(tables.table(state), dtype=float)
         if fitted.model.percept:
-            probs.append(decision_probability(tables, world, state, chosen, fitted.model.percept, fitted.beta,
+            probs.append(decision_probability(tables, state, chosen, fitted.model.percept, fitted.beta,
                                               fitted.lapse))
         else:
             probs.append(float(choice_probabilities(scores, fitted.beta, fitted.lapse)[chosen]))

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 import pandas as pd
@@ -199,16 +199,11 @@ def fold_of(trials: Sequence[tuple[str, int]], folds: int, seed: int = 0) -> np.
 
 
 def _decisions(tables: ScoreTables, mapped: Mapped) -> Decisions:
-    percept = tables.model.percept
-    if not percept:
+    if not tables.model.percept:
         return Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
-    from overhang_framework.fit.percept import PerceivedDecisions, percepts, seen_to_real
+    from overhang_framework.fit.percept import perceived_decisions
 
-    world = tables.world
-    seen = [percepts(s, percept) for s in mapped.states]
-    return PerceivedDecisions.of([[tables.table(x) for x in row] for row in seen],
-                                 [[seen_to_real(world, s, x) for x in row] for s, row in zip(mapped.states, seen)],
-                                 mapped.chosen, [len(world.legal_actions(s)) for s in mapped.states])
+    return perceived_decisions(tables, mapped.states, mapped.chosen, tables.model.percept)
 
 
 def _best(decisions: Sequence[Decisions]) -> tuple[SoftmaxFit, int]:
@@ -249,7 +244,7 @@ def _subset(d: Decisions, rows: np.ndarray) -> Decisions:
     return d.subset(rows)
 
 
-def fit_index(participant: str, condition: str, variants: Sequence[ScoreTables], mapped: Mapped,
+def fit_index(participant: str, condition: str, variants: Sequence[Any], mapped: Mapped,
               folds: int = 0, seed: int = 0) -> ModelFit:
     """Fit one model index, whose ``variants`` are its score tables on the sigma and switch grids (one when
     neither is fitted). With ``folds >= 2`` the fit also reports its held-out log-likelihood

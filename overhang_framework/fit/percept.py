@@ -109,3 +109,13 @@ class PerceivedDecisions:
         if len(self) == 0:
             return 0.0
         return float(np.log(np.maximum(self.probabilities(beta, lapse), 1e-300)).sum())
+
+
+def perceived_decisions(tables, states: Sequence[State], chosen: Sequence[int], percept: float) -> PerceivedDecisions:
+    """The decisions of ``states`` (with the executed actions' indices ``chosen``) of a participant with perceptual
+    noise ``percept``, scored with ``tables`` (the model's without the percept; with ``table`` and ``world``)."""
+    world = tables.world
+    seen = [percepts(s, percept) for s in states]
+    return PerceivedDecisions.of([[tables.table(x) for x in row] for row in seen],
+                                 [[seen_to_real(world, s, x) for x in row] for s, row in zip(states, seen)],
+                                 chosen, [len(world.legal_actions(s)) for s in states])
