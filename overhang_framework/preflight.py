@@ -543,22 +543,37 @@ def _check_output_dir(cfg, multirun: bool) -> None:
         rundir.check_config(result_config(plain), overwrite=bool(plain.get("overwrite") is True))
 
 
-def check_app_command(args: Sequence[str], config_name: str, check_config: Callable) -> None:
+def check_app_command(args: Sequence[str], config_name: str, check_config: Callable,
+                      check_output: Optional[Callable] = None) -> None:
     """The checks of a Hydra command with its own primary config (``config_name``) before Hydra runs it:
-    its flags, its overrides, every job's composed config (``check_config``, when a job runs)."""
+    its flags, its overrides, every job's composed config (``check_config``, when a job runs); and, for a
+    single run, ``check_output(cfg, run_dir)`` before Hydra writes anything into its run directory."""
     check_flags(args)
     words = override_words(args)
     check_group_choices(args)
-    configs = [compose_checked(v, config_name=config_name) for v in sweep_variants(words, is_multirun(args))]
-    if runs_job(args):
-        for cfg in configs:
-            check_config(cfg)
+    multirun = is_multirun(args)
+    configs = [compose_checked(v, config_name=config_name) for v in sweep_variants(words, multirun)]
+    if not runs_job(args):
+        return
+    for cfg in configs:
+        check_config(cfg)
+    if check_output is not None and not multirun:
+        from omegaconf import OmegaConf
+
+        full = compose_checked(words, config_name=config_name, return_hydra_config=True)
+        try:
+            directory = OmegaConf.select(full, "hydra.run.dir")
+        except Exception:  # an interpolation only Hydra's runtime can resolve: a new directory
+            return
+        if directory:
+            check_output(configs[0], Path(str(directory)))
 
 
 def run_app_command(argv: Optional[Sequence[str]], app: Callable, config_name: str, check_config: Callable,
-                    doc: str) -> None:
-    """A Hydra command's ``main``: ``--help`` prints ``doc``; a mistake on the command line is one line
-    and exit status 2 before Hydra starts; otherwise Hydra runs ``app`` with its flags put first."""
+                    doc: str, check_output: Optional[Callable] = None) -> None:
+    """A Hydra command's ``main``: ``--help`` prints ``doc``; a mistake on the command line (or, with
+    ``check_output``, a run directory the run must not write into) is one line and exit status 2 before
+    Hydra starts; otherwise Hydra runs ``app`` with its flags put first."""
     import sys
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -566,7 +581,7 @@ def run_app_command(argv: Optional[Sequence[str]], app: Callable, config_name: s
         print(doc)
         return
     try:
-        check_app_command(args, config_name, check_config)
+        check_app_command(args, config_name, check_config, check_output)
     except (OverhangError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

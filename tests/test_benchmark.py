@@ -381,6 +381,8 @@ def test_leaderboard_rows_carry_their_command_and_provenance_and_replace_their_o
     from overhang_framework.benchmark import leaderboard
 
     out, _ = bench(tmp_path, FIVE, "seeds=1", name="myopic")
+    summary = json.loads((out / "summary.json").read_text())
+    (out / "summary.json").write_text(json.dumps({**summary, "split": "test"}))  # as a run of the split would say
     board = tmp_path / "leaderboard.csv"
     assert leaderboard.main(["add", str(out), "--file", str(board)]) == 0
     assert leaderboard.main(["add", str(out), "--file", str(board)]) == 0  # the same agent and split: replaced
@@ -395,14 +397,14 @@ def test_leaderboard_rows_carry_their_command_and_provenance_and_replace_their_o
     rows = leaderboard.load(board)
     rows = rows[rows["curve"] == ""]
     row = rows.iloc[0]
-    assert row["agent"] == "myopic + veridical" and row["split"] == "ids"
+    assert row["agent"] == "myopic + veridical" and row["split"] == "test"
     assert row["command"].startswith("python -m overhang_framework.benchmark ") and "seeds=1" in row["command"]
     assert "hydra.run.dir" not in row["command"] and json.loads(row["config"])["planner"]["name"] == "myopic"
     assert row["version"] and row["date"]
     summary = json.loads((out / "summary.json").read_text())
     assert float(row["score"]) == pytest.approx(summary["score"], abs=1e-6)
-    assert "| myopic + veridical | ids |" in leaderboard.markdown(rows)
-    assert leaderboard.main(["figure", "--split", "ids", "--out", str(tmp_path / "b.png"), "--file", str(board)]) == 0
+    assert "| myopic + veridical | test |" in leaderboard.markdown(rows)
+    assert leaderboard.main(["figure", "--split", "test", "--out", str(tmp_path / "b.png"), "--file", str(board)]) == 0
     assert (tmp_path / "b.png").read_bytes()[:4] == b"\x89PNG"
 
 

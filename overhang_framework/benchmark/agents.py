@@ -82,6 +82,8 @@ class Agent(abc.ABC):
 
     #: ``"calls"`` or ``"seconds"`` when the agent honours a budget per decision; ``None`` when it takes none.
     budget_kind: Optional[str] = None
+    #: Whether the agent counts its predictor calls (an episode of one that does not records none).
+    counts_calls: bool = True
 
     def start(self, task: Task, seed: int, budget: Optional[float]) -> None:
         """A new episode begins."""
@@ -146,6 +148,7 @@ def play(agent: Agent, world: World, task: Task, seed: int, budget: Optional[flo
     agent.start(task, seed, budget)
     stood = True
     step = 0
+    failed_seconds = 0.0  # the decision that failed (a timeout costs its whole timeout)
     while not state.done:
         step += 1
         if not world.legal_actions(state):
@@ -156,6 +159,7 @@ def play(agent: Agent, world: World, task: Task, seed: int, budget: Optional[flo
             choice = agent.choose(state, task, step, budget)
         except AgentFailed as err:
             reason, stood = str(err), False
+            failed_seconds = time.perf_counter() - started
             break
         seconds = time.perf_counter() - started
         state = world.step(state, choice.action)
@@ -170,8 +174,8 @@ def play(agent: Agent, world: World, task: Task, seed: int, budget: Optional[flo
     record = {"task_id": task.id, "sequence": list(task.sequence), "seed": int(seed), "budget": budget,
               "reward": float(world.reward(state.geometry, True)) if stood else 0.0, "stood": stood,
               "overhang": float(world.overhang(state.geometry)),
-              "calls": None if any(c is None for c in calls) else int(sum(calls)),
-              "seconds": float(sum(s["seconds"] for s in steps)), "reason": reason,
+              "calls": None if not agent.counts_calls or any(c is None for c in calls) else int(sum(calls)),
+              "seconds": float(sum(s["seconds"] for s in steps) + failed_seconds), "reason": reason,
               "snapped": int(sum(s["snapped"] for s in steps)), "steps": steps}
     agent.end(task, seed, record)
     return record

@@ -11,7 +11,13 @@ Python and one in JavaScript, is docs/benchmark-protocol.md:
 
 A crash, no answer within ``timeout`` seconds, a line that is not such an object, or a placement
 that is not legal ends the episode with reward 0 and the reason; the next episode goes on (with a
-new process when the old one died or hung). What the program writes to stderr goes to ``agent.log``.
+new process when the old one died or hung). What the program writes to stderr goes to ``agent.log``
+(up to :data:`LOG_CAP` bytes a run; the rest is counted and dropped).
+
+A program may exit between episodes: whether it is found dead before the next episode's first
+decision or dies while that decision is being sent, a new process gets that decision, so the outcome
+never depends on timing. A program that stops during an episode (after its first decision) has
+crashed, however fast it stopped.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import subprocess
 import threading
 from pathlib import Path
@@ -29,10 +36,16 @@ from overhang_framework.geometry import Action
 from overhang_framework.interfaces import State, Task, World
 
 PROTOCOL = "overhang-tower-jsonl/1"
+#: The most ``agent.log`` keeps of what the program writes to stderr, in bytes.
+LOG_CAP = 10 * 2 ** 20
+#: How long :func:`check_starts` waits for a program that exits at once.
+START_WAIT = 1.0
 
 
 class CommandAgent(Agent):
     """The external program ``command`` (a list of words, as for :class:`subprocess.Popen`)."""
+
+    counts_calls = False
 
     def __init__(self, world: World, command: Sequence[str], timeout: float = 30.0, render: bool = False,
                  workdir: Optional[Path] = None, cwd: Optional[str] = None):
@@ -50,6 +63,8 @@ class CommandAgent(Agent):
         self.proc: Optional[subprocess.Popen] = None
         self.lines: "queue.Queue[Optional[str]]" = queue.Queue()
         self.restarts = 0
+        self._fresh = False
+        self._stderr: Optional[threading.Thread] = None
         self._renderer = None
         self._log = None
         self._seed = 0
@@ -59,15 +74,18 @@ class CommandAgent(Agent):
     def _spawn(self) -> None:
         self.workdir.mkdir(parents=True, exist_ok=True)
         if self._log is None:
-            self._log = open(self.workdir / "agent.log", "ab")
+            self._log = CappedLog(self.workdir / "agent.log")
         try:
             self.proc = subprocess.Popen(self.command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                         stderr=self._log, cwd=self.cwd, bufsize=0)
+                                         stderr=subprocess.PIPE, cwd=self.cwd, bufsize=0)
         except OSError as err:
             self.proc = None
             raise AgentFailed(f"agent could not start: {' '.join(self.command)}: {err.strerror or err}") from None
         self.lines = queue.Queue()
+        self._fresh = True
         threading.Thread(target=_pump, args=(self.proc.stdout, self.lines), daemon=True).start()
+        self._stderr = threading.Thread(target=self._log.pump, args=(self.proc.stderr,), daemon=True)
+        self._stderr.start()
 
     def _alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -78,9 +96,7 @@ class CommandAgent(Agent):
                 self.proc.kill()
             except OSError:
                 pass
-            self.proc.wait()
-            self.proc = None
-            self.restarts += 1
+            self._reap()
 
     def _send(self, message: dict) -> bool:
         """Write one line to the program; False when it cannot be written (the program died)."""
@@ -92,10 +108,18 @@ class CommandAgent(Agent):
             return False
 
     def _died(self, step: int) -> AgentFailed:
+        code = self._reap()
+        return AgentFailed(f"agent crashed at placement {step} (exit code {code}); see agent.log")
+
+    def _reap(self) -> Optional[int]:
+        """Wait for the dead program (its stderr written to the log); its exit code."""
         code = self.proc.wait() if self.proc is not None else None
+        if self._stderr is not None:
+            self._stderr.join(timeout=5)
+            self._stderr = None
         self.proc = None
         self.restarts += 1
-        return AgentFailed(f"agent crashed at placement {step} (exit code {code}); see agent.log")
+        return code
 
     # ------------------------------------------------------------------ the protocol
 
@@ -104,36 +128,44 @@ class CommandAgent(Agent):
         self._budget = budget
 
     def choose(self, state: State, task: Task, step: int, budget: Optional[float]) -> Choice:
-        if not self._alive():
-            if self.proc is not None:
-                self._stop()
+        if self.proc is not None and not self._alive():
+            if step > 1:  # it stopped during the episode
+                raise self._died(step)
+            self._reap()  # it exited between episodes
+        if self.proc is None:
             self._spawn()
-        legal = self.world.legal_actions(state)
-        message = {"type": "decision", "protocol": PROTOCOL, "task_id": task.id, "sequence": list(task.sequence),
-                   "seed": self._seed, "step": step, "width": state.next_width,
-                   "tower": [[b.width, b.x, b.layer] for b in state.geometry.blocks],
-                   "legal": [[a.x, a.layer] for a in legal], "budget": budget}
-        if self.render:
-            message["image"] = str(self._image(state, task, step))
-        if not self._send(message):
-            raise self._died(step)
-        try:
-            line = self.lines.get(timeout=self.timeout)
-        except queue.Empty:
-            self._stop()
-            raise AgentFailed(f"agent gave no answer within {self.timeout:g} s at placement {step}") from None
+        elif step == 1:
+            self._fresh = False
+        message = decision_message(self.world, state, task, step, self._seed, budget,
+                                   image=self._image(state, task, step) if self.render else None)
+        line = self._ask(message, step)
+        if line is None and step == 1 and not self._fresh:
+            # it exited after the last episode's end, while the first decision was being sent
+            self._reap()
+            self._spawn()
+            line = self._ask(message, step)
         if line is None:
             raise self._died(step)
+        self._fresh = False
         action = _parse(line, step)
         chosen, why = on_grid(state, action, self.world)
         if chosen is None:
             raise AgentFailed(f"{why} (placement {step})")
         return Choice(chosen, None)
 
+    def _ask(self, message: dict, step: int) -> Optional[str]:
+        """Send ``message`` and wait for one line: the line, or ``None`` when the program is gone."""
+        if not self._send(message):
+            return None
+        try:
+            return self.lines.get(timeout=self.timeout)
+        except queue.Empty:
+            self._stop()
+            raise AgentFailed(f"agent gave no answer within {self.timeout:g} s at placement {step}") from None
+
     def end(self, task: Task, seed: int, record: dict) -> None:
         if self._alive():
-            self._send({"type": "end", "protocol": PROTOCOL, "task_id": task.id, "seed": int(seed),
-                        "reward": record["reward"], "stood": record["stood"], "reason": record["reason"]})
+            self._send(end_message(task, seed, record))
 
     def close(self) -> None:
         if self.proc is not None:
@@ -144,6 +176,9 @@ class CommandAgent(Agent):
                 self.proc.kill()
                 self.proc.wait()
             self.proc = None
+        if self._stderr is not None:
+            self._stderr.join(timeout=5)
+            self._stderr = None
         if self._log is not None:
             self._log.close()
             self._log = None
@@ -162,6 +197,123 @@ class CommandAgent(Agent):
         Image.fromarray(to_uint8(self._renderer.render(state.geometry))).save(tmp, format="PNG")
         os.replace(tmp, path)
         return path.resolve()
+
+
+def decision_message(world: World, state: State, task: Task, step: int, seed: int, budget: Optional[float],
+                     image: Optional[Path] = None) -> dict:
+    """The ``decision`` message of placement ``step`` in ``state``, as the program is sent it."""
+    message = {"type": "decision", "protocol": PROTOCOL, "task_id": task.id, "sequence": list(task.sequence),
+               "seed": int(seed), "step": step, "width": state.next_width,
+               "tower": [[b.width, b.x, b.layer] for b in state.geometry.blocks],
+               "legal": [[a.x, a.layer] for a in world.legal_actions(state)], "budget": budget}
+    if image is not None:
+        message["image"] = str(image)
+    return message
+
+
+def end_message(task: Task, seed: int, record: dict) -> dict:
+    """The ``end`` message of an episode whose record is ``record``."""
+    return {"type": "end", "protocol": PROTOCOL, "task_id": task.id, "seed": int(seed),
+            "reward": record["reward"], "stood": record["stood"], "reason": record["reason"]}
+
+
+#: The protocol document's example: task, seed and the placements before the decision it shows.
+EXAMPLE = ("w231321", 0, ((0.4, 1),))
+
+
+def example_messages(world: Optional[World] = None) -> tuple[dict, dict]:
+    """The protocol document's example decision (with ``agent.render=true``) and the end message of that
+    episode when it goes on centred on the highest layer, as the benchmark builds them."""
+    from overhang_framework.benchmark.agents import play
+    from overhang_framework.benchmark.splits import task as task_of
+    from overhang_framework.plugins import Registry
+
+    world = world or Registry().create("world", {"name": "overhang"})
+    task_id, seed, placed = EXAMPLE
+    task = task_of(task_id)
+    state = world.initial_state(task)
+    for x, layer in placed:
+        state = world.step(state, Action(x, layer))
+    step = len(placed) + 1
+    decision = decision_message(world, state, task, step, seed, None,
+                                image=Path("/abs/path/run/images") / f"{task_id}-s{seed}-{step}.png")
+
+    class Prefix(Agent):
+        def choose(self, state, task, k, budget):
+            if k <= len(placed):
+                return Choice(Action(*placed[k - 1]), None)
+            legal = world.legal_actions(state)  # centred on the highest layer, as centre.js plays
+            return Choice(min(legal, key=lambda a: (-a.layer, abs(a.x))), None)
+
+    record = play(Prefix(), world, task, seed)
+    return decision, end_message(task, seed, record)
+
+
+def message_lines(message: dict, width: int = 100) -> str:
+    """``message`` as one JSON object wrapped at ``width`` characters between items (the document's layout)."""
+    import textwrap
+
+    text = json.dumps(message).replace(": ", ":\u00a0")  # a key stays on its value's line
+    # and a list of numbers (a placement, a block, the sequence) on one line
+    text = re.sub(r"\[[^\[\]]*\]", lambda m: m.group(0).replace(", ", ",\u00a0"), text)
+    return "\n".join(textwrap.wrap(text, width=width, subsequent_indent=" ", break_long_words=False,
+                                   break_on_hyphens=False)).replace("\u00a0", " ")
+
+
+class CappedLog:
+    """``agent.log``: what the program writes to stderr, appended up to :data:`LOG_CAP` bytes in all; past
+    the cap one line says how much more was written, and it is dropped."""
+
+    def __init__(self, path: Path, cap: int = LOG_CAP):
+        self.path, self.cap = Path(path), int(cap)
+        self.fh = open(self.path, "ab")
+        self.written = self.fh.tell()
+        self.dropped = 0
+        self.lock = threading.Lock()
+
+    def write(self, data: bytes) -> None:
+        with self.lock:
+            room = max(0, self.cap - self.written)
+            if room:
+                self.fh.write(data[:room])
+                self.fh.flush()
+                self.written += min(room, len(data))
+            self.dropped += max(0, len(data) - room)
+
+    def pump(self, stream) -> None:
+        for chunk in iter(lambda: stream.read1(65536) if hasattr(stream, "read1") else stream.read(65536), b""):
+            self.write(chunk)
+
+    def close(self) -> None:
+        with self.lock:
+            if self.dropped:
+                self.fh.write(f"\n[agent.log is capped at {self.cap} bytes: {self.dropped} more bytes of the "
+                              f"program's stderr were dropped]\n".encode())
+            self.fh.close()
+
+
+def check_starts(command: Sequence[str], cwd: Optional[str] = None, wait: float = START_WAIT) -> Optional[str]:
+    """Why the program ``command`` cannot play, in one line, or ``None``: it cannot be started, or it exits
+    within ``wait`` seconds without having been sent anything (its stderr's last line is quoted)."""
+    try:
+        proc = subprocess.Popen(list(command), stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, cwd=cwd)
+    except OSError as err:
+        return f"agent.command cannot be started: {' '.join(command)}: {err.strerror or err}"
+    try:
+        code = proc.wait(timeout=wait)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        proc.stdin.close()
+        proc.stderr.close()
+        return None
+    err = proc.stderr.read().decode(errors="replace").strip().splitlines()
+    proc.stdin.close()
+    proc.stderr.close()
+    said = f": {err[-1].strip()[:200]}" if err else ""
+    return (f"agent.command exited at once (exit code {code}) before it was sent anything: "
+            f"{' '.join(command)}{said}")
 
 
 def _pump(stream, lines: "queue.Queue[Optional[str]]") -> None:

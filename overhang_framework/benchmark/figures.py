@@ -32,10 +32,23 @@ def _people(ax, raw: bool) -> None:
             ax.axhline(mean, color=colour, ls="--", lw=1,
                        label=f"paper's people, {name}: {mean:.3f} (paper's own tasks)")
             ax.axhspan(mean - sem, mean + sem, color=colour, alpha=0.08)
-    for row, colour in zip(simulated_people(), ("#16a085", "#2980b9")):
-        value = row["reward"] if raw else row["score"]
-        ax.axhline(value, color=colour, ls=":", lw=1.2,
-                   label=f"simulated participants, {row['condition']}: {value:.3f} (paper20)")
+    for values, colour in zip(_merged(simulated_people(), "reward" if raw else "score"), ("#16a085", "#2980b9")):
+        level = sum(v for _, v in values) / len(values)
+        ax.axhline(level, color=colour, ls=":", lw=1.2, label="simulated participants, " + " and ".join(
+            f"{condition}: {value:.3f}" for condition, value in values) + " (paper20)")
+
+
+def _merged(rows: list[dict], key: str, apart: float = 0.01) -> list[list[tuple[str, float]]]:
+    """The simulated conditions' ``key`` values, those closer than ``apart`` (relative) to the one before
+    them in one group, so that lines which would lie on top of each other are drawn, and labelled, once."""
+    groups: list[list[tuple[str, float]]] = []
+    for row in sorted(rows, key=lambda r: float(r[key])):
+        value = float(row[key])
+        if groups and abs(value - groups[-1][-1][1]) <= apart * max(abs(value), 1e-9):
+            groups[-1].append((row["condition"], value))
+        else:
+            groups.append([(row["condition"], value)])
+    return groups
 
 
 def run_figure(result: dict, path: Path) -> None:

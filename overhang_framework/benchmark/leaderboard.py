@@ -26,6 +26,8 @@ from overhang_framework.version import commit
 
 DATA_FILE = Path(__file__).resolve().parent.parent / "data" / "leaderboard.csv"
 NO_CALLS = 0.5
+#: The splits the leaderboard ranks, in its order.
+SPLITS = ("test", "cross", "paper20", "train")
 COLUMNS = ("agent", "split", "score", "ci_low", "ci_high", "stood", "reward", "area", "n_tasks", "seeds",
            "budget_kind", "calls_per_decision", "seconds_per_decision", "curve", "physics", "command", "config",
            "version", "commit", "date")
@@ -50,6 +52,9 @@ def row_of(run_dir: Path, agent: Optional[str] = None) -> dict:
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} has no summary.json; is it a finished benchmark run?")
     s = json.loads(path.read_text())
+    if s.get("split") not in SPLITS:
+        raise ValueError(f"{run_dir} played {'a list of task ids (ids=[...])' if s.get('split') == 'ids' else repr(s.get('split'))}"
+                         f", not a split; the leaderboard ranks whole splits: {', '.join(SPLITS)}")
     if s.get("score") is None:
         raise ValueError(f"{run_dir} has no score: none of its tasks has an optimum under its physics; "
                          "rescore it (python -m overhang_framework.benchmark.rescore) once they do")
@@ -60,6 +65,12 @@ def row_of(run_dir: Path, agent: Optional[str] = None) -> dict:
             "curve": json.dumps(s["curve"]) if s.get("curve") else "", "physics": s.get("physics"),
             "command": command_of(run_dir), "config": json.dumps(s.get("config", {}), sort_keys=True), "version": overhang_framework.__version__, "commit": commit(),
             "date": _dt.date.today().isoformat()}
+
+
+def check_split(split: Optional[str]) -> None:
+    """Refuse a split the leaderboard cannot hold, naming those it can."""
+    if split is not None and split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; splits: {', '.join(SPLITS)}")
 
 
 def load(path: Path | str | None = None):
@@ -85,7 +96,7 @@ def add(rows: Sequence[dict], path: Path | str | None = None) -> None:
         if len(board) else board
     board = pd.concat([board, pd.DataFrame(rows, columns=list(COLUMNS))], ignore_index=True)
     board["score"] = board["score"].astype(float)
-    order = {s: k for k, s in enumerate(("test", "cross", "paper20", "train"))}
+    order = {s: k for k, s in enumerate(SPLITS)}
     board = board.sort_values(by=["split", "score", "agent"], key=lambda c: c.map(order) if c.name == "split"
                               else (-c if c.name == "score" else c)).reset_index(drop=True)
     atomic_write_text(path, board.to_csv(index=False, float_format="%.6g"))
@@ -172,6 +183,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for p in (a, s, f):
         p.add_argument("--file", default=str(DATA_FILE), help=f"the leaderboard (default {DATA_FILE})")
     args = ap.parse_args(argv)
+    try:
+        check_split(getattr(args, "split", None))
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     if args.what == "add":
         try:
             rows = [row_of(Path(r), args.agent) for r in args.runs]

@@ -11,9 +11,12 @@ writes the scores again from the episodes (with the optima file as it is now) in
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -119,42 +122,114 @@ def build_agent(cfg_data: dict, workdir: Path):
 
 
 def check_config(cfg: DictConfig) -> None:
-    """Every value of a benchmark config that can be checked before the first episode."""
-    if cfg.agent.get("type") not in AGENT_TYPES:
-        raise ConfigError(f"unknown agent type {cfg.agent.get('type')!r}; allowed: {', '.join(AGENT_TYPES)}")
+    """Every value of a benchmark config that can be checked before the first episode: every problem found,
+    in one :class:`ConfigError` (problems joined by ``|``)."""
+    problems = config_problems(cfg)
+    if problems:
+        raise ConfigError(" | ".join(problems))
+
+
+def config_problems(cfg: DictConfig) -> list[str]:
+    """What is wrong with a benchmark config, each problem one sentence (empty when nothing is)."""
+    problems: list[str] = []
+    kind = cfg.agent.get("type")
+    if kind not in AGENT_TYPES:
+        problems.append(f"unknown agent type {kind!r}; allowed: {', '.join(AGENT_TYPES)}")
     for key, low in (("seeds", 1), ("jobs", 1), ("seed", 0)):
         value = cfg.get(key)
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise ConfigError(f"{key} must be a whole number >= {low}, got {value!r}")
+            problems.append(f"{key} must be a whole number >= {low}, got {value!r}")
     if cfg.budget_kind not in ("calls", "seconds"):
-        raise ConfigError(f"budget_kind must be calls or seconds, got {cfg.budget_kind!r}")
+        problems.append(f"budget_kind must be calls or seconds, got {cfg.budget_kind!r}")
     budgets = cfg.get("budgets")
     if budgets is not None:
         values = list(budgets) if not isinstance(budgets, (int, float, str)) else [budgets]
         bad = [b for b in values if isinstance(b, bool) or not isinstance(b, (int, float)) or b <= 0]
         if bad or not values or len(set(values)) != len(values):
-            raise ConfigError(f"budgets must be a list of distinct numbers > 0 (e.g. [1,4,16,64,256]), got {values!r}")
-        if cfg.budget_kind == "calls" and any(float(b) != int(b) for b in values):
-            raise ConfigError(f"budgets of predictor calls must be whole numbers, got {values!r}")
-        if cfg.agent.type != "planner":
-            raise ConfigError(f"agent={cfg.agent.type} takes no budget; leave budgets=null (it gets one point, at "
-                              "the compute it spent)")
+            problems.append(f"budgets must be a list of distinct numbers > 0 (e.g. [1,4,16,64,256]), got {values!r}")
+        elif cfg.budget_kind == "calls" and any(float(b) != int(b) for b in values):
+            problems.append(f"budgets of predictor calls must be whole numbers, got {values!r}")
+        if kind in ("random", "command"):
+            problems.append(f"agent={kind} takes no budget; leave budgets=null (it gets one point, at the compute "
+                            "it spent)")
     for key in ("figure", "progress", "overwrite"):
         if not isinstance(cfg.get(key), bool):
-            raise ConfigError(f"{key} must be true or false, got {cfg.get(key)!r}")
-    if cfg.agent.type == "command":
-        command = cfg.agent.get("command")
-        if OmegaConf.is_missing(cfg.agent, "command") or isinstance(command, str) or not command:
-            raise ConfigError("agent=command needs agent.command, the program as a list of words, e.g. "
-                              "'agent.command=[node,examples/agents/centre.js]'")
-    task_ids(cfg)
+            problems.append(f"{key} must be true or false, got {cfg.get(key)!r}")
+    if kind == "command":
+        problems += _command_problems(cfg.agent)
+    try:
+        task_ids(cfg)
+    except (ConfigError, ValueError) as err:
+        problems.append(str(err))
+    if problems:
+        return problems
     from overhang_framework.plugins import Registry
 
     registry = Registry()
-    world = registry.create("world", _container(cfg.world))
-    if cfg.agent.type == "planner":
-        for group in ("value", "predictor", "planner"):
-            registry.create(group, _container(cfg[group]), world=world)
+    try:
+        world = registry.create("world", _container(cfg.world))
+        if kind == "planner":
+            for group in ("value", "predictor", "planner"):
+                registry.create(group, _container(cfg[group]), world=world)
+    except (ConfigError, ValueError) as err:
+        problems.append(str(err))
+    if not problems and kind == "command":
+        from overhang_framework.benchmark.external import check_starts
+
+        why = check_starts(list(cfg.agent.command), cfg.agent.get("cwd"))
+        if why:
+            problems.append(why)
+    return problems
+
+
+def _command_problems(agent: DictConfig) -> list[str]:
+    """What is wrong with ``agent=command``'s options: the program, its timeout, render and cwd."""
+    import shutil
+
+    problems = []
+    command = None if OmegaConf.is_missing(agent, "command") else agent.get("command")
+    if isinstance(command, str):
+        problems.append(f"agent.command must be a list of words, got the string {command!r}; write "
+                        f"'agent.command=[{','.join(command.split())}]'")
+    elif not command or not all(isinstance(w, str) and w for w in command):
+        problems.append("agent=command needs agent.command, the program as a list of words, e.g. "
+                        "'agent.command=[node,examples/agents/centre.js]'" +
+                        (f"; got {list(command)!r}" if command else ""))
+    timeout = agent.get("timeout")
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0 or timeout == float("inf"):
+        problems.append(f"agent.timeout must be a number of seconds > 0 (the default is 30), got {timeout!r}")
+    if not isinstance(agent.get("render"), bool):
+        problems.append(f"agent.render must be true or false, got {agent.get('render')!r}")
+    cwd = agent.get("cwd")
+    if cwd is not None and (not isinstance(cwd, str) or not Path(cwd).expanduser().is_dir()):
+        problems.append(f"agent.cwd must be an existing directory (or null: the current one), got {cwd!r}")
+    elif command and not isinstance(command, str) and not problems:
+        program = str(command[0])
+        where = Path(cwd).expanduser() if cwd else Path.cwd()
+        found = shutil.which(program) if "/" not in program else (
+            str(where / program) if (where / program).is_file() else None)
+        if found is None:
+            problems.append(f"agent.command's program {program!r} is not found" +
+                            (" on the PATH" if "/" not in program else f" in {where}"))
+    return problems
+
+
+def check_output_dir(cfg: DictConfig, out_dir: Path) -> None:
+    """Refuse, before anything is written, a run into a directory that holds another config's results."""
+    run_file = Path(out_dir) / RUN
+    if cfg.overwrite is True or not run_file.exists():
+        return
+    from overhang_framework.results import readable
+
+    try:
+        old = json.loads(run_file.read_text()).get("identity")
+    except (OSError, ValueError, AttributeError):
+        raise ConfigError(f"{run_file} cannot be read as a benchmark run's record; use another hydra.run.dir, "
+                          "or overwrite=true to replace it") from None
+    ident = json.loads(json.dumps(readable(identity(cfg)), default=str))  # as run.json keeps it
+    if old != ident:
+        raise ConfigError(f"{out_dir} holds results of a different config ({_differences(old, ident)}); use "
+                          "another hydra.run.dir, or overwrite=true to replace them")
 
 
 def plan(cfg: DictConfig) -> list[tuple[str, int, Optional[float]]]:
@@ -255,6 +330,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     from overhang_framework.results import atomic_write_json
 
     check_config(cfg)
+    check_output_dir(cfg, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg_data = _container(cfg)
     from overhang_framework.results import readable
@@ -262,12 +338,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     ident = json.loads(json.dumps(readable(identity(cfg)), default=str))  # as run.json keeps it
     run_file = out_dir / RUN
     episodes = out_dir / EPISODES
-    if run_file.exists() and not cfg.overwrite:
-        old = json.loads(run_file.read_text()).get("identity")
-        if old != ident:
-            raise ConfigError(f"{out_dir} holds results of a different config ({_differences(old, ident)}); use "
-                              "another hydra.run.dir, or overwrite=true to replace them")
-    elif cfg.overwrite:
+    check_output_dir(cfg, out_dir)
+    if cfg.overwrite:
         for name in (EPISODES, SCORES, SUMMARY, FIGURE):
             (out_dir / name).unlink(missing_ok=True)
     atomic_write_json(run_file, {"identity": ident})
@@ -303,9 +375,38 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
         finally:
             bar.close()
             close_agents()
-    world, _ = build_agent({**cfg_data, "agent": {"type": "random"}}, out_dir)
-    records = [done[(t, s, b)] for t, s, b in wanted]
-    return write_results(out_dir, cfg_data, records, world, figure=cfg.figure)
+    with _interrupt_deferred():  # every episode is played: a Ctrl-C now waits for the results to be written
+        world, _ = build_agent({**cfg_data, "agent": {"type": "random"}}, out_dir)
+        records = [done[(t, s, b)] for t, s, b in wanted]
+        return write_results(out_dir, cfg_data, records, world, figure=cfg.figure)
+
+
+@contextlib.contextmanager
+def _interrupt_deferred():
+    """Hold a Ctrl-C (SIGINT) until the block is done, then raise it (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt
+
+
+def played(out_dir: Path) -> int:
+    """How many episodes ``episodes.jsonl`` in ``out_dir`` holds."""
+    return len(read_episodes(Path(out_dir) / EPISODES))
+
+
+def agent_faults(result: dict) -> int:
+    """How many of the run's episodes ended in a fault of the agent (not a fall)."""
+    from overhang_framework.benchmark.score import AGENT_FAULTS
+
+    return sum(n for kind, n in (result.get("failures") or {}).items() if kind in AGENT_FAULTS)
 
 
 def _differences(old: Optional[dict], new: dict) -> str:
@@ -340,11 +441,17 @@ def app(cfg: DictConfig) -> Optional[dict]:
     from overhang_framework.preflight import job_result
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    result = job_result(lambda: run(cfg, out_dir), lambda: f"interrupted: finished episodes are kept in "
-                        f"{out_dir / EPISODES}; to resume, rerun the same command with hydra.run.dir={out_dir}", log)
+    result = job_result(lambda: run(cfg, out_dir), lambda: f"interrupted: {played(out_dir)} of {len(plan(cfg))} "
+                        f"episodes are kept in {out_dir / EPISODES}; to resume, rerun the same command with "
+                        f"hydra.run.dir={out_dir}", log)
     if result is None:
         return None
     print(format_summary(result))
+    faults = agent_faults(result)
+    if faults and faults == result["episodes"]:
+        first = next((r for r in read_episodes(out_dir / EPISODES) if r.get("reason")), {}).get("reason", "")
+        print(f"warning: every episode ended in a fault of the agent, e.g. {first!r}; see {out_dir / 'agent.log'} "
+              f"and {out_dir / SCORES}", file=sys.stderr)
     if result["above_optimum"]:
         print(f"error: {', '.join(result['above_optimum'])} scored above its optimum: that optimum is wrong",
               file=sys.stderr)
@@ -356,4 +463,4 @@ def app(cfg: DictConfig) -> Optional[dict]:
 def main(argv: Optional[Sequence[str]] = None) -> None:
     from overhang_framework.preflight import run_app_command
 
-    run_app_command(argv, app, CONFIG_NAME, check_config, __doc__)
+    run_app_command(argv, app, CONFIG_NAME, check_config, __doc__, check_output=check_output_dir)

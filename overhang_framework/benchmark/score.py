@@ -18,6 +18,7 @@ Every function here sorts its rows first, so the answer does not depend on their
 from __future__ import annotations
 
 import math
+import re
 from typing import Iterable, Optional, Sequence
 
 import numpy as np
@@ -84,15 +85,29 @@ def summarise(rows: Sequence[dict], draws: int = BOOTSTRAP) -> dict:
     }
 
 
+#: Where a reason's particulars (placement, coordinates, exit code, timeout) begin.
+_PARTICULARS = re.compile(r" at placement| x=| within | for block|[:(;]")
+#: Reasons that are the agent's faults rather than the tower's (see :func:`reason_kind`).
+AGENT_FAULTS = ("agent crashed", "agent gave no answer", "agent could not start", "malformed answer",
+                "illegal placement")
+
+
+def reason_kind(reason: str) -> str:
+    """The kind of an episode's reason, without its particulars: ``fell``, ``agent crashed``, ``agent gave no
+    answer``, ``malformed answer``, ``illegal placement``, ``agent could not start``, ``no legal placement``."""
+    reason = str(reason or "")
+    if "fell" in reason:
+        return "fell"
+    return _PARTICULARS.split(reason, maxsplit=1)[0].strip()
+
+
 def _reasons(rows: Sequence[dict]) -> dict:
-    """How many episodes ended for each kind of reason (the reason's first words)."""
+    """How many episodes ended for each kind of reason."""
     counts: dict = {}
     for r in rows:
-        reason = str(r.get("reason") or "")
-        if not reason:
-            continue
-        kind = "fell" if "fell" in reason else reason.split(" at placement")[0].split(":")[0]
-        counts[kind] = counts.get(kind, 0) + 1
+        if r.get("reason"):
+            kind = reason_kind(r["reason"])
+            counts[kind] = counts.get(kind, 0) + 1
     return dict(sorted(counts.items()))
 
 
