@@ -52,6 +52,14 @@ def test_ci_runs_the_readme_commands():
     assert ci.index(run) < ci.index(test), "the plain install and main job first, then the development install"
 
 
+def test_the_readme_says_how_to_run_the_postgresql_tests_as_ci_does():
+    line = 'eval "$(bash deploy/test-database.sh)"'
+    assert f"`{line} && .venv/bin/python -m pytest -q`" in README and "OVERHANG_TEST_POSTGRES_URL" in README
+    assert line in (ROOT / ".ci" / "run").read_text().splitlines()
+    script = (ROOT / "deploy" / "test-database.sh").read_text()
+    assert 'echo "export OVERHANG_TEST_POSTGRES_URL=' in script  # the line the eval runs
+
+
 NEEDS_GIT = pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(),
                                reason="needs a git checkout")
 
