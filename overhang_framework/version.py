@@ -11,8 +11,28 @@ import overhang_framework
 PACKAGE_DIR = Path(overhang_framework.__file__).resolve().parent
 
 
-def _git(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["git", *args], cwd=PACKAGE_DIR, capture_output=True, text=True, timeout=10)
+def _git(*args: str, cwd: Path = PACKAGE_DIR) -> subprocess.CompletedProcess:
+    # safe.directory: a service user reads a checkout another user owns (git otherwise refuses it as of
+    # "dubious ownership"); no optional locks: reading never writes the index, which that user cannot
+    return subprocess.run(["git", "-c", "safe.directory=*", "--no-optional-locks", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=10)
+
+
+def commit_of(directory: Path) -> str:
+    """The git commit of the checkout that holds the package directory ``directory``, with ``-dirty`` when the
+    package's files differ from it; '' when it is not in a checkout (or git is missing). Whoever owns the
+    checkout, any user who can read it gets the same answer."""
+    try:
+        tracked = _git("ls-files", "--error-unmatch", "__init__.py", cwd=directory)
+        if tracked.returncode != 0:
+            return ""
+        head = _git("rev-parse", "HEAD", cwd=directory)
+        if head.returncode != 0:
+            return ""
+        changed = _git("status", "--porcelain", "--untracked-files=no", "--", ".", cwd=directory)
+    except (OSError, subprocess.TimeoutExpired):
+        return ""
+    return head.stdout.strip() + ("-dirty" if changed.stdout.strip() else "")
 
 
 @lru_cache(maxsize=1)
@@ -20,17 +40,7 @@ def commit() -> str:
     """The git commit of the checkout the framework runs from, with ``-dirty`` when its files differ from
     that commit; '' when it does not run from a checkout (an installed copy, or a checkout's ignored
     directory such as a virtual environment inside it)."""
-    try:
-        tracked = _git("ls-files", "--error-unmatch", "__init__.py")
-        if tracked.returncode != 0:
-            return ""
-        head = _git("rev-parse", "HEAD")
-        if head.returncode != 0:
-            return ""
-        changed = _git("status", "--porcelain", "--untracked-files=no", "--", ".")
-    except (OSError, subprocess.TimeoutExpired):
-        return ""
-    return head.stdout.strip() + ("-dirty" if changed.stdout.strip() else "")
+    return commit_of(PACKAGE_DIR)
 
 
 def version() -> str:

@@ -4,6 +4,8 @@ the refusal of a restart with other settings, the consent record, ``withdraw`` a
 from __future__ import annotations
 
 import json
+import os
+import shutil
 
 import pytest
 
@@ -314,3 +316,32 @@ def test_a_participant_who_does_not_agree_leaves_nothing_but_a_count(overrides):
     refused = client.post("/api/decline", headers=h2)
     assert refused.status_code == 409 and "withdraw" in refused.json()["error"]
     assert store.participant("P2") is not None
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0 or shutil.which("git") is None,
+                    reason="needs root (to give a checkout to another owner) and git")
+def test_the_commit_is_read_from_a_checkout_another_user_owns(tmp_path):
+    """The deployment's case: the service user reads a checkout that root owns (here: root reads one that
+    ``nobody`` owns), which git refuses as "dubious ownership" unless told it is safe."""
+    import subprocess
+
+    from overhang_framework.version import commit_of
+
+    package = tmp_path / "checkout" / "overhang_framework"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+
+    def git(*args):
+        return subprocess.run(["git", "-c", "user.email=lab@example.org", "-c", "user.name=lab", *args],
+                              cwd=package.parent, check=True, capture_output=True, text=True).stdout.strip()
+
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "the lab's checkout")
+    head = git("rev-parse", "HEAD")
+    subprocess.run(["chown", "-R", "nobody", str(package.parent)], check=True)
+    refused = subprocess.run(["git", "rev-parse", "HEAD"], cwd=package, capture_output=True, text=True)
+    assert refused.returncode != 0 and "dubious ownership" in refused.stderr  # what plain git says
+    assert commit_of(package) == head
+    (package / "__init__.py").write_text("changed = True\n")
+    assert commit_of(package) == head + "-dirty"

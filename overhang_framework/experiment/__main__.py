@@ -100,6 +100,10 @@ def _serve(overrides: Sequence[str]) -> int:
             store.close()
         web_dir = ensure_built(settings.web_dir)
         db = settings.database.split("://")[0]
+        if not study.commit:
+            print(f"warning: the code's commit cannot be read (it does not run from a git checkout, or git is "
+                  f"missing): the study's records name version {study.framework_version} without a commit",
+                  file=sys.stderr)
         for event in study.history[known:]:
             if event["what"] == "settings":
                 print(f"experiment: the study's settings changed ({'; '.join(event['changes'])}); recorded with "
