@@ -395,3 +395,66 @@ def test_a_participant_who_does_not_agree_leaves_for_the_decline_page_and_nothin
     assert "Nothing about you is kept" in page.content()
     assert server["store"].participant("E2E-5") is None
     context.close()
+
+
+def test_a_participant_meets_each_error_in_words_with_the_contact(browser, server, monkeypatch):
+    """Every error a participant can meet is a sentence saying what to do and whom to contact, with a Try again
+    button only where trying again can help; the screens are saved with E2E_SHOTS."""
+    from sqlalchemy.exc import OperationalError
+
+    store = server["store"]
+    base = server["url"]
+
+    def meet(path, name, route=None):
+        context = browser.new_context(viewport={"width": 1000, "height": 700})
+        page = context.new_page()
+        if route is not None:
+            page.route("**/api/sessions", route)
+        page.goto(base + path)
+        error = page.get_by_test_id("error").or_(page.get_by_test_id("finished"))
+        error.wait_for(timeout=30_000)
+        shot(page, f"E2E-error-{name}")
+        return context, page, error.inner_text()
+
+    for path, name, words in [
+        (f"/?PROLIFIC_PID=E2E-6&STUDY_ID={'x' * 5000}&SESSION_ID=s", "long-study-id",
+         "This link is not one the study can take."),
+        ("/?STUDY_ID=s", "no-id", "This link does not say who you are."),
+        ("/?participant=not%20an%20id!", "bad-id", "The participant id in this link is not one the study can take."),
+    ]:
+        context, page, text = meet(path, name)
+        assert text.startswith(words) and "lab@example.org" in text, text
+        assert page.get_by_test_id("retry").count() == 0  # trying again cannot help
+        context.close()
+
+    # the database is away: words, the contact, and a Try again that works once it is back
+    real = store.participant
+
+    def down(*args, **kwargs):
+        raise OperationalError("SELECT 1", {}, ConnectionRefusedError("connection refused"))
+
+    monkeypatch.setattr(store, "participant", down)
+    context, page, text = meet("/?participant=E2E-7", "database-away")
+    assert "cannot store your answers just now" in text and "lab@example.org" in text, text
+    monkeypatch.setattr(store, "participant", real)
+    page.get_by_test_id("retry").click()
+    page.get_by_test_id("agree").wait_for(timeout=30_000)
+    context.close()
+
+    # a participant who finished, in another browser
+    store.complete("E2E-7", 0.0, 0.0)
+    context, page, text = meet("/?participant=E2E-7", "finished")
+    assert "You have finished this study already: thank you." in text and "lab@example.org" in text, text
+    assert "new link" not in text and page.locator("button").count() == 0
+    context.close()
+
+    # what a proxy answers in its own words (nginx's HTML 413 and 502 pages)
+    for status, name, words, retry in [(413, "proxy-413", "The page sent more than the study's server takes.", 0),
+                                       (502, "proxy-502", "did not answer properly (error 502)", 1)]:
+        def proxy(route, *_, status=status):
+            route.fulfill(status=status, content_type="text/html", body=f"<html><h1>{status}</h1></html>")
+
+        context, page, text = meet("/?participant=E2E-8", name, route=proxy)
+        assert words in text and "please contact" in text and "<html>" not in text, text
+        assert page.get_by_test_id("retry").count() == retry
+        context.close()

@@ -281,7 +281,7 @@ def test_the_nginx_site_names_the_server_and_passes_nginx_t(tmp_path, capsys):
     assert not (tmp_path / "bad.conf").exists()
 
 
-def test_the_systemd_unit_runs_the_checked_overrides_as_the_user(tmp_path, capsys):
+def test_the_systemd_unit_runs_the_checked_overrides_as_the_user(tmp_path, capsys, service_user):
     from overhang_framework.experiment.deploy import exec_start_words
 
     out = tmp_path / "unit.service"
@@ -297,6 +297,27 @@ def test_the_systemd_unit_runs_the_checked_overrides_as_the_user(tmp_path, capsy
     assert "workers must be" in capsys.readouterr().err
     assert main(["systemd-unit", "--user", "overhang", "admin_token=secret-token"]) == 2
     assert "OVERHANG_ADMIN_TOKEN" in capsys.readouterr().err
+    # a user the machine does not have, a password in the unit, a database the server cannot open: one line each
+    for words, said in [
+        (["--user", "nosuchuser"], "there is no user 'nosuchuser' on this machine; make it first"),
+        (["--user", "overhang", "database=postgresql+psycopg://overhang:secret@db.example.org/overhang"],
+         "leave the database's password out of the unit"),
+        (["--user", "overhang", "database=postgres://overhang@/overhang"],
+         "database: postgres:// is not a kind of database the server can open"),
+    ]:
+        assert main(["systemd-unit", *words, "--out", str(tmp_path / "refused.service")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and said in err, err
+        assert "secret" not in err
+    assert not (tmp_path / "refused.service").exists()
+    assert "RestartPreventExitStatus=2" in text.splitlines()  # a refused start is not restarted every 5 s
+    # a database URL with a query (a socket directory, a port, sslmode) is taken as written
+    query = "postgresql+psycopg://overhang@/overhang?host=/run/postgresql&port=5433"
+    assert main(["systemd-unit", "--user", "overhang", "--out", str(out), f"database={query}"]) == 0
+    assert f"database={query}" in exec_start_words(out.read_text())
+    from overhang_framework.experiment.settings import load_settings
+
+    assert load_settings([f"database={query}"], need_admin_token=False).database == query
 
 
 # docs/deploy.md -------------------------------------------------------------------------------------------------
@@ -318,7 +339,7 @@ def deploy_commands():
     return out, text
 
 
-def test_the_deploy_guide_s_commands_write_what_it_says(tmp_path, monkeypatch, capsys):
+def test_the_deploy_guide_s_commands_write_what_it_says(tmp_path, monkeypatch, capsys, service_user):
     from test_experiment_deploy import OPENSSL
 
     commands, text = deploy_commands()

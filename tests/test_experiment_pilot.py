@@ -20,6 +20,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+from overhang_framework.experiment.__main__ import sidecar_of
 from overhang_framework.experiment.pilot import SAME, offline_twin, placements_alike
 
 pytest.importorskip("httpx")
@@ -150,10 +151,15 @@ def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path):
     assert len(decisions) == 2 and not any(d["claimed_timeout"] for d in decisions)
     assert all(d["x"] is not None for d in decisions)
     log = tmp_path / "log.jsonl"
-    run("-m", "overhang_framework.experiment", "export", *[w for w in words if w.split("=")[0] in ("run_dir",)],
-        "--out", str(log), "--include-screened-out")
+    where = [w for w in words if w.split("=")[0] in ("run_dir",)]
+    # the server's study is a study of people: the pilot's participants are stored as simulated and left out
+    run("-m", "overhang_framework.experiment", "export", *where, "--out", str(log), "--include-screened-out")
+    assert log.read_text() == ""
+    assert json.loads(sidecar_of(log).read_text())["participants"]["simulated"] == 1
+    run("-m", "overhang_framework.experiment", "export", *where, "--out", str(log), "--include-screened-out",
+        "--include-simulated")
     records = [json.loads(line) for line in log.read_text().splitlines()]
-    assert len(records) == 2
+    assert len(records) == 2 and {r["source"] for r in records} == {"simulated"}
     for r, d in zip(records, decisions):
         assert r["timed_out"] is True and r["x"] is None and r["reward"] == 0.0
         assert r["late_action"] == [d["x"], d["layer"]]  # what the client placed, stored as late

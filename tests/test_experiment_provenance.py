@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -26,8 +27,9 @@ def _serve_app(overrides, clock=None):
     return client
 
 
-def _session(client, pid, consent=True):
-    s = client.post("/api/sessions", json={"params": {"participant": pid}}).json()
+def _session(client, pid, consent=True, simulated=False):
+    body = {"params": {"participant": pid}, **({"simulated": True} if simulated else {})}
+    s = client.post("/api/sessions", json=body).json()
     h = {"Authorization": f"Bearer {s['token']}"}
     if consent:
         reply = client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h)
@@ -35,9 +37,9 @@ def _session(client, pid, consent=True):
     return s, h
 
 
-def _play(client, pid, main_trials=1):
+def _play(client, pid, main_trials=1, simulated=False):
     """``pid`` consents, passes the practice with the shown towers and builds ``main_trials`` main towers."""
-    s, h = _session(client, pid)
+    s, h = _session(client, pid, simulated=simulated)
 
     def place(phase, trial, step, x, layer):
         body = {"phase": phase, "trial": trial, "step": step}
@@ -345,3 +347,92 @@ def test_the_commit_is_read_from_a_checkout_another_user_owns(tmp_path):
     assert commit_of(package) == head
     (package / "__init__.py").write_text("changed = True\n")
     assert commit_of(package) == head + "-dirty"
+
+
+def test_a_participant_who_started_before_an_allowed_change_exports_with_the_hash_and_limit_they_played_under(
+        overrides):
+    from overhang_framework.experiment.export import log_records, study_json
+
+    limited = [*overrides, "conditions=[time_limited]"]
+    first = _serve_app(limited)
+    s1, h1 = _session(first, "P1")  # starts under 5 s, places nothing yet
+    old_hash = first.app.state.store.study().settings_hash
+    first.app.state.store.close()
+    changed = _serve_app([*limited, "time_limit=4", "allow_settings_change=true"])
+    store = changed.app.state.store
+    new_hash = store.study().settings_hash
+    assert new_hash != old_hash
+    # P1 goes on under the new server: their whole trial, then a newcomer's
+    changed.cookies.clear()
+    for k, pt in enumerate(changed.settings.practice, 1):
+        for step, (_, x, layer) in enumerate(pt.shown_tower[1:], 1):
+            body = {"phase": "practice", "trial": k, "step": step}
+            assert changed.post("/api/steps/start", json=body, headers=h1).status_code == 200
+            reply = changed.post("/api/placements", json={**body, "x": x, "layer": layer, "decision_time": 1.0},
+                                 headers=h1)
+            assert reply.status_code == 200, reply.text
+    order = store.participant("P1").order
+    by_id = {t.id: t for t in changed.settings.tasks}
+    for step in range(1, len(by_id[order[0]].sequence)):
+        body = {"phase": "main", "trial": 1, "step": step}
+        assert changed.post("/api/steps/start", json=body, headers=h1).status_code == 200
+        reply = changed.post("/api/placements", json={**body, "x": 0.0, "layer": step, "decision_time": 1.0},
+                             headers=h1)
+        if reply.json()["trial_over"]:
+            break
+    _play(changed, "P2")
+    assert {(r.participant_id, r.settings_hash) for r in store.placements()} == {("P1", old_hash), ("P2", new_hash)}
+    records, _ = log_records(store)
+    played = {(r["participant"], r["settings_hash"], r["time_limit"]) for r in records}
+    assert played == {("P1", old_hash, 5.0), ("P2", new_hash, 4.0)}
+    # every hash a record carries is resolved by the sidecar: the current settings, or an earlier one in its history
+    study = study_json(store)["study"]
+    earlier = {e["previous"]["settings_hash"]: e["previous"]["settings"] for e in study["history"]
+               if e["what"] == "settings"}
+    assert study["settings_hash"] == new_hash and earlier[old_hash]["time_limit"] == 5.0
+
+
+def test_a_pilots_participants_are_stored_as_simulated_and_left_out_of_a_default_export(overrides, tmp_path):
+    from overhang_framework.experiment.export import log_records, study_json, write_psychds
+
+    client = _serve_app(overrides)
+    _play(client, "person")
+    _play(client, "pilot-001", simulated=True)
+    _play(client, "pilot-002")  # a session the page starts is a person's, whatever its id
+    store = client.app.state.store
+    assert store.participant("pilot-001").source == "simulated" and store.participant("person").source == "human"
+    records, _ = log_records(store)
+    assert {r["participant"] for r in records} == {"person", "pilot-002"}
+    assert {r["source"] for r in records} == {"human"}
+    assert study_json(store)["participants"]["simulated"] == 1
+    admin = {"X-Admin-Token": ADMIN}
+    assert "pilot-001" not in client.get("/api/admin/export", headers=admin).text
+    asked = client.get("/api/admin/export?include_simulated=true", headers=admin).text
+    assert {json.loads(line)["source"] for line in asked.splitlines() if "pilot-001" in line} == {"simulated"}
+    records, _ = log_records(store, include_simulated=True)
+    write_psychds(records, tmp_path / "dataset")
+    description = json.loads((tmp_path / "dataset" / "dataset_description.json").read_text())["description"]
+    assert description.startswith("People (2) and simulated participants of a pilot (1, source: simulated)")
+
+
+def test_stored_rewards_and_the_practice_pass_mark_carry_no_float_noise(overrides):
+    from types import SimpleNamespace
+
+    from overhang_framework.experiment.api import total_reward
+
+    rewards = [2.1, 2.1, 2.1]
+    assert repr(sum(rewards)) == "6.300000000000001"  # what a plain sum stores
+    trials = [SimpleNamespace(reward=r, trial_over=True) for r in rewards]
+    assert repr(total_reward([*trials, SimpleNamespace(reward=None, trial_over=False)])) == "6.3"
+    settings = load_settings([*overrides, f"admin_token={ADMIN}"])
+    for practice in settings.practice:
+        assert len(repr(practice.pass_reward)) <= 5 and len(repr(practice.shown_reward)) <= 5, practice
+
+
+def test_a_new_contact_is_refused_as_the_consent_text_change_it_is_and_says_so(overrides):
+    from overhang_framework.errors import ConfigError
+
+    _serve_app([*overrides, "contact=lab@example.org"]).app.state.store.close()
+    with pytest.raises(ConfigError, match=r"consent_version: .* -> .*\) \(the consent text changed: it includes the "
+                                          r"contact=, so a new contact or consent_file changes it\); serve"):
+        _serve_app([*overrides, "contact=other-lab@example.org"])

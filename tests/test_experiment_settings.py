@@ -231,6 +231,45 @@ def test_a_second_server_on_the_same_run_dir_is_refused(tmp_path, capsys, monkey
     assert main([f"run_dir={tmp_path / 'run'}", f"port={_free_port()}", *serve]) == 0  # the first one has stopped
 
 
+@pytest.mark.parametrize("kind", ["sqlite", "postgresql"])
+def test_a_second_server_on_the_same_database_is_refused_whatever_its_run_dir(tmp_path, capsys, monkeypatch, kind):
+    import uvicorn
+
+    from overhang_framework.experiment.__main__ import SETTINGS_ENV, main
+    from overhang_framework.experiment.store import Store
+
+    if kind == "sqlite":
+        database, drop = f"sqlite:///{tmp_path / 'shared.sqlite'}", (lambda: None)
+    else:
+        from test_experiment_ops import fresh_postgres_database
+
+        database, drop = fresh_postgres_database()
+    monkeypatch.setenv(SETTINGS_ENV, "")
+    serve = ["admin_token=long-enough", f"web_dir={_built_front_end(tmp_path)}", "workers=2", f"database={database}"]
+    seen = []
+
+    def listening(*args, **kwargs):  # while the first server runs, a second starts from another run_dir
+        if not seen:
+            capsys.readouterr()
+            seen.append(main([f"run_dir={tmp_path / 'other'}", f"port={_free_port()}", *serve]))
+            seen.append(capsys.readouterr().err.splitlines())
+
+    monkeypatch.setattr(uvicorn, "run", listening)
+    try:
+        first_port = _free_port()
+        assert main([f"run_dir={tmp_path / 'run'}", f"port={first_port}", *serve]) == 0
+        refused, err = seen
+        assert refused == 2 and len(err) == 1 and err[0].startswith(
+            "error: another server is serving the study in the database "), err
+        assert "stop it first" in err[0] and "long-enough" not in err[0]
+        store = Store(database)
+        assert store.study().address == f"http://127.0.0.1:{first_port}"  # not rewritten by the refused one
+        store.close()
+        assert main([f"run_dir={tmp_path / 'other'}", f"port={_free_port()}", *serve]) == 0  # the first has stopped
+    finally:
+        drop()
+
+
 def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_out(tmp_path, capsys):
     from fastapi.testclient import TestClient
 
@@ -273,3 +312,18 @@ def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_o
     assert main(["export", "--out", str(blocker / "log.jsonl"), *overrides]) == 2
     assert capsys.readouterr().err == (f"error: cannot write the output directory '{blocker}' ({blocker} is not a "
                                        "directory); choose another with --out FILE\n")
+
+
+def test_the_database_can_come_from_the_environment_and_a_bad_url_is_one_line(tmp_path, monkeypatch):
+    from overhang_framework.experiment.settings import DATABASE_ENV
+
+    url = "postgresql+psycopg://overhang:secret@db.example.org/overhang?sslmode=require"
+    monkeypatch.setenv(DATABASE_ENV, url)
+    assert load_settings([f"run_dir={tmp_path}"], need_admin_token=False).database == url
+    given = f"sqlite:///{tmp_path / 'x.sqlite'}"
+    assert load_settings([f"run_dir={tmp_path}", f"database={given}"], need_admin_token=False).database == given
+    monkeypatch.delenv(DATABASE_ENV)
+    assert load_settings([f"run_dir={tmp_path}"], need_admin_token=False).database.endswith("experiment.sqlite")
+    with pytest.raises(ConfigError, match=r"^database: postgres:// is not a kind of database the server can open "
+                                          r"\(write postgresql\+psycopg://\.\.\.\)"):
+        load_settings([f"run_dir={tmp_path}", "database=postgres://u:p@h/db"], need_admin_token=False)

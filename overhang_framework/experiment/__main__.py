@@ -70,6 +70,7 @@ SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
 
 
 def _serve(overrides: Sequence[str]) -> int:
+    import contextlib
     import os
 
     import uvicorn
@@ -88,16 +89,18 @@ def _serve(overrides: Sequence[str]) -> int:
     # conditions and hand out the session tokens of its own
     busy = (f"another server is serving the study in {settings.run_dir}; stop it first, or give this one "
             "another run_dir=DIR")
-    with RunDir(settings.run_dir, busy).lock():
+    with RunDir(settings.run_dir, busy).lock(), contextlib.ExitStack() as held:
         from overhang_framework.experiment.api import begin_study, public_base
 
         store = Store(settings.database)  # the tables, made once before the server processes open the database
-        try:
-            known = len(getattr(store.study(), "history", None) or [])
-            study = begin_study(settings, store)  # refused when the study runs with other settings
-            address = public_base(settings, store=store)
-        finally:
-            store.close()
+        held.callback(store.close)
+        # one server a study, whatever its run_dir or machine: a second would rewrite the study's address and
+        # balance the conditions on its own; held until this server stops
+        held.enter_context(store.serving(f"another server is serving the study in the database "
+                                         f"{_shown(settings.database)}; stop it first"))
+        known = len(getattr(store.study(), "history", None) or [])
+        study = begin_study(settings, store)  # refused when the study runs with other settings
+        address = public_base(settings, store=store)
         web_dir = ensure_built(settings.web_dir)
         db = settings.database.split("://")[0]
         if not study.commit:
@@ -202,7 +205,8 @@ def _export(args) -> int:
 
         check_out(out)  # before the database is read: an --out that cannot take a dataset is said at once
     if args.url:
-        reply = _ask_server(args, "GET", "/api/admin/export", timeout=120)
+        reply = _ask_server(args, "GET", "/api/admin/export" + ("?include_simulated=true" if args.include_simulated
+                                                                 else ""), timeout=120)
         study = _ask_server(args, "GET", "/api/admin/study", timeout=60) if reply is not None else None
         if study is None:
             return 2
@@ -214,7 +218,8 @@ def _export(args) -> int:
         if store is None:
             return 2
         try:
-            records, unfinished = log_records(store, include_screened_out=args.include_screened_out)
+            records, unfinished = log_records(store, include_screened_out=args.include_screened_out,
+                                              include_simulated=args.include_simulated)
             study = study_json(store)
         finally:
             store.close()
@@ -467,6 +472,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                             help="jsonl (default): one behaviour-log file; psych-ds: a Psych-DS dataset folder")
         parser.add_argument("--include-screened-out", action="store_true",
                             help="add the practice attempts of participants screened out in the practice")
+        parser.add_argument("--include-simulated", action="store_true",
+                            help="add a pilot's simulated participants (source: simulated) to an export of a "
+                                 "study of people")
     if command in ("export", "reissue", "withdraw"):
         parser.add_argument("--url", help="a running server to ask (default: read the database directly)")
     if command == "build":
@@ -507,8 +515,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (OverhangError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except Exception as err:  # a database that refuses the user, is not there, or went away
+        from sqlalchemy.exc import SQLAlchemyError
+
+        if not isinstance(err, SQLAlchemyError):
+            raise
+        print(f"error: cannot reach the database: {_first_line(err)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
+
+
+def _first_line(err: Exception) -> str:
+    """A database error's own first line (the driver's), without SQLAlchemy's background link."""
+    text = str(getattr(err, "orig", None) or err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ from fastapi import Depends, FastAPI, Header, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from sqlalchemy.exc import DBAPIError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from overhang_framework import __version__, rules
@@ -43,6 +44,21 @@ from overhang_framework.experiment.store import (Conflict, Participant, Placemen
 from overhang_framework.geometry import MAX_LAYER, Action, Geometry, overhang
 
 PARTICIPANT_ID = re.compile(r"^[A-Za-z0-9_.@:-]{1,200}$")
+#: The longest STUDY_ID or SESSION_ID a link may carry (the database's columns).
+MAX_PARAM = 200
+#: The largest request body the server reads, in bytes (a placement's 36,000 mouse samples fit in about 2 MB).
+MAX_BODY = 4 * 2 ** 20
+#: What a refusal without words of its own tells a participant, by its status.
+PAGE_WORDS = {
+    401: "This page has lost its session with the study. Please open the study again from the link you were given",
+    403: "This page's session is not valid for the study any more. Please open the study again from the link "
+         "you were given",
+    409: "This page is out of step with the study's server. Please reload the page",
+    410: "This part of the study is closed",
+    422: "The page sent the study's server something it could not take. Please reload the page",
+}
+#: What a participant is asked to do when a link is not one the study can take.
+USE_YOUR_LINK = "Please open the study from the link you were given"
 #: The most mouse samples or dwell entries one placement may carry (10 minutes at 60 Hz).
 MAX_SAMPLES = 36_000
 #: A page's timeout may reach the server this much before the step's time limit (seconds): the page counts
@@ -53,7 +69,7 @@ EARLY_TIMEOUT = 0.25
 class Refused(Exception):
     """A request refused with ``status`` and a one-line ``message`` (``extra``: more keys of the reply)."""
 
-    def __init__(self, status: int, message: str, **extra):
+    def __init__(self, status: int, message: str, /, **extra):
         super().__init__(message)
         self.status, self.message, self.extra = status, message, extra
 
@@ -61,6 +77,9 @@ class Refused(Exception):
 class SessionIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     params: dict[str, str] = Field(default_factory=dict)
+    # a pilot's simulated participant (experiment pilot sends it): stored as source simulated, left out of a
+    # default export of a study of people
+    simulated: bool = False
 
 
 class ConsentIn(BaseModel):
@@ -123,6 +142,12 @@ def _tower_after(sequence, rows) -> list:
     return tower
 
 
+def total_reward(last_steps) -> float:
+    """The sum of the rewards of the trials whose last steps (placements) are ``last_steps`` and are over.
+    Rewards lie on the 0.1 grid of overhangs: the sum is rounded back onto it (16.8, not 16.800000000000004)."""
+    return round(sum(r.reward or 0.0 for r in last_steps if r.trial_over), 9)
+
+
 def position(settings: Settings, participant: Participant, rows: list[Placement]) -> Position:
     """The position after ``rows`` (the participant's placements).
 
@@ -133,7 +158,7 @@ def position(settings: Settings, participant: Participant, rows: list[Placement]
     groups: dict[tuple, list[Placement]] = {}
     for r in sorted(rows, key=lambda r: (r.phase, r.trial, r.attempt, r.step)):
         groups.setdefault((r.phase, r.trial, r.attempt), []).append(r)
-    total = sum(g[-1].reward or 0.0 for (phase, _, _), g in groups.items() if phase == "main" and g[-1].trial_over)
+    total = total_reward(g[-1] for (phase, _, _), g in groups.items() if phase == "main")
     if participant.screened_out_at is not None:
         last = max((key for key in groups if key[0] == "practice"), default=("practice", 1, 1))
         return Position("screened_out", last[1], last[2], 0, [], total)
@@ -191,7 +216,10 @@ def begin_study(settings: Settings, store: Store):
                                  f"http://{settings.host}:{settings.port}", settings.public_url,
                                  allow_change=settings.allow_settings_change)
     except SettingsChanged as err:
-        raise ConfigError(f"the study in this database runs with other settings ({'; '.join(err.changes)}); serve "
+        consent = any(c.startswith("consent_version:") for c in err.changes)
+        note = (" (the consent text changed: it includes the contact=, so a new contact or consent_file changes "
+                "it)" if consent else "")
+        raise ConfigError(f"the study in this database runs with other settings ({'; '.join(err.changes)}){note}; serve "
                           "it with the settings it started with, or add allow_settings_change=true to change them "
                           "(the change is recorded with the study)") from None
 
@@ -271,7 +299,10 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     @app.exception_handler(Refused)
     async def _refused(_request: Request, err: Refused):
-        return JSONResponse({"error": err.message, **err.extra}, status_code=err.status)
+        extra = err.extra if "message" in err.extra else {**err.extra, **for_participant(
+            PAGE_WORDS.get(err.status, "The study's server could not take this step. Please reload the page"),
+            settings)}
+        return JSONResponse({"error": err.message, **extra}, status_code=err.status)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, err: StarletteHTTPException):
@@ -293,7 +324,35 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_request: Request, err: RequestValidationError):
-        return JSONResponse({"error": _one_line(err)}, status_code=422)
+        return JSONResponse({"error": _one_line(err), **for_participant(
+            "The page sent the study's server something it could not read. Please reload the page", settings)},
+            status_code=422)
+
+    @app.exception_handler(DBAPIError)
+    async def _database(request: Request, err: DBAPIError):
+        import logging
+
+        logging.getLogger("overhang_framework.experiment").error("%s %s: the database failed: %s", request.method,
+                                                                  request.url.path, str(err.orig or err)[:300])
+        return JSONResponse({"error": "the database cannot be reached or failed; GET /api/health says more",
+                             "reason": "unavailable", **for_participant(
+                                 "The study's server cannot store your answers just now. Please wait a minute and "
+                                 "try again; nothing you did so far is lost", settings)}, status_code=503)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, err: Exception):
+        import logging
+
+        logging.getLogger("overhang_framework.experiment").exception("%s %s failed", request.method,
+                                                                      request.url.path)
+        return JSONResponse({"error": f"the server failed on {request.method} {request.url.path}: "
+                                      f"{type(err).__name__}; its log has the traceback", "reason": "server_error",
+                             **for_participant("The study's server had a problem with this step. Please wait a "
+                                               "moment and try again", settings)}, status_code=500)
+
+    app.add_middleware(BodyLimit, limit=MAX_BODY, reply=lambda: {
+        "error": f"the request body is larger than the server takes ({MAX_BODY} bytes)", "reason": "too_large",
+        **for_participant("The page sent more than the study's server takes. Please reload the page", settings)})
 
     def participant_of(authorization: Annotated[Optional[str], Header()] = None) -> Participant:
         token = _bearer(authorization)
@@ -360,20 +419,34 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         pid = params.get("PROLIFIC_PID") or params.get("participant")
         if not pid:
             raise Refused(422, "no participant: the page's URL needs PROLIFIC_PID (with STUDY_ID and SESSION_ID) "
-                               "or participant")
+                               "or participant", reason="bad_link", **for_participant(
+                                   f"This link does not say who you are. {USE_YOUR_LINK}", settings))
         if not PARTICIPANT_ID.match(pid):
-            raise Refused(422, "a participant id is 1 to 200 letters, digits or _ . @ : -")
+            raise Refused(422, "a participant id is 1 to 200 letters, digits or _ . @ : -", reason="bad_link",
+                          **for_participant(f"The participant id in this link is not one the study can take. "
+                                            f"{USE_YOUR_LINK}", settings))
+        long = [k for k in ("STUDY_ID", "SESSION_ID") if len(params.get(k) or "") > MAX_PARAM]
+        if long:
+            raise Refused(422, f"{' and '.join(long)} longer than {MAX_PARAM} characters", reason="bad_link",
+                          **for_participant(f"This link is not one the study can take. {USE_YOUR_LINK}", settings))
         token = _bearer(authorization)
         known = store.participant(pid)
         if known is not None:
             if token is None or not hmac.compare_digest(token_hash(token), known.token_hash):
+                if known.completed_at is not None:
+                    raise Refused(403, f"participant {pid} has finished the study, in another browser or with an "
+                                       "earlier link", reason="finished", **for_participant(
+                                           "You have finished this study already: thank you. There is nothing more "
+                                           "to do", settings, "If you were not shown your completion code"))
                 raise Refused(403, f"participant {pid} already has a session, held by another browser or an earlier "
                                    "link; the researcher can issue a new link (experiment reissue)",
                               reason="session_elsewhere", contact=settings.contact)
             return JSONResponse(session_payload(known, token), status_code=200)
         if store.withdrew(pid):
             raise Refused(410, f"participant {pid} withdrew from this study, and their data were deleted; they "
-                               "cannot take part again", reason="withdrawn", contact=settings.contact)
+                               "cannot take part again", reason="withdrawn", **for_participant(
+                                   "You withdrew from this study, and your data were deleted, so you cannot take "
+                                   "part again", settings, "If you think this is a mistake"))
         token = secrets.token_urlsafe(24)
 
         def newcomer(counts: dict[str, int]) -> Participant:
@@ -385,7 +458,9 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             order = [settings.tasks[i].id for i in rng.permutation(len(settings.tasks))]
             return Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
                                token_hash=token_hash(token), condition=condition, order=order,
-                               time_limit=settings.limit_of(condition))
+                               time_limit=settings.limit_of(condition),
+                               source="simulated" if body.simulated or settings.source == "simulated" else "human",
+                               settings_hash=provenance["settings_hash"])
 
         p = store.add_newcomer(settings.conditions, newcomer)
         if p is None:
@@ -510,7 +585,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             late_action=[body.x, body.layer] if late else None,
             trajectory=[list(s) for s in body.trajectory], dwell=[list(d) for d in body.dwell],
             tower_before=pos.tower, stable=stable, overhang=level, reward=reward, trial_over=trial_over,
-            passed=passed, request_hash=digest, response={}, **provenance)
+            passed=passed, request_hash=digest, response={},
+            **{**provenance, "settings_hash": p.settings_hash or provenance["settings_hash"]})
         attempts = settings.practice_max_attempts
         if passed is False and attempts is not None and pos.attempt >= attempts:
             after = Position("screened_out", pos.trial, pos.attempt, 0, [], pos.total_reward)
@@ -553,10 +629,10 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                 "currency": settings.currency}
 
     @app.get("/api/admin/export", dependencies=[Depends(admin)])
-    def export():
+    def export(include_simulated: bool = False):
         from overhang_framework.experiment.export import export_jsonl
 
-        text, _ = export_jsonl(store)
+        text, _ = export_jsonl(store, include_simulated=include_simulated)
         return PlainTextResponse(text, media_type="application/x-ndjson")
 
     @app.get("/api/admin/study", dependencies=[Depends(admin)])
@@ -640,6 +716,55 @@ def _bearer(authorization: Optional[str]) -> Optional[str]:
         return None
     scheme, _, token = authorization.partition(" ")
     return token.strip() if scheme.lower() == "bearer" and token.strip() else None
+
+
+def for_participant(sentence: str, settings: Settings, when: str = "If this keeps happening") -> dict:
+    """The keys of a refusal a participant may meet: ``message``, a sentence in their words ending with whom to
+    contact, and ``contact``."""
+    contact = settings.contact or "the researcher"
+    return {"message": f"{sentence}. {when}, please contact {contact}.", "contact": settings.contact}
+
+
+class BodyLimit:
+    """Answers 413 (JSON ``reply()``) to a request whose body is larger than ``limit`` bytes, by its
+    Content-Length or, without one, once what arrived passes the limit; the body is not read further."""
+
+    def __init__(self, app, limit: int, reply: Callable[[], dict]):
+        self.app, self.limit, self.reply = app, int(limit), reply
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        length = dict(scope.get("headers") or []).get(b"content-length")
+        if length is not None and length.isdigit() and int(length) > self.limit:
+            return await JSONResponse(self.reply(), status_code=413)(scope, receive, send)
+        seen = 0
+        over = False
+
+        async def counted():
+            nonlocal seen, over
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.limit:
+                    over = True
+                    raise BodyTooLarge()
+            return message
+
+        async def unless_over(message):
+            if not over:  # the app's answer to a body it could not finish reading is replaced
+                await send(message)
+
+        try:
+            await self.app(scope, counted, unless_over)
+        except BodyTooLarge:
+            over = True
+        if over:
+            await JSONResponse(self.reply(), status_code=413)(scope, receive, send)
+
+
+class BodyTooLarge(Exception):
+    """A request body passed :data:`MAX_BODY` while it was read."""
 
 
 def _one_line(err: RequestValidationError) -> str:

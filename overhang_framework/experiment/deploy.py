@@ -96,12 +96,27 @@ def systemd_unit(user: str, overrides: Sequence[str] = (), group: str | None = N
     """
     from overhang_framework.experiment.settings import load_settings
 
+    import pwd
+
+    from sqlalchemy.engine import make_url
+
+    from overhang_framework.experiment.settings import DATABASE_ENV
+
     if not re.match(r"^[a-z_][a-z0-9_-]*$", user):
         raise ConfigError(f"--user must be a system user's name, such as overhang, got {user!r}")
+    try:
+        pwd.getpwnam(user)
+    except KeyError:
+        raise ConfigError(f"there is no user {user!r} on this machine; make it first (sudo adduser --system "
+                          f"--group {user}), or name the user the service runs as") from None
     settings = load_settings(overrides, need_admin_token=False)
     if any(o.startswith("admin_token=") for o in overrides):
         raise ConfigError("leave admin_token out of the unit (any local user can read it there); put "
                           "OVERHANG_ADMIN_TOKEN=... into the environment file (--env-file)")
+    if any(o.lstrip("+").startswith("database=") for o in overrides) and make_url(settings.database).password:
+        raise ConfigError(f"leave the database's password out of the unit (any local user can read it there, and ps "
+                          f"shows it); leave database= out and put {DATABASE_ENV}=URL into the environment file "
+                          "(--env-file), as the admin token is")
     run_dir = settings.run_dir.absolute()
     words = [o for o in overrides if not o.startswith("run_dir=")] + [f"run_dir={run_dir}"]
     command = [python or sys.executable, "-m", "overhang_framework.experiment", *words]

@@ -68,8 +68,12 @@ EXPORT_VARIABLES: dict[str, Variable] = {
     "commit": Variable("The git commit of the server's code that stored the placement (with -dirty when its files "
                        "differed from it); empty when it did not run from a git checkout.", "string"),
     "settings_hash": Variable(
-        "SHA-256 of the study's settings the placement was made under (what participants see and how they are "
-        "scored, the task set included; study.json has them in full).", "string"),
+        "SHA-256 of the study's settings the participant started under, which they played under (what "
+        "participants see and how they are scored, the task set included; study.json has the settings in full, "
+        "and those of every earlier hash in its history).", "string"),
+    "time_limit": Variable(
+        "The participant's time limit per placement, in seconds, as it was when they started (kept through a later "
+        "change of the study's settings); empty without one.", "number", "seconds", 0),
     "tasks_hash": Variable("SHA-256 of the study's main task set (ids and block widths) the placement was made "
                            "under.", "string"),
 }
@@ -81,18 +85,22 @@ def decision_time(row, time_limit: Optional[float]) -> float:
     return min(seconds, time_limit) if time_limit is not None else seconds
 
 
-def log_records(store: Store, include_screened_out: bool = False) -> tuple[list[dict], int]:
+def log_records(store: Store, include_screened_out: bool = False,
+                include_simulated: bool = False) -> tuple[list[dict], int]:
     """The behaviour-log records of every whole main trial, and the number of unfinished trials left out.
 
-    ``include_screened_out`` adds the practice attempts of the participants screened out in the practice.
+    ``include_screened_out`` adds the practice attempts of the participants screened out in the practice. A study
+    of people leaves out its simulated participants (a pilot's) unless ``include_simulated``; each record's
+    ``source`` is its participant's.
     """
-    people = {p.id: p for p in store.participants()}
     study = store.study()
     source = (study.settings.get("source") if study is not None else None) or "human"
+    people = {p.id: p for p in store.participants()
+              if include_simulated or source == "simulated" or (p.source or "human") != "simulated"}
     screened = {pid for pid, p in people.items() if p.screened_out_at is not None}
     trials: dict[tuple, list] = {}
     for row in store.placements(phase="main"):
-        if row.participant_id not in screened or include_screened_out:
+        if row.participant_id in people and (row.participant_id not in screened or include_screened_out):
             trials.setdefault((row.participant_id, "main", row.trial, 1), []).append(row)
     if include_screened_out:
         for pid in sorted(screened):
@@ -120,7 +128,9 @@ def log_records(store: Store, include_screened_out: bool = False) -> tuple[list[
                 "sequence": list(r.sequence), "trial": number, "step": r.step, "width": r.width, "x": r.x,
                 "layer": r.layer, "tower_before": r.tower_before, "stable": r.stable, "overhang": r.overhang,
                 "reward": r.reward, "decision_time": decision_time(r, limit), "timed_out": r.timed_out,
-                "trajectory": r.trajectory, "dwell": r.dwell, "source": source, **extra,
+                "trajectory": r.trajectory, "dwell": r.dwell,
+                "source": "simulated" if source == "simulated" else (p.source or "human"), **extra,
+                "time_limit": limit,
                 "page_decision_time": r.decision_time, "server_time": r.server_time, "late_action": r.late_action,
                 "study_id": p.study_id, "session_id": p.session_id,
                 "received_at": utc_iso(r.received_at),
@@ -132,9 +142,9 @@ def log_records(store: Store, include_screened_out: bool = False) -> tuple[list[
     return records, unfinished
 
 
-def export_jsonl(store: Store, include_screened_out: bool = False) -> tuple[str, int]:
+def export_jsonl(store: Store, include_screened_out: bool = False, include_simulated: bool = False) -> tuple[str, int]:
     """:func:`log_records` as checked JSON Lines text, and the number of unfinished trials left out."""
-    records, unfinished = log_records(store, include_screened_out)
+    records, unfinished = log_records(store, include_screened_out, include_simulated)
     return log_text(records), unfinished
 
 
@@ -157,6 +167,7 @@ def study_json(store: Store) -> dict:
     out = {
         "exported_with": versions(),
         "participants": {"total": len(people), "completed": sum(p.completed_at is not None for p in people),
+                         "simulated": sum((p.source or "human") == "simulated" for p in people),
                          "screened_out": sum(p.screened_out_at is not None for p in people),
                          "by_condition": {c: sum(p.condition == c for p in people)
                                           for c in sorted({p.condition for p in people})},
@@ -187,8 +198,14 @@ def write_psychds(records: Iterable[Mapping], out: str | Path, study: Optional[d
     conditions = sorted({r["condition"] for r in records})
     days = sorted(str(r["received_at"])[:10] for r in records if r.get("received_at"))
     practice = any(r.get("phase") == "practice" for r in records)
-    simulated = any(r.get("source") == "simulated" for r in records)
-    who = "Simulated participants (a pilot through the server)" if simulated else "People"
+    simulated = {r["participant"] for r in records if r.get("source") == "simulated"}
+    if simulated and len(simulated) == len(people):
+        who = "Simulated participants (a pilot through the server)"
+    elif simulated:
+        who = (f"People ({len(people) - len(simulated)}) and simulated participants of a pilot ({len(simulated)}, "
+               "source: simulated)")
+    else:
+        who = "People"
     text = (f"{who} building towers in the Overhang Tower task, recorded by the overhang-framework web experiment: "
             f"{len(people)} participant{'s' * (len(people) != 1)} in the condition(s) {', '.join(conditions)}. "
             "One data file per participant, one row per placement (a block placed, or a decision that ran out of "
@@ -204,9 +221,10 @@ def write_psychds(records: Iterable[Mapping], out: str | Path, study: Optional[d
                          sidecars=None if study is None else {"study.json": study_text(study)})
 
 
-def export_psychds(store: Store, out: str | Path, include_screened_out: bool = False) -> tuple[list[dict], int]:
+def export_psychds(store: Store, out: str | Path, include_screened_out: bool = False,
+                   include_simulated: bool = False) -> tuple[list[dict], int]:
     """:func:`log_records` written by :func:`write_psychds` to ``out``; the records and the number of unfinished
     trials left out."""
-    records, unfinished = log_records(store, include_screened_out)
+    records, unfinished = log_records(store, include_screened_out, include_simulated)
     write_psychds(records, out, study_json(store))
     return records, unfinished

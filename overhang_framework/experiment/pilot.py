@@ -251,7 +251,7 @@ class Pilot:
             pid = f"{self.prefix}-{k:03d}"
             client = Client(self.url, pid)
             try:
-                session = client.post("/api/sessions", {"params": {"participant": pid}})
+                session = client.post("/api/sessions", {"params": {"participant": pid}, "simulated": True})
                 client.token = session["token"]
                 if not session["consent"]["given"]:  # "I agree" on the consent page the server sent
                     client.post("/api/consent", {"version": session["consent"]["version"]})

@@ -18,6 +18,9 @@ from overhang_framework.errors import ConfigError
 from overhang_framework.interfaces import Task
 
 ADMIN_ENV = "OVERHANG_ADMIN_TOKEN"
+#: The environment variable that names the study's database when ``database=`` does not (the systemd unit's
+#: environment file: a password there stays out of the unit and of ``ps``).
+DATABASE_ENV = "OVERHANG_DATABASE_URL"
 CONSENT_FILE = Path(__file__).resolve().parent / "consent.html"
 REPO_WEB = Path(__file__).resolve().parents[2] / "web"
 
@@ -91,7 +94,39 @@ def compose(overrides: Sequence[str] = ()) -> DictConfig:
     with the closest existing one)."""
     from overhang_framework.preflight import compose_checked
 
-    return compose_checked(list(overrides), config_name="serve")
+    return compose_checked([_quoted_database(w) for w in overrides], config_name="serve")
+
+
+def _quoted_database(word: str) -> str:
+    """``database=URL`` with the URL quoted for Hydra, so that a URL with a query (``?host=/run/postgresql&port=5433``,
+    ``?sslmode=require``) is taken as it is written; a quoted or null value is left alone."""
+    key, sep, value = word.partition("=")
+    if not sep or key.lstrip("+") != "database" or not value or value[0] in "'\"" or value == "null":
+        return word
+    return f'{key}="{value.replace(chr(92), chr(92) * 2).replace(chr(34), chr(92) + chr(34))}"'
+
+
+def database_url(value: Optional[str], run_dir: Path) -> str:
+    """The study's database: ``database=``, else the environment variable :data:`DATABASE_ENV`, else SQLite in
+    ``run_dir``; one :class:`ConfigError` line when it is not a URL the server can open."""
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError, NoSuchModuleError
+
+    database = value or os.environ.get(DATABASE_ENV) or f"sqlite:///{(run_dir / 'experiment.sqlite').resolve()}"
+    allowed = "sqlite:///FILE or postgresql+psycopg://user:password@host/db"
+    if not isinstance(database, str) or "://" not in database:
+        raise ConfigError(f"database must be an SQLAlchemy URL such as {allowed}, got {database!r}")
+    try:
+        url = make_url(database)
+        url.get_dialect()
+    except (ArgumentError, NoSuchModuleError, ValueError):
+        kind = database.split("://", 1)[0]
+        hint = " (write postgresql+psycopg://...)" if kind in ("postgres", "postgresql", "postgresql+psycopg2") else ""
+        raise ConfigError(f"database: {kind}:// is not a kind of database the server can open{hint}; use "
+                          f"{allowed}") from None
+    if url.get_backend_name() not in ("sqlite", "postgresql"):
+        raise ConfigError(f"database: {url.get_backend_name()} is not supported; use {allowed}")
+    return database
 
 
 def _number(cfg: DictConfig, key: str, minimum: float = 0.0, strict: bool = True) -> float:
@@ -128,7 +163,7 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
         state = world.initial_state(task)
         for x, layer in actions:
             state = world.successor(state, Action(float(x), int(layer)))
-        return [[b.width, b.x, b.layer] for b in state.geometry.blocks], world.overhang(state.geometry)
+        return [[b.width, b.x, b.layer] for b in state.geometry.blocks], round(world.overhang(state.geometry), 9)
 
     out = []
     for task in tasks:
@@ -151,7 +186,8 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
         tower, _ = replay(task, row["actions"])
         shown_tower, shown_reward = replay(task, shown["actions"])
         _, ground = replay(task, [])
-        pass_reward = ground + float(cfg.practice.threshold) * (shown_reward - ground)
+        # a reward to compare with the 0.1 grid of overhangs: rounded, so 1.35 is not 1.3499999999999999
+        pass_reward = round(ground + float(cfg.practice.threshold) * (shown_reward - ground), 9)
         out.append(PracticeTask(task, float(row["optimum"]), tower, shown_tower, float(shown_reward), tolerance,
                                 float(pass_reward)))
     return out
@@ -201,10 +237,7 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         raise ConfigError(f"conditions must be a non-empty list of distinct names from {', '.join(allowed)} "
                           f"(another condition needs its entry in time_limits), got {conditions!r}")
     run_dir = Path(str(cfg.run_dir))
-    database = cfg.database or f"sqlite:///{(run_dir / 'experiment.sqlite').resolve()}"
-    if not isinstance(database, str) or "://" not in database:
-        raise ConfigError(f"database must be an SQLAlchemy URL such as sqlite:///experiment.sqlite or "
-                          f"postgresql+psycopg://user:password@host/db, got {database!r}")
+    database = database_url(cfg.database, run_dir)
     token = cfg.admin_token or os.environ.get(ADMIN_ENV)
     if not token and need_admin_token:
         raise ConfigError(f"no admin token: set admin_token=... or the environment variable {ADMIN_ENV}")

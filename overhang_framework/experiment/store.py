@@ -26,18 +26,24 @@ their placements, never stored apart from them.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import fcntl
 import hashlib
 import hmac
 import json
 import secrets
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 from sqlalchemy import (JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, UniqueConstraint, create_engine,
                         delete, event, func, select, update)
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+
+
+#: The PostgreSQL advisory lock key a serving server holds (:meth:`Store.serving`): "overhang" in ASCII, as a number.
+STUDY_LOCK = int.from_bytes(b"overhang", "big") & 0x7FFFFFFFFFFFFFFF
 
 
 class Base(DeclarativeBase):
@@ -66,6 +72,11 @@ class Participant(Base):
     bonus: Mapped[Optional[float]] = mapped_column(Float)
     consent_version: Mapped[Optional[str]] = mapped_column(String(100))
     consented_at: Mapped[Optional[dt.datetime]] = mapped_column(DateTime(timezone=True))
+    # human, or simulated: a pilot's participant (POST /api/sessions with "simulated": true), whatever the study
+    source: Mapped[str] = mapped_column(String(20), default="human")
+    # the study's settings when the participant started: their records carry it (an allowed change of the
+    # settings later keeps their time limit, so they play on under these)
+    settings_hash: Mapped[Optional[str]] = mapped_column(String(64))
 
 
 class Study(Base):
@@ -233,6 +244,42 @@ class Store:
             except Exception:  # noqa: BLE001 - a checkpoint is a courtesy; SQLite makes one later anyway
                 pass
         self.engine.dispose()
+
+    @contextlib.contextmanager
+    def serving(self, busy: str) -> Iterator[None]:
+        """Hold the study for one server (all its processes) while the block runs; a second server on this
+        database, from any run_dir or machine, is refused with :class:`~overhang_framework.errors.ConfigError`
+        ``busy``. PostgreSQL: a session advisory lock on a connection of its own (released if the server dies);
+        SQLite: a lock on a file beside the database."""
+        from overhang_framework.errors import ConfigError
+
+        if self.url.startswith("sqlite"):
+            path = self.engine.url.database
+            if not path or path == ":memory:":
+                yield
+                return
+            with open(f"{path}.serving", "a") as fh:
+                try:
+                    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    raise ConfigError(busy) from None
+                try:
+                    yield
+                finally:
+                    fcntl.flock(fh, fcntl.LOCK_UN)
+            return
+        from sqlalchemy import text
+
+        with self.engine.connect() as connection:
+            held = connection.execute(text("SELECT pg_try_advisory_lock(:key)"), {"key": STUDY_LOCK}).scalar()
+            connection.commit()
+            if not held:
+                raise ConfigError(busy)
+            try:
+                yield
+            finally:
+                connection.execute(text("SELECT pg_advisory_unlock(:key)"), {"key": STUDY_LOCK})
+                connection.commit()
 
     def ping(self) -> Optional[str]:
         """None when the database answers a trivial query; else why not, in one line."""
@@ -402,7 +449,8 @@ class Store:
             if changed:
                 if not allow_change:
                     raise SettingsChanged(changed)
-                events.append({"what": "settings", "changes": changed})
+                events.append({"what": "settings", "changes": changed, "settings_hash": hashes["settings_hash"],
+                               "previous": {"settings_hash": row.settings_hash, "settings": row.settings}})
                 row.settings = settings
                 for k, v in hashes.items():
                     setattr(row, k, v)

@@ -9,7 +9,19 @@ export class ApiError extends Error {
     this.status = status;
     this.data = data;
     this.reason = data?.reason ?? null;
+    this.contact = data?.contact ?? null;
+    // worth trying again: no answer, the server's own failure, a database that is away for a moment
+    this.retryable = status === 0 || status >= 500 || status === 429;
   }
+}
+
+/** What a participant is told of an answer that is not the server's JSON (a proxy's page, say). */
+function wordsFor(status) {
+  if (status === 413) return "The page sent more than the study's server takes. Please reload the page.";
+  if (status >= 500) {
+    return `The study's server did not answer properly (error ${status}). Please wait a moment and try again.`;
+  }
+  return `The study's server could not take this step (error ${status}). Please reload the page.`;
 }
 
 const tokenKey = (participant) => `overhang-tower:token:${participant}`;
@@ -50,7 +62,8 @@ export async function post(path, body, token = null) {
     data = null;
   }
   if (!response.ok) {
-    const message = data?.error ?? `The server answered ${response.status} ${response.statusText}.`;
+    // the server's JSON says it in the participant's words (message); anything else gets words here
+    const message = data?.message ?? wordsFor(response.status);
     throw new ApiError(message, response.status, data);
   }
   return data;

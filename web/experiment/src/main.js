@@ -63,15 +63,23 @@ function showScreenedOut(url) {
   target.querySelector(".notice").append(leave);
 }
 
-function showError(message, retry = null) {
+/**
+ * An error in the participant's words, with whom to contact, and a Try again button only when trying
+ * again can help (no answer, or the server's own failure).
+ */
+function showError(error, retry = null, contact = null) {
   target.replaceChildren();
   const box = document.createElement("div");
   box.className = "error-box";
   const text = document.createElement("p");
   text.dataset.testid = "error";
+  let message = error?.message || "Something went wrong.";
+  if (!/contact/i.test(message)) {
+    message += ` If this keeps happening, please contact ${error?.contact || contact || "the researcher"}.`;
+  }
   text.textContent = message;
   box.append(text);
-  if (retry) {
+  if (retry && !(error instanceof ApiError && !error.retryable)) {
     const button = document.createElement("button");
     button.className = "jspsych-btn";
     button.dataset.testid = "retry";
@@ -301,7 +309,7 @@ async function debrief(session) {
   try {
     result = await post("api/finish", {}, session.token);
   } catch (error) {
-    showError(error.message, () => debrief(session));
+    showError(error, () => debrief(session), session.contact);
     return;
   }
   const money = `${session.currency}${Number(result.bonus).toFixed(2)}`;
@@ -347,7 +355,7 @@ function askConsent(session) {
           await synced(() => post("api/consent", { version: session.consent.version }, session.token), session);
           resolve();
         } catch (error) {
-          showError(error.message, show);
+          showError(error, show, session.contact);
         }
       });
       const decline = document.createElement("button");
@@ -360,7 +368,7 @@ function askConsent(session) {
           const { decline_url: url } = await post("api/decline", {}, session.token);
           window.location.assign(url);
         } catch (error) {
-          showError(error.message, show);
+          showError(error, show, session.contact);
         }
       });
       target.querySelector(".consent-actions").append(agree, " ", decline);
@@ -377,8 +385,9 @@ async function start() {
     session = await openSession(params, token);
   } catch (error) {
     if (error.reason === "session_elsewhere") showElsewhere(error.data?.contact);
-    else if (error.reason === "withdrawn") showMessage("You have withdrawn", `<p>${escapeHtml(error.message)}.</p>`, "withdrawn");
-    else showError(error.message, () => start());
+    else if (error.reason === "withdrawn") showMessage("You have withdrawn", `<p>${escapeHtml(error.message)}</p>`, "withdrawn");
+    else if (error.reason === "finished") showMessage("You have finished", `<p>${escapeHtml(error.message)}</p>`, "finished");
+    else showError(error, () => start());
     return;
   }
   const animationSpeed = Number(params.animation_speed) > 0 ? Number(params.animation_speed) : 1;
