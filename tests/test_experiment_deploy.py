@@ -103,9 +103,32 @@ http {{
 """
 
 
+def service_python(root: Path) -> str:
+    """A Python the service user can run, with this test run's packages: a venv of the system's Python 3 (this
+    run's interpreter may live where that user cannot enter, as under /root) whose one ``.pth`` line adds this
+    run's site-packages (the project's editable install among them)."""
+    import site
+    import sysconfig
+
+    venv = root / "service-venv"
+    subprocess.run(["/usr/bin/python3", "-m", "venv", "--without-pip", str(venv)], check=True, capture_output=True)
+    version = subprocess.run([str(venv / "bin" / "python"), "-c", "import sys; print(sys.version_info[:2])"],
+                             check=True, capture_output=True, text=True).stdout.strip()
+    assert version == str(sys.version_info[:2]), f"the system's Python is {version}, this run's {sys.version_info[:2]}"
+    packages = sysconfig.get_paths()["purelib"]
+    target = next(venv.glob("lib/python3*/site-packages"))
+    (target / "overhang-test-run.pth").write_text(f"import site; site.addsitedir({packages!r})\n")
+    assert site  # the .pth line runs in the service's Python, not here
+    return str(venv / "bin" / "python")
+
+
 @pytest.fixture(scope="module")
-def deployment(tmp_path_factory):
-    """The server (from the systemd unit's command) and nginx (with the generated site) on loopback ports."""
+def deployment(tmp_path_factory, service_user):
+    """The server (from the systemd unit's command, as the unit's user on a checkout that user does not own, with
+    the database's password in the environment file) and nginx (with the generated site) on loopback ports."""
+    import pwd
+    import tempfile
+
     import httpx
 
     need("nginx", shutil.which("nginx") is not None)
@@ -119,23 +142,40 @@ def deployment(tmp_path_factory):
     setup = time.time()
     database, drop = fresh_postgres_database()
     root = tmp_path_factory.mktemp("deploy")
+    user = pwd.getpwnam(service_user)
+    as_root = os.geteuid() == 0
+    # the service's directory: the user's own, where that user can reach it (pytest's own is root's alone)
+    home = Path(tempfile.mkdtemp(prefix="overhang-service-", dir="/tmp"))
+    study = home / "study"
+    study.mkdir()
+    if as_root:
+        os.chmod(home, 0o755)
+        os.chown(study, user.pw_uid, user.pw_gid)
     port, http_port, https_port = free_port(), free_port(), free_port()
-    overrides = [f"port={port}", "workers=2", f"database={database}", f"run_dir={root / 'study'}",
-                 f"tasks.only=[{TASKS[0]}]", "practice.max_attempts=3"]
+    overrides = [f"port={port}", "workers=2", f"run_dir={study}", f"tasks.only=[{TASKS[0]}]", "practice.max_attempts=3"]
     server = nginx = None
     try:
-        # the server, as systemd starts it
+        # the server, as systemd starts it: the password only in the environment file
         env_file = root / "overhang-experiment.env"
-        env_file.write_text(f"OVERHANG_ADMIN_TOKEN={ADMIN}\n")
+        env_file.write_text(f"OVERHANG_ADMIN_TOKEN={ADMIN}\nOVERHANG_DATABASE_URL={database}\n")
         unit = root / "overhang-experiment.service"
-        assert main(["systemd-unit", "--user", "overhang", "--env-file", str(env_file), "--out", str(unit),
+        assert main(["systemd-unit", "--user", service_user, "--env-file", str(env_file), "--out", str(unit),
                      *overrides]) == 0
         text = unit.read_text()
+        assert database.split("@")[0] not in text and "OVERHANG_DATABASE_URL" in text  # no password in the unit
+        assert "RestartPreventExitStatus=2" in text.splitlines()
         workdir = next(line.split("=", 1)[1] for line in text.splitlines() if line.startswith("WorkingDirectory="))
         env = {**os.environ, **dict(line.split("=", 1) for line in env_file.read_text().splitlines())}
         env.pop("OVERHANG_EXPERIMENT_OVERRIDES", None)
-        server = subprocess.Popen(exec_start_words(text), cwd=workdir, env=env, stdout=subprocess.DEVNULL,
-                                  stderr=open(root / "server.log", "w"), start_new_session=True)
+        words = exec_start_words(text)
+        run_as = {}
+        if as_root:  # as the unit's user, on a checkout root owns, with a Python that user can run
+            assert Path(workdir).stat().st_uid != user.pw_uid
+            words[0] = service_python(home)
+            env.update(HOME=str(study), USER=service_user)
+            run_as = dict(user=user.pw_uid, group=user.pw_gid, extra_groups=[])
+        server = subprocess.Popen(words, cwd=workdir, env=env, stdout=subprocess.DEVNULL,
+                                  stderr=open(root / "server.log", "w"), start_new_session=True, **run_as)
         wait_until(lambda: httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=2).status_code == 200,
                    "the server", 120, server)
 
@@ -160,11 +200,12 @@ def deployment(tmp_path_factory):
                    30, nginx)
         print(f"\nthe server (2 processes) and nginx ready in {time.time() - setup:.1f} s")
         yield {"url": url, "http_url": f"http://localhost:{http_port}", "database": database, "server": server,
-               "overrides": overrides, "root": root}
+               "overrides": [*overrides, f"database={database}"], "root": root, "as_root": as_root}
     finally:
         stop(nginx, signal.SIGQUIT)
         stop(server)
         drop()
+        shutil.rmtree(home, ignore_errors=True)
 
 
 def test_a_participant_takes_part_through_nginx_over_https(deployment, tmp_path):
@@ -188,6 +229,13 @@ def test_a_participant_takes_part_through_nginx_over_https(deployment, tmp_path)
     health = httpx.get(f"{url}/api/health", verify=False).json()
     assert health["status"] == "ok" and health["database"] is True and health["workers"] == 2
     assert len(children(deployment["server"].pid)) >= 2
+    if deployment["as_root"]:  # the server and its processes run as the unit's user, not as root
+        import pwd
+
+        uid = pwd.getpwnam("overhang").pw_uid
+        for pid in [deployment["server"].pid, *children(deployment["server"].pid)]:
+            status = Path(f"/proc/{pid}/status").read_text()
+            assert int(status.split("Uid:")[1].split()[1]) == uid, status
 
     settings = load_settings([*deployment["overrides"], f"admin_token={ADMIN}"])
     store = Store(deployment["database"])
@@ -210,6 +258,11 @@ def test_a_participant_takes_part_through_nginx_over_https(deployment, tmp_path)
     print(f"\none participant through nginx over https, consent to completion: {seconds:.1f} s")
 
     assert store.participant("D1").completed_at is not None
+    # the code's identity, read by the service's user from a checkout it does not own, on every record
+    from overhang_framework.version import commit
+
+    assert commit() and {r.commit for r in store.placements("D1")} == {commit()}
+    assert store.study().commit == commit()
     main_rows = [r for r in store.placements("D1") if r.phase == "main"]
     assert {r.trial for r in main_rows if r.trial_over} == {1}
     # every request of the page went to the proxy over https
