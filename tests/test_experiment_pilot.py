@@ -237,3 +237,46 @@ def test_the_fit_of_the_exported_log_recovers_depths_as_the_offline_logs_fit_doe
     assert planted == {k: sum(v.values()) for k, v in offline["confusion"].items()}  # the same participants
     assert exported["recovered"] >= offline["recovered"] - 1
     assert exported["recovered"] >= 2
+
+
+def test_a_pilot_stopped_midway_leaves_its_files_and_says_what_it_left_on_the_server(tmp_path):
+    import signal
+    import time
+
+    from overhang_framework.experiment.store import Store
+
+    out = tmp_path / "pilot"
+    # a faithful time scale: each decision waits seconds, so the pilot is surely midway when it is stopped
+    proc = subprocess.Popen([sys.executable, "-m", "overhang_framework.experiment", "pilot", "--out", str(out),
+                             "--no-progress", *COHORT], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    database = out / "experiment.sqlite"
+    deadline = time.time() + 180
+    started = 0
+    while time.time() < deadline and started < 2:
+        time.sleep(0.5)
+        if database.exists():
+            store = Store(f"sqlite:///{database}")
+            try:
+                started = sum(p.consented_at is not None for p in store.participants())
+            except Exception:  # noqa: BLE001 - the tables may not be there yet
+                started = 0
+            finally:
+                store.close()
+    assert started == 2, "the pilot's participants did not start"
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("interrupted: 2 participant(s) took part; its own server's database keeps what they "
+                           "placed, 2 participant(s) unfinished (pilot-001, pilot-002), stored as simulated"), line
+    rows = truth(out)
+    assert set(rows) == {"pilot-001", "pilot-002"}
+    summary = json.loads((out / "pilot.json").read_text())
+    assert summary["stopped"] == "interrupted" and summary["unfinished"] == ["pilot-001", "pilot-002"]
+    store = Store(f"sqlite:///{database}")
+    try:
+        assert {p.id: p.source for p in store.participants()} == {"pilot-001": "simulated", "pilot-002": "simulated"}
+    finally:
+        store.close()

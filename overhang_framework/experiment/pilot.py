@@ -63,6 +63,18 @@ class PilotError(OverhangError):
     """The pilot could not go on (a refusal of the server, a server that stopped); one line."""
 
 
+class PilotStopped(Exception):
+    """A pilot stopped (Ctrl-C, or a :class:`PilotError`) after it had opened sessions; its files are written."""
+
+    def __init__(self, result: dict, cause: BaseException):
+        super().__init__(str(cause))
+        self.result, self.cause = result, cause
+
+
+#: The phases of a participant who has nothing left to do.
+FINISHED = ("done", "screened_out")
+
+
 @dataclass
 class Plan:
     """What the pilot runs: the checked participants config, the cohort's participants and tasks."""
@@ -238,6 +250,8 @@ class Pilot:
         self.p, self.url, self.time_scale, self.timeouts, self.prefix = p, url, time_scale, timeouts, prefix
         self.stop = stop or threading.Event()
         self.lock = threading.Lock()
+        #: Every session opened so far, whatever became of it (what a stopped pilot leaves on the server).
+        self.takers: list[Taker] = []
 
     # -- sessions --------------------------------------------------------------------------------------------
 
@@ -246,7 +260,7 @@ class Pilot:
         participant of the condition the server assigned."""
         cohort = self.p.checked.cohort
         free = {s.name: [q for q in self.p.participants if q.condition == s.name] for s in cohort.conditions}
-        takers = []
+        takers = self.takers
         for k in range(1, len(self.p.participants) + 1):
             pid = f"{self.prefix}-{k:03d}"
             client = Client(self.url, pid)
@@ -342,7 +356,9 @@ class Pilot:
         from overhang_framework.progress import progress_bar
 
         takers = self.open_sessions()
-        bar = progress_bar(total=len(takers) * len(self.p.tasks), desc="main trials", unit="trial",
+        # the server's count of main trials (a server of another study may give more than the cohort's tasks)
+        bar = progress_bar(total=sum(len(t.session.get("trials") or self.p.tasks) for t in takers),
+                           desc="main trials", unit="trial",
                            disable=not progress, miniters=1, mininterval=0.5, dynamic_ncols=True)
         counts: Counter = Counter()
 
@@ -481,7 +497,7 @@ def parser() -> argparse.ArgumentParser:
   python -m overhang_framework.experiment pilot --out runs/pilot cohort=small seed=1
   python -m overhang_framework.experiment pilot --out runs/pilot --url http://127.0.0.1:8000 cohort=small
   python -m overhang_framework.experiment pilot --out runs/quick --time-scale 0.05 --serve workers=1 \\
-      cohort=small world.physics=static
+      cohort=small
 then:
   python -m overhang_framework.experiment export run_dir=runs/pilot --out runs/pilot/log.jsonl
   python -m overhang_framework.analyze runs/pilot/log.jsonl --out runs/pilot/analysis
@@ -543,33 +559,55 @@ def run(args) -> dict:
         server = Server(words, settings.port, out / SERVER_LOG, settings.workers)
         url = server.url
     started = time.monotonic()
+    pilot = Pilot(p, url, args.time_scale, args.timeouts, args.prefix)
+
+    def write(takers: Sequence[Taker], stopped: Optional[str] = None) -> dict:
+        result = summary(takers, time.monotonic() - started, url, args.time_scale, args.timeouts)
+        if stopped is not None:
+            result.update(stopped=stopped, unfinished=[t.pid for t in takers if t.phase not in FINISHED])
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / DECISIONS, "".join(json.dumps(d) + "\n" for t in takers for d in t.decisions))
+        atomic_write_json(out / RUN, {"config": result_config(_plain(p.cfg)), "pilot": {
+            "server": url, "time_scale": args.time_scale, "timeouts": args.timeouts}})
+        atomic_write_json(out / SUMMARY, result)
+        atomic_write_text(out / CSV, participants_table(takers))
+        return result
+
     try:
         if server is not None:
             server.wait_ready()
-        pilot = Pilot(p, url, args.time_scale, args.timeouts, args.prefix)
         takers = pilot.run(args.concurrency, progress=not args.no_progress and p.checked.progress)
+    except (KeyboardInterrupt, PilotError) as err:
+        # what the server holds of the pilot is said, and the pilot's files hold who they were
+        if pilot.takers:
+            result = write(pilot.takers, "interrupted" if isinstance(err, KeyboardInterrupt) else str(err))
+            raise PilotStopped(result, err) from None
+        raise
     finally:
         if server is not None:
             server.stop()
-    result = summary(takers, time.monotonic() - started, url, args.time_scale, args.timeouts)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / DECISIONS, "".join(json.dumps(d) + "\n" for t in takers for d in t.decisions))
-    atomic_write_json(out / RUN, {"config": result_config(_plain(p.cfg)), "pilot": {
-        "server": url, "time_scale": args.time_scale, "timeouts": args.timeouts}})
-    atomic_write_json(out / SUMMARY, result)
-    atomic_write_text(out / CSV, participants_table(takers))
-    return result
+    return write(takers)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     try:
         result = run(args)
+    except PilotStopped as stopped:
+        left = stopped.result["unfinished"]
+        where = "its own server's database" if not args.url else args.url
+        what = (f"{len(left)} participant(s) unfinished ({', '.join(left[:3])}{', ...' if len(left) > 3 else ''}), "
+                "stored as simulated" if left else "no participant unfinished")
+        first = "interrupted" if isinstance(stopped.cause, KeyboardInterrupt) else f"error: {stopped.cause}"
+        print(f"{first}: {stopped.result['participants']} participant(s) took part; {where} keeps what they "
+              f"placed, {what}; {Path(args.out) / CSV} and {Path(args.out) / DECISIONS} say who they were",
+              file=sys.stderr)
+        return 130 if isinstance(stopped.cause, KeyboardInterrupt) else 1
     except OverhangError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2 if isinstance(err, ConfigError) or not isinstance(err, PilotError) else 1
     except KeyboardInterrupt:
-        print("interrupted: the server keeps what was placed; the pilot's files were not written", file=sys.stderr)
+        print("interrupted before any session was opened: nothing was stored", file=sys.stderr)
         return 130
     print(format_summary(result))
     where = f"run_dir={args.out}" if not args.url else f"--url {args.url}"
