@@ -110,7 +110,7 @@ def test_the_export_is_a_valid_dataset_that_reads_back_as_the_json_lines_export(
     assert check_dataset(folder) == []
     files = data_files(folder)
     assert sorted(p.name for p in files) == sorted(f"study-overhang_subject-{s}_data.csv"
-                                                    for s in ("P1", "P2", "sub03", "P4", "P5"))
+                                                    for s in ("P1", "P2", "sub03x6bb0fca7", "P4", "P5"))
     headers = set()
     for path in files:
         frame = pd.read_csv(path, keep_default_na=False, dtype=str)
@@ -320,3 +320,37 @@ def test_a_running_servers_export_is_written_as_a_dataset(study, exports, tmp_pa
     assert check_dataset(out) == []
     pd.testing.assert_frame_equal(read_log(out), read_log(exports[0]))
     assert list(read_log(out).columns[:len(COLUMNS)]) == list(COLUMNS)
+
+
+def test_a_dataset_has_the_standards_root_files_and_its_sidecar_is_ignored(exports):
+    from overhang_framework.behaviour.psychds import SCHEMA_VERSION
+
+    folder = exports[1]
+    assert sorted(p.name for p in folder.iterdir()) == [".psychds-ignore", ".psychdsignore", "CHANGES.md", "README.md",
+                                                        "data", "dataset_description.json", "study.json"]
+    for name in (".psychdsignore", ".psychds-ignore"):  # every root file the standard does not cover is listed
+        listed = [line for line in (folder / name).read_text().splitlines() if line and not line.startswith("#")]
+        assert listed == [".psychds-ignore", ".psychdsignore", "study.json"]
+    meta = json.loads((folder / "dataset_description.json").read_text())
+    assert meta["schemaVersion"] == SCHEMA_VERSION
+    readme = (folder / "README.md").read_text()
+    assert readme.startswith(f"# {meta['name']}\n") and "study.json" in readme and "subject-" in readme
+    assert (folder / "CHANGES.md").read_text().count("\n- ") == 1
+
+
+def test_file_names_depend_on_their_participant_alone_and_survive_a_withdrawal(exports, tmp_path):
+    from overhang_framework.behaviour.psychds import subject_label
+    from overhang_framework.experiment.export import write_psychds
+
+    assert subject_label("labP1") == "labP1" and subject_label("lab_P1").startswith("labP1x")
+    assert subject_label("lab_P1") != subject_label("lab.P1")
+    # two ids with the same letters and digits, as a lab's ids can be
+    names = {"P1": "labP1", "P2": "lab_P1"}
+    rows = [{**r, "participant": names.get(r["participant"], r["participant"])}
+            for r in (json.loads(line) for line in exports[0].read_text().splitlines())]
+    out = tmp_path / "dataset"
+    before = {p.name for p in write_psychds(rows, out)}
+    after = {p.name for p in write_psychds([r for r in rows if r["participant"] != "labP1"], out)}
+    assert after < before and before - after == {"study-overhang_subject-labP1_data.csv"}  # the others keep theirs
+    assert check_dataset(out) == []
+    assert (out / "CHANGES.md").read_text().count("\n- ") == 2  # the history of exports goes on

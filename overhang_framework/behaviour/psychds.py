@@ -49,8 +49,14 @@ DATA = "data"
 DATA_FILE = re.compile(r"[a-z]+-[a-zA-Z0-9]+(?:_[a-z]+-[a-zA-Z0-9]+)*_data\.csv")
 #: The JSON-LD context the required fields must be in.
 SCHEMA_ORG = ("https://schema.org", "https://schema.org/", "http://schema.org", "http://schema.org/")
-#: Files (glob patterns, one a line) that the standard's validators pass over.
+#: Files (glob patterns, one a line) that the standard's validators pass over (the name of the standard's earlier
+#: versions, and :data:`IGNORE_NEW`, the name of 1.5; a dataset written here has both, the same).
 IGNORE = ".psychdsignore"
+IGNORE_NEW = ".psychds-ignore"
+#: The version of the standard whose rules :func:`check_dataset` checks (the dataset's ``schemaVersion``).
+SCHEMA_VERSION = "Psych-DS 1.5.1"
+#: The README and CHANGES files the standard recommends at a dataset's root.
+README, CHANGES = "README.md", "CHANGES.md"
 
 
 class PsychDSError(OverhangError, ValueError):
@@ -105,21 +111,27 @@ def log_variables() -> dict[str, Variable]:
 
 
 def subject_label(participant: str) -> str:
-    """A participant's id as the value of a file name's ``subject-`` keyword: its letters and digits."""
-    return re.sub(r"[^a-zA-Z0-9]", "", participant)
+    """A participant's id as the value of a file name's ``subject-`` keyword: the id itself when it is letters
+    and digits only; otherwise its letters and digits, ``x`` and the first 8 hex digits of the id's SHA-256
+    (``lab_P1`` gives ``labP1x`` and 8 digits, never ``labP1``). It depends on the id alone, so a participant's
+    file keeps its name whoever else is in the dataset, before and after a withdrawal."""
+    import hashlib
+
+    kept = re.sub(r"[^a-zA-Z0-9]", "", participant)
+    if kept == participant and kept:
+        return kept
+    return f"{kept}x{hashlib.sha256(participant.encode()).hexdigest()[:8]}"
 
 
 def _file_names(participants: Sequence[str], study: str) -> dict[str, str]:
-    """Each participant's data file name: ``subject-`` their id's letters and digits, with a number after it
-    (``n2``, ``n3``, ...) when that label is taken already."""
-    names, used = {}, set()
+    """Each participant's data file name (``subject-`` :func:`subject_label`); :class:`PsychDSError` in the
+    unlikely case that two ids give one label."""
+    names, used = {}, {}
     for p in participants:
-        label = base = subject_label(p) or "x"
-        k = 1
-        while label in used:
-            k += 1
-            label = f"{base}n{k}"
-        used.add(label)
+        label = subject_label(p)
+        if label in used:
+            raise PsychDSError(f"participants {used[label]!r} and {p!r} would share the data file name subject-{label}")
+        used[label] = p
         names[p] = f"study-{study}_subject-{label}_data.csv"
     return names
 
@@ -140,6 +152,8 @@ def description(columns: Sequence[str], variables: Mapping[str, Variable], name:
 #: Files beside ``dataset_description.json`` that a dataset written here may hold (:func:`write_dataset`'s
 #: ``sidecars``): replaced with it by a later export.
 SIDECARS = ("study.json",)
+#: Every file a dataset written here has at its root, besides ``data/``.
+ROOT_FILES = (DESCRIPTION, README, CHANGES, IGNORE, IGNORE_NEW)
 
 
 def write_dataset(records: Iterable[Mapping[str, Any]], out: str | os.PathLike, variables: Mapping[str, Variable],
@@ -163,9 +177,12 @@ def write_dataset(records: Iterable[Mapping[str, Any]], out: str | os.PathLike, 
     if df.empty:
         raise PsychDSError("no records to write: a Psych-DS dataset needs at least one data file")
     columns = [str(c) for c in df.columns]
-    meta = description(columns, variables, name, text, dateCreated=dt.date.today().isoformat(), **fields)
-    participants = list(dict.fromkeys(df["participant"]))
+    meta = description(columns, variables, name, text, dateCreated=dt.date.today().isoformat(),
+                       schemaVersion=SCHEMA_VERSION, **fields)
+    participants = sorted(dict.fromkeys(df["participant"]))
     files = _file_names(participants, study)
+    previous = out / CHANGES
+    earlier = previous.read_text(encoding="utf-8") if previous.is_file() else ""
     out.absolute().parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(dir=out.absolute().parent, prefix=f".{out.name}."))
     try:
@@ -178,6 +195,12 @@ def write_dataset(records: Iterable[Mapping[str, Any]], out: str | os.PathLike, 
             if sidecar not in SIDECARS:
                 raise ValueError(f"sidecar {sidecar!r}: a dataset's root takes {', '.join(SIDECARS)}")
             (staging / sidecar).write_text(content, encoding="utf-8")
+        ignored = sorted({*(sidecars or {}), IGNORE, IGNORE_NEW})  # what the standard does not cover, and these
+        for ignore in (IGNORE, IGNORE_NEW):
+            (staging / ignore).write_text("# files the Psych-DS validators need not check: sidecars of this export\n"
+                                          + "".join(f"{f}\n" for f in ignored), encoding="utf-8")
+        (staging / README).write_text(readme(meta, files, sidecars or {}), encoding="utf-8")
+        (staging / CHANGES).write_text(changes(earlier, len(participants), len(df)), encoding="utf-8")
         problems = check_dataset(staging)
         if problems:  # what this module writes must pass its own check
             raise PsychDSError(f"the dataset written is not valid Psych-DS: {problems[0]}")
@@ -211,12 +234,51 @@ def _put_in_place(staging: Path, out: Path) -> None:
         os.replace(staging, out)  # over an empty folder too
 
 
+def readme(meta: dict, files: Mapping[str, str], sidecars: Mapping[str, str]) -> str:
+    """``README.md`` of a dataset: what it holds, how its files are named and read, where its columns are
+    described."""
+    from overhang_framework import __version__
+
+    lines = [f"# {meta['name']}", "", meta["description"], "",
+             "## Files", "",
+             f"- `{DESCRIPTION}`: the dataset's metadata (schema.org `Dataset`, {meta.get('schemaVersion')}); its "
+             "`variableMeasured` describes every column: what it holds, its unit, its least value.",
+             f"- `{DATA}/`: one CSV file per participant, `study-..._subject-..._data.csv`. The `subject-` value is "
+             "the participant's id when that is letters and digits only; otherwise its letters and digits, `x` and "
+             "8 hex digits of the id's SHA-256, so that a file's name depends on its participant alone. The "
+             "`participant` column holds the id as it is. Every file has the same header, so the files stack "
+             "into one table.",
+             *(f"- `{name}`: the study's settings, their hashes and the versions that recorded and exported it."
+               for name in sidecars if name == "study.json"),
+             f"- `{CHANGES}`: each export of this dataset, with its date and counts.",
+             f"- `{IGNORE}`, `{IGNORE_NEW}`: the files a Psych-DS validator need not check (the same list under the "
+             "standard's two names for it).", "",
+             "## Reading it", "",
+             "In Python: `pandas.concat(map(pandas.read_csv, glob.glob('data/*_data.csv')))`; "
+             "`python -m overhang_framework.analyze DIR` reads the folder as it is. An empty cell is a missing "
+             "value; lists are JSON text; true and false are JSON.", "",
+             f"Written by overhang-framework {__version__} ({len(files)} data files).", ""]
+    return "\n".join(lines)
+
+
+def changes(earlier: str, participants: int, records: int) -> str:
+    """``CHANGES.md``: this export's entry (date, counts) above those of the export it replaces."""
+    from overhang_framework import __version__
+
+    head = "# Changes\n\n"
+    entry = (f"- {dt.date.today().isoformat()}: exported by overhang-framework {__version__}: {participants} "
+             f"participant(s), {records} row(s).\n")
+    kept = earlier[len(head):] if earlier.startswith(head) else ""
+    return head + entry + kept
+
+
 def replaceable(out: Path) -> bool:
     """Whether ``out`` holds only what :func:`write_dataset` writes: ``dataset_description.json`` and
-    ``data/`` with data files in it, and the :data:`SIDECARS`; nothing else."""
+    ``data/`` with data files in it, the README, CHANGES and ignore files, and the :data:`SIDECARS`; nothing
+    else."""
     if not (out / DESCRIPTION).is_file() or not (out / DATA).is_dir():
         return False
-    if not {p.name for p in out.iterdir()} <= {DESCRIPTION, DATA, *SIDECARS}:
+    if not {p.name for p in out.iterdir()} <= {*ROOT_FILES, DATA, *SIDECARS}:
         return False
     return all(p.is_file() and DATA_FILE.fullmatch(p.name) for p in (out / DATA).iterdir())
 
@@ -229,17 +291,20 @@ def check_out(out: Path) -> None:
     if not out.is_dir():
         raise PsychDSError(f"{out} is a file; a Psych-DS dataset is a folder: give a new or empty folder")
     if any(out.iterdir()) and not replaceable(out):
-        raise PsychDSError(f"{out} is not empty and not an earlier Psych-DS export (only {DESCRIPTION}, "
-                           f"{', '.join(SIDECARS)} and {DATA}/*_data.csv); give a new or empty folder")
+        raise PsychDSError(f"{out} is not empty and not an earlier Psych-DS export (only "
+                           f"{', '.join((*ROOT_FILES, *SIDECARS))} and {DATA}/*_data.csv); give a new or empty folder")
 
 
 # checking --------------------------------------------------------------------------------------------------------
 def _ignored(root: Path) -> list[str]:
-    path = root / IGNORE
-    if not path.is_file():
-        return []
-    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    return [line.strip().rstrip("/") for line in lines if line.strip() and not line.startswith("#")]
+    """The patterns of the dataset's ignore files (under either of the standard's names)."""
+    out: list[str] = []
+    for name in (IGNORE, IGNORE_NEW):
+        path = root / name
+        if path.is_file():
+            lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+            out += [line.strip().rstrip("/") for line in lines if line.strip() and not line.startswith("#")]
+    return out
 
 
 def _is_ignored(relative: str, patterns: Sequence[str]) -> bool:
