@@ -418,3 +418,41 @@ def test_a_backup_taken_while_the_server_writes_is_one_moment(tmp_path, kind):
     finally:
         for drop in drops:
             drop()
+
+
+def test_a_database_that_refuses_the_commands_is_one_line(tmp_path, capsys):
+    refusing = "database=postgresql+psycopg://nobody:wrong@127.0.0.1:1/overhang"  # nothing listens on port 1
+    for words in (["export", "--out", str(tmp_path / "log.jsonl")], ["reissue", "P1"], ["withdraw", "P1", "--yes"]):
+        assert main([*words, refusing, f"run_dir={tmp_path}"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("error: cannot reach the database: "), err
+        assert "wrong" not in err
+    assert not (tmp_path / "log.jsonl").exists()
+
+
+def test_the_pilot_helps_examples_set_up_a_server_that_starts(tmp_path):
+    """Every example of ``pilot --help`` that starts its own server has settings the server takes (a stored
+    practice tower under its physics, among them)."""
+    import shlex
+
+    from overhang_framework.experiment.pilot import parser, plan, server_overrides
+    from overhang_framework.experiment.settings import load_settings
+
+    epilog = parser().epilog.replace("\\\n", " ")
+    examples = [shlex.split(line)[4:] for line in epilog.splitlines() if "experiment pilot" in line]
+    assert len(examples) >= 3
+    for words in examples:
+        args = parser().parse_args(words)
+        if args.url:
+            continue
+        settings = load_settings(server_overrides(plan(args.overrides), args.time_scale, tmp_path, 8000) + args.serve,
+                                 need_admin_token=False)
+        assert settings.practice, words
+
+
+def test_the_deploy_guide_installs_a_cpu_torch_and_checks_a_self_signed_server():
+    _, text = deploy_commands()
+    assert "pip install torch==2.14.1 torchvision==0.29.1 --index-url" in text  # not the 6.5 GB CUDA build
+    assert "curl -sk https://localhost/api/health" in text
+    assert "OVERHANG_DATABASE_URL=" in text and "RestartPreventExitStatus=2" in text
+    assert "the server's lock and log" not in text  # the log is the journal
