@@ -441,6 +441,17 @@ def test_a_participant_meets_each_error_in_words_with_the_contact(browser, serve
     page.get_by_test_id("agree").wait_for(timeout=30_000)
     context.close()
 
+    # a failure of the server's own: words and the contact, with a Try again
+    def broken(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(store, "add_newcomer", broken)
+    context, page, text = meet("/?participant=E2E-9", "server-error")
+    assert "The study's server had a problem with this step" in text and "lab@example.org" in text, text
+    assert "RuntimeError" not in text and page.get_by_test_id("retry").count() == 1
+    context.close()
+    monkeypatch.undo()
+
     # a participant who finished, in another browser
     store.complete("E2E-7", 0.0, 0.0)
     context, page, text = meet("/?participant=E2E-7", "finished")
@@ -455,6 +466,6 @@ def test_a_participant_meets_each_error_in_words_with_the_contact(browser, serve
             route.fulfill(status=status, content_type="text/html", body=f"<html><h1>{status}</h1></html>")
 
         context, page, text = meet("/?participant=E2E-8", name, route=proxy)
-        assert words in text and "please contact" in text and "<html>" not in text, text
+        assert words in text and "please contact lab@example.org." in text and "<html>" not in text, text
         assert page.get_by_test_id("retry").count() == retry
         context.close()

@@ -689,7 +689,18 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                                       "this tab.</p>")
 
     if settings.web_dir is not None:
+        import html
+
         from fastapi.staticfiles import StaticFiles
+
+        page = (settings.web_dir / "index.html").read_text(encoding="utf-8")
+        # the lab's contact in the page itself: an error met before the server answered names it too
+        page = page.replace('<meta charset="utf-8" />', '<meta charset="utf-8" />\n    <meta name="overhang-contact" '
+                            f'content="{html.escape(settings.contact or "", quote=True)}" />', 1)
+
+        @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+        def index():
+            return HTMLResponse(page, headers={"Cache-Control": "no-cache"})
 
         app.mount("/", StaticFiles(directory=str(settings.web_dir), html=True), name="web")
     return app

@@ -75,7 +75,8 @@ function showError(error, retry = null, contact = null) {
   text.dataset.testid = "error";
   let message = error?.message || "Something went wrong.";
   if (!/contact/i.test(message)) {
-    message += ` If this keeps happening, please contact ${error?.contact || contact || "the researcher"}.`;
+    const lab = document.querySelector('meta[name="overhang-contact"]')?.content;
+    message += ` If this keeps happening, please contact ${error?.contact || contact || lab || "the researcher"}.`;
   }
   text.textContent = message;
   box.append(text);
