@@ -1,4 +1,4 @@
-"""Planted and null studies: ``python -m overhang_framework.study {dual_transition,null,paper_calibrated,paper_people}
+"""Planted, null and graded studies: ``python -m overhang_framework.study {dual_transition,null,paper_calibrated,paper_people,graded_budgets}
 --out DIR``.
 
 Can the whole pipeline find the paper's dual transition where it is present, and not find it where
@@ -19,6 +19,9 @@ analyse people's, fits the models, checks the fits, and reports the paper's find
 * ``paper_people`` (``cohort=paper_people``, which names its own predictor, the hybrid): the paper's people
   with the axes of docs/people.md (risk aversion, a hand planned for, perceptual noise), each condition
   calibrated to the paper's Table 1 and Γ by direct simulation.
+* ``graded_budgets`` (``cohort=graded_budgets``): those people under four time limits between subjects, the
+  study the paper calls for. Its findings are each level's figures and the trends across the levels, with the
+  participants per level a lab needs for 80% power (:mod:`overhang_framework.graded`); the steps are the same.
 
 The steps, each continued where it stopped when the command is run again with the same settings:
 ``sim/`` (:mod:`overhang_framework.participants`), ``analysis/`` (Table 1, Γ, Fig. 4 of
@@ -82,7 +85,11 @@ from overhang_framework.results import atomic_write_json, atomic_write_text
 STUDIES = {"dual_transition": ("dual_transition", ["predictor=hybrid"], True),
            "null": ("null_effect", ["predictor=ipe"], False),
            "paper_calibrated": ("paper_calibrated", ["predictor=hybrid"], True),
-           "paper_people": ("paper_people", [], True)}
+           "paper_people": ("paper_people", [], True),
+           "graded_budgets": ("graded_budgets", [], True)}
+#: Studies of several time limits between subjects (:mod:`overhang_framework.graded`): their findings are each
+#: level's figures and the trends across the levels, with the participants per level a lab needs.
+GRADED = ("graded_budgets",)
 ALPHA = 0.05
 #: Towers of at most EARLY blocks are early, of at least LATE blocks late (Fig. 4's crossover).
 EARLY, LATE = 3, 5
@@ -122,8 +129,8 @@ def participant_table(out: Path) -> pd.DataFrame:
     """One row per participant: condition, the true parameters, Table 1's and Γ's values, Fig. 4's log-likelihood
     differences, the best model by BIC, and each family's evidence (``evidence_<family>``)."""
     truth = pd.read_csv(out / "sim" / "participants.csv").rename(columns={"id": "participant"})
-    truth = truth.rename(columns={c: f"true_{c}" for c in ("sigma", "depth", "beta", "lapse", "switch")
-                                  if c in truth.columns})
+    truth = truth.rename(columns={c: f"true_{c}" for c in ("sigma", "depth", "beta", "lapse", "switch", "risk",
+                                                            "percept", "hand") if c in truth.columns})
     t1 = pd.read_csv(out / "analysis" / "table1_participants.csv")[
         ["participant", "stable_pct", "avg_overhang", "reward_per_trial"]]
     gamma = pd.read_csv(out / "analysis" / "gamma_participants.csv")[["participant", "gamma"]]
@@ -139,8 +146,10 @@ def participant_table(out: Path) -> pd.DataFrame:
     from overhang_framework.fit.compare import per_participant, winners
 
     fits = pd.read_csv(out / "fit" / "fits.csv")
-    best = winners(fits)[["participant", "model", "family", "depth", "switch"]].rename(
-        columns={"model": "best_model", "family": "best_family", "depth": "fitted_depth", "switch": "fitted_switch"})
+    keep = ["participant", "model", "family", "depth", "switch", *(["risk"] if "risk" in fits.columns else [])]
+    best = winners(fits)[keep].rename(
+        columns={"model": "best_model", "family": "best_family", "depth": "fitted_depth", "switch": "fitted_switch",
+                 "risk": "fitted_risk"})
     people = per_participant(fits)
     evidence = {}
     for family, at in people.groupby("family"):
@@ -441,6 +450,9 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         fit_run(cfg)
         steps.finish("fit", digest, time.perf_counter() - t0)
 
+    if study in GRADED:
+        return _graded(study, out, sim_cfg, sizes, simulated, steps, resamples, seed, started, progress)
+
     # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
     df = participant_table(out)
@@ -516,6 +528,35 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
                   time.perf_counter() - started, replaced(pool_people, sizes), check_line, why)
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": table, "report": text}
+
+
+def _graded(study: str, out: Path, sim_cfg, sizes: dict[str, int], simulated: dict[str, int], steps: "Steps",
+            resamples: int, seed: int, started: float, progress: bool) -> dict:
+    """A graded study's step 4: each level's figures, the trends and the sample sizes (:mod:`overhang_framework.graded`)."""
+    from overhang_framework import graded
+
+    t0 = time.perf_counter()
+    df = participant_table(out)
+    atomic_write_text(out / "participants.csv", df.to_csv(index=False))
+    limits = {name: sim_cfg.conditions[name].get("time_limit") for name in sizes}
+    levels = graded.levels_of(limits)
+    pool_people = df[df["condition"].isin(sizes)]
+    people = pd.concat([pool_people[pool_people["condition"] == c].sort_values("participant").head(n)
+                        for c, n in sizes.items()], ignore_index=True)
+    pred = graded.predictions(people, levels, seed=seed)
+    found = graded.trends(people, levels, seed=seed)
+    table = graded.power(pool_people, levels, resamples=resamples, seed=seed) if resamples else \
+        pd.DataFrame(columns=["measure", "per_level", "power", "resamples"])
+    for name, frame in (("predictions.csv", pred), ("trends.csv", found), ("power.csv", table)):
+        atomic_write_text(out / name, frame.to_csv(index=False))
+    steps.finish("findings", "", time.perf_counter() - t0)
+    text = graded.report(pred, found, table, levels, limits, {c: int((pool_people["condition"] == c).sum())
+                                                              for c in levels})
+    text += ("\n## Steps\n\n" + "\n".join(f"- {k}: {v['seconds']:.0f} s" for k, v in steps.done.items())
+             + f"\n\nTotal this run: {time.perf_counter() - started:.0f} s. Files: `sim/`, `analysis/report.md`, "
+             "`fit/comparison.md`, `participants.csv`, `predictions.csv`, `trends.csv`, `power.csv`.\n")
+    atomic_write_text(out / "study.md", text)
+    return {"out": str(out), "findings": found, "report": text}
 
 
 def _check_line(path: Path) -> Optional[str]:

@@ -1,0 +1,236 @@
+"""The graded-budget study's predictions and design: per-level figures with intervals, trends across the levels,
+and the participants per level a lab needs to see each trend.
+
+The paper asks how prediction and planning co-adapt "under graded resource constraints". A graded study
+assigns each participant one of several time limits per placement (between subjects); its levels are
+ordered by the time they leave, the unlimited one last. From a participant table (one row per
+participant: ``condition``, Table 1's ``avg_overhang`` and ``stable_pct``, ``gamma``, the best model's
+``fitted_depth`` and, where the fit has the axis, ``fitted_risk``; :func:`overhang_framework.study.participant_table`)
+this module gives:
+
+* **predictions**: each level's mean of each measure, with a 95% percentile bootstrap interval over the
+  level's participants (:data:`DRAWS` draws, seeded);
+* **trends**: Spearman's ρ between each measure and the level's rank (more time, higher rank), its two-sided
+  p from permuting the level labels over the participants (:data:`PERMUTATIONS`), and whether it goes the
+  expected way (:data:`MEASURES`: more time, larger overhang, larger Γ, deeper plans, less risk aversion; no
+  trend in the stable proportion);
+* **power and sample sizes**: for each of :data:`SIZES` participants per level, the share of studies of that
+  size, drawn with replacement from the simulated pool, in which the trend holds (p < ``alpha`` in the expected
+  direction); the smallest size whose power reaches :data:`TARGET_POWER` (none when no size of the grid does).
+
+Every function sorts its rows first, so its answer does not depend on their order.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+import pandas as pd
+
+#: Bootstrap draws of each interval, and permutations of each trend's test.
+DRAWS = 2_000
+PERMUTATIONS = 2_000
+#: Permutations of each test inside the power resamples.
+POWER_PERMUTATIONS = 500
+ALPHA = 0.05
+TARGET_POWER = 0.8
+#: Participants per level at which power is estimated.
+SIZES = (10, 20, 30, 40, 60, 80, 120, 160)
+
+
+@dataclass(frozen=True)
+class Measure:
+    name: str
+    column: str
+    label: str
+    #: +1: expected to grow with time; -1: to shrink; 0: no trend expected
+    direction: int
+
+
+MEASURES = (
+    Measure("overhang", "avg_overhang", "average overhang", +1),
+    Measure("stable", "stable_pct", "stable proportion (%)", 0),
+    Measure("gamma", "gamma", "Γ", +1),
+    Measure("depth", "fitted_depth", "fitted depth", +1),
+    Measure("risk", "fitted_risk", "fitted risk aversion", -1),
+)
+
+
+def levels_of(limits: Mapping[str, Optional[float]]) -> list[str]:
+    """The conditions ordered by the time they leave per placement (``None``: no limit, last)."""
+    return sorted(limits, key=lambda c: (limits[c] is None, limits[c] if limits[c] is not None else 0.0, c))
+
+
+def _sorted(df: pd.DataFrame) -> pd.DataFrame:
+    return df.sort_values(["condition", "participant"]).reset_index(drop=True)
+
+
+def predictions(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] = MEASURES,
+                draws: int = DRAWS, seed: int = 0) -> pd.DataFrame:
+    """One row per level and measure: participants, mean and its 95% bootstrap interval (NaN where no value)."""
+    df = _sorted(df)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for measure in measures:
+        if measure.column not in df.columns:
+            continue
+        for level in levels:
+            x = df.loc[df["condition"] == level, measure.column].to_numpy(dtype=float)
+            x = x[np.isfinite(x)]
+            if x.size:
+                means = x[rng.integers(x.size, size=(draws, x.size))].mean(axis=1)
+                low, high = np.quantile(means, [0.025, 0.975])
+            else:
+                low = high = math.nan
+            rows.append({"measure": measure.name, "level": level, "n": int(x.size),
+                         "mean": float(x.mean()) if x.size else math.nan, "ci_low": float(low),
+                         "ci_high": float(high)})
+    return pd.DataFrame(rows, columns=["measure", "level", "n", "mean", "ci_low", "ci_high"])
+
+
+def _ranks(values: np.ndarray) -> np.ndarray:
+    from scipy.stats import rankdata
+
+    return rankdata(values)
+
+
+def trend(df: pd.DataFrame, levels: Sequence[str], column: str, permutations: int = PERMUTATIONS,
+          seed: int = 0) -> tuple[float, float]:
+    """Spearman's ρ between ``column`` and the level's rank over the participants of ``levels``, and its
+    two-sided permutation p (level labels shuffled over participants); NaN when fewer than two levels have
+    values."""
+    df = _sorted(df)
+    rank = {level: k for k, level in enumerate(levels)}
+    at = df[df["condition"].isin(rank)]
+    x = at[column].to_numpy(dtype=float)
+    keep = np.isfinite(x)
+    x, level = x[keep], at["condition"].map(rank).to_numpy(dtype=float)[keep]
+    if np.unique(level).size < 2 or np.unique(x).size < 2:
+        return math.nan, math.nan
+    rx, rl = _ranks(x), _ranks(level)
+    rx = (rx - rx.mean()) / rx.std()
+    rl = (rl - rl.mean()) / rl.std()
+    rho = float(np.mean(rx * rl))
+    rng = np.random.default_rng(seed)
+    shuffled = np.array([rng.permutation(rl) for _ in range(permutations)])
+    null = (shuffled * rx).mean(axis=1)
+    p = float((1 + np.sum(np.abs(null) >= abs(rho) - 1e-12)) / (permutations + 1))
+    return rho, p
+
+
+def holds(rho: float, p: float, direction: int, alpha: float = ALPHA) -> bool:
+    """Whether a trend shows: p < ``alpha`` the expected way (``direction`` 0: no trend expected, so it holds
+    when p >= ``alpha``)."""
+    if not (np.isfinite(rho) and np.isfinite(p)):
+        return False
+    if direction == 0:
+        return p >= alpha
+    return p < alpha and math.copysign(1, rho) == direction
+
+
+def trends(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] = MEASURES,
+           permutations: int = PERMUTATIONS, seed: int = 0) -> pd.DataFrame:
+    """One row per measure: ρ, p, the expected direction and whether the trend holds."""
+    rows = []
+    for measure in measures:
+        if measure.column not in df.columns:
+            continue
+        rho, p = trend(df, levels, measure.column, permutations, seed)
+        rows.append({"measure": measure.name, "rho": rho, "p": p, "direction": measure.direction,
+                     "holds": holds(rho, p, measure.direction)})
+    return pd.DataFrame(rows, columns=["measure", "rho", "p", "direction", "holds"])
+
+
+def draw(df: pd.DataFrame, levels: Sequence[str], n: int, rng: np.random.Generator) -> pd.DataFrame:
+    """A study of ``n`` participants per level drawn with replacement from ``df``'s (renamed apart)."""
+    df = _sorted(df)
+    parts = []
+    for level in levels:
+        pool = df[df["condition"] == level]
+        if len(pool):
+            parts.append(pool.iloc[rng.integers(len(pool), size=n)])
+    out = pd.concat(parts, ignore_index=True)
+    out["participant"] = [f"d{i}" for i in range(len(out))]
+    return out
+
+
+def power(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] = MEASURES,
+          sizes: Sequence[int] = SIZES, resamples: int = 200, seed: int = 0) -> pd.DataFrame:
+    """One row per measure and size: the share of ``resamples`` studies of that size per level in which the
+    measure's trend holds (:func:`holds`)."""
+    rows = []
+    for measure in measures:
+        if measure.column not in df.columns or not df[measure.column].notna().any():
+            continue
+        for n in sizes:
+            rng = np.random.default_rng([seed, n])
+            hits = 0
+            for b in range(resamples):
+                rho, p = trend(draw(df, levels, n, rng), levels, measure.column, POWER_PERMUTATIONS, seed + b)
+                hits += holds(rho, p, measure.direction)
+            rows.append({"measure": measure.name, "per_level": int(n), "power": hits / resamples,
+                         "resamples": int(resamples)})
+    return pd.DataFrame(rows, columns=["measure", "per_level", "power", "resamples"])
+
+
+def sample_sizes(power_table: pd.DataFrame, target: float = TARGET_POWER) -> dict[str, Optional[int]]:
+    """Each measure's smallest size per level whose power reaches ``target`` (None when no size of the table
+    does, or when no trend is expected)."""
+    out: dict[str, Optional[int]] = {}
+    for measure, at in power_table.sort_values("per_level").groupby("measure", sort=True):
+        direction = next((m.direction for m in MEASURES if m.name == measure), 1)
+        reached = at[at["power"] >= target]
+        out[measure] = int(reached["per_level"].iloc[0]) if direction and len(reached) else None
+    return out
+
+
+def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, levels: Sequence[str],
+           limits: Mapping[str, Optional[float]], pool: Mapping[str, int]) -> str:
+    """``graded.md``: the per-level predictions, the trends, and the sample sizes, in sentences and tables."""
+    sizes = sample_sizes(power_table)
+    label = {m.name: m.label for m in MEASURES}
+    lines = ["# The graded-budget study: predictions and design", "",
+             "Levels, by the time they leave per placement: " + ", ".join(
+                 f"`{lv}` ({'no limit' if limits[lv] is None else f'{limits[lv]:g} s'}; {pool.get(lv, 0)} simulated)"
+                 for lv in levels) + ".", "", "## Each level", "",
+             "| measure | " + " | ".join(levels) + " |", "|---|" + "---|" * len(levels)]
+    for measure, at in pred.groupby("measure", sort=False):
+        cells = []
+        for level in levels:
+            row = at[at["level"] == level]
+            if not len(row) or not np.isfinite(row["mean"].iloc[0]):
+                cells.append("")
+                continue
+            r = row.iloc[0]
+            cells.append(f"{r['mean']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
+        lines.append(f"| {label.get(measure, measure)} | " + " | ".join(cells) + " |")
+    lines += ["", "(mean over the level's participants, 95% bootstrap interval)", "", "## Trends and sample sizes", ""]
+    for _, r in found.iterrows():
+        what = label.get(r["measure"], r["measure"])
+        n = sizes.get(r["measure"])
+        if r["direction"] == 0:
+            lines.append(f"- **{what}**: no trend expected; ρ = {r['rho']:+.2f}, p = {r['p']:.3f} "
+                         f"({'none found' if r['holds'] else 'a trend found'}).")
+            continue
+        way = "grows" if r["direction"] > 0 else "shrinks"
+        found_text = "shows" if r["holds"] else "does not show"
+        pool_n = min(pool.get(level, 0) for level in levels)
+        size = (f"{n} participants per level give 80% power" if n is not None else
+                f"No size up to {int(power_table['per_level'].max())} per level gives 80% power"
+                if len(power_table) else "Power was not estimated")
+        if n is not None and n > pool_n:
+            size += f" (optimistic: drawn from a pool of {pool_n} per level)"
+        lines.append(f"- **{what}** {way} with the time allowed, as expected: ρ = {r['rho']:+.2f}, p = "
+                     f"{r['p']:.3g}; the simulated pool {found_text} it. {size}.")
+    lines += ["", "| measure | " + " | ".join(str(s) for s in sorted(power_table["per_level"].unique())) + " |",
+              "|---|" + "---|" * power_table["per_level"].nunique()]
+    for measure, at in power_table.groupby("measure", sort=False):
+        at = at.sort_values("per_level")
+        lines.append(f"| {label.get(measure, measure)} | " + " | ".join(f"{v:.2f}" for v in at["power"]) + " |")
+    lines += ["", "(power: the share of studies of that many participants per level, drawn with replacement from "
+              "the simulated pool, in which the trend holds at p < .05 the expected way; a pool smaller than the "
+              "size makes it optimistic)", ""]
+    return "\n".join(lines)

@@ -1,0 +1,103 @@
+"""The graded-budget study's predictions, trends and sample sizes (overhang_framework.graded)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from overhang_framework import graded
+
+LEVELS = {"limit_2_5s": 2.5, "time_limited": 5.0, "limit_10s": 10.0, "unconstrained": None}
+
+
+def cohort(per_level: int, effect: float, seed: int = 0) -> pd.DataFrame:
+    """Participants whose overhang grows by ``effect`` a level (sd 0.1), Γ and stable proportion flat."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for k, level in enumerate(graded.levels_of(LEVELS)):
+        for i in range(per_level):
+            rows.append({"participant": f"{level}-{i:03d}", "condition": level,
+                         "avg_overhang": 1.3 + effect * k + rng.normal(0, 0.1),
+                         "gamma": 0.2 + rng.normal(0, 0.05), "stable_pct": 70 + rng.normal(0, 10),
+                         "fitted_depth": float(rng.integers(1, 4))})
+    return pd.DataFrame(rows)
+
+
+def test_levels_are_ordered_by_the_time_they_leave():
+    assert graded.levels_of(LEVELS) == ["limit_2_5s", "time_limited", "limit_10s", "unconstrained"]
+
+
+def test_a_planted_trend_is_found_the_right_way_and_none_is_found_where_there_is_none():
+    levels = graded.levels_of(LEVELS)
+    rho, p = graded.trend(cohort(30, 0.05), levels, "avg_overhang")
+    assert rho > 0.25 and p < 0.001 and graded.holds(rho, p, +1) and not graded.holds(rho, p, -1)
+    # no trend: the test's false-positive rate stays near alpha
+    found = [graded.trend(cohort(15, 0.0, seed), levels, "avg_overhang", permutations=300, seed=seed)[1] < 0.05
+             for seed in range(120)]
+    assert np.mean(found) < 0.11
+
+
+def test_the_answers_do_not_depend_on_the_order_of_the_rows():
+    levels = graded.levels_of(LEVELS)
+    df = cohort(12, 0.03)
+    shuffled = df.sample(frac=1.0, random_state=3)
+    pd.testing.assert_frame_equal(graded.predictions(df, levels), graded.predictions(shuffled, levels))
+    pd.testing.assert_frame_equal(graded.trends(df, levels), graded.trends(shuffled, levels))
+
+
+def test_each_levels_interval_holds_its_mean_and_narrows_with_more_participants():
+    levels = graded.levels_of(LEVELS)
+    small = graded.predictions(cohort(10, 0.05), levels)
+    large = graded.predictions(cohort(200, 0.05), levels)
+    at = large[large["measure"] == "overhang"].set_index("level")
+    for k, level in enumerate(levels):
+        truth = 1.3 + 0.05 * k
+        assert at.loc[level, "ci_low"] < truth < at.loc[level, "ci_high"]
+    width = lambda t: (t["ci_high"] - t["ci_low"]).mean()  # noqa: E731
+    assert width(large) < width(small) / 3
+    assert set(large["measure"]) == {"overhang", "stable", "gamma", "depth"}  # no fitted_risk column, no row
+
+
+def test_power_grows_with_the_size_and_the_sample_size_is_the_first_to_reach_80_percent():
+    levels = graded.levels_of(LEVELS)
+    table = graded.power(cohort(40, 0.03), levels, [graded.MEASURES[0], graded.MEASURES[1]], sizes=(5, 20, 60),
+                         resamples=60)
+    over = table[table["measure"] == "overhang"].sort_values("per_level")["power"].to_numpy()
+    assert over[0] < over[-1] and over[-1] >= 0.8
+    sizes = graded.sample_sizes(table)
+    first = table[(table["measure"] == "overhang") & (table["power"] >= 0.8)]["per_level"].min()
+    assert sizes["overhang"] == first and sizes["stable"] is None  # no trend is expected of the stable proportion
+    text = graded.report(graded.predictions(cohort(40, 0.03), levels), graded.trends(cohort(40, 0.03), levels),
+                         table, levels, LEVELS, {lv: 40 for lv in levels})
+    assert f"**average overhang** grows with the time allowed, as expected" in text
+    assert f"{first} participants per level give 80% power" in text
+
+
+@pytest.mark.parametrize("values", [[np.nan] * 8, [1.0] * 8])
+def test_a_measure_without_spread_has_no_trend(values):
+    df = pd.DataFrame({"participant": [f"p{i}" for i in range(8)],
+                       "condition": ["limit_2_5s", "time_limited", "limit_10s", "unconstrained"] * 2,
+                       "avg_overhang": values})
+    rho, p = graded.trend(df, graded.levels_of(LEVELS), "avg_overhang")
+    assert np.isnan(rho) and np.isnan(p) and not graded.holds(rho, p, +1)
+
+
+@pytest.mark.slow
+def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
+    """Two participants a level, two tasks each, static physics: every step, and every file of the report."""
+    from overhang_framework.study import main
+
+    out = tmp_path / "graded"
+    assert main(["graded_budgets", "--out", str(out), "--scale", "0.05", "--pool", "1", "--tasks", "2",
+                 "--resamples", "5", "--replicas", "0", "--world", "world.physics=static", "--depths", "1",
+                 "--no-progress", "--fit", "~models.ipe", "--fit", "~models.cnn",
+                 "--fit", "+models.hybrid.risk=[0.0,0.9]"]) == 0
+    pred = pd.read_csv(out / "predictions.csv")
+    assert set(pred["level"]) == {"limit_2_5s", "time_limited", "limit_10s", "unconstrained"}
+    assert {"overhang", "gamma", "depth", "risk"} <= set(pred["measure"])
+    people = pd.read_csv(out / "participants.csv")
+    assert {"true_risk", "true_hand", "true_percept", "fitted_risk"} <= set(people.columns)
+    assert (people.loc[people["condition"] == "time_limited", "true_risk"] == 0.9).all()
+    text = (out / "study.md").read_text()
+    assert text.startswith("# The graded-budget study") and "| fitted risk aversion |" in text
