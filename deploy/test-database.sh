@@ -3,7 +3,7 @@
 # missing, starts its cluster, makes the role `overhang` (password `overhang`, allowed to create databases: the
 # backup, restore and health tests make and drop their own) and the database `overhang_test`, and prints the
 # line that points the tests at it:
-#   eval "$(sudo bash deploy/test-database.sh)" && .venv/bin/python -m pytest -q
+#   url="$(bash deploy/test-database.sh)" && eval "$url" && .venv/bin/python -m pytest -q
 set -euo pipefail
 if ! command -v pg_lsclusters >/dev/null; then
   export DEBIAN_FRONTEND=noninteractive

@@ -107,3 +107,13 @@ def test_a_participant_who_finished_is_told_so_in_another_browser(client):
                                  "finished")
     assert data["message"].startswith("You have finished this study already: thank you.")
     assert "new link" not in data["message"] and s["token"] not in str(data)
+
+
+def test_an_exhausted_database_pool_is_a_503_too(client, monkeypatch):
+    from sqlalchemy.exc import TimeoutError as PoolTimeout
+
+    def busy(*args, **kwargs):
+        raise PoolTimeout("QueuePool limit of size 5 overflow 10 reached")
+
+    monkeypatch.setattr(client.app.state.store, "participant", busy)
+    said_to_a_participant(client.post("/api/sessions", json={"params": {"participant": "P1"}}), 503, "unavailable")

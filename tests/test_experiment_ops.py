@@ -456,3 +456,21 @@ def test_the_deploy_guide_installs_a_cpu_torch_and_checks_a_self_signed_server()
     assert "curl -sk https://localhost/api/health" in text
     assert "OVERHANG_DATABASE_URL=" in text and "RestartPreventExitStatus=2" in text
     assert "the server's lock and log" not in text  # the log is the journal
+
+
+def test_the_deploy_guides_environment_file_is_made_private_before_a_secret_goes_in(tmp_path):
+    """The guide's step 3 as written (into a temporary file): the file is 600 before the first secret is
+    appended, and every line of it survives (nothing later overwrites it)."""
+    import re
+
+    _, text = deploy_commands()
+    step = text.split("## 3.", 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
+    env = tmp_path / "overhang-experiment.env"
+    lines = [line.split(" #")[0] for line in step.replace("/etc/overhang-experiment.env", str(env)).splitlines()
+             if line.strip() and not line.startswith("#")]
+    assert lines[0].startswith("install -m 600 ") and all(">>" in line for line in lines[1:])
+    assert not any(re.search(r"[^>]> ", line) for line in lines)  # no overwrite after the first line
+    subprocess.run(["bash", "-c", "\n".join(lines)], check=True)
+    assert oct(env.stat().st_mode & 0o777) == "0o600"
+    written = env.read_text().splitlines()
+    assert [w.split("=")[0] for w in written] == ["OVERHANG_ADMIN_TOKEN", "OVERHANG_DATABASE_URL"]

@@ -327,3 +327,19 @@ def test_the_database_can_come_from_the_environment_and_a_bad_url_is_one_line(tm
     with pytest.raises(ConfigError, match=r"^database: postgres:// is not a kind of database the server can open "
                                           r"\(write postgresql\+psycopg://\.\.\.\)"):
         load_settings([f"run_dir={tmp_path}", "database=postgres://u:p@h/db"], need_admin_token=False)
+
+
+@pytest.mark.parametrize("url", ["sqlite:///C:\\data\\x.sqlite", 'postgresql+psycopg://u:p"q@h/db?a=1&b=2',
+                                 "sqlite:///tmp/x\\", "postgresql+psycopg://overhang@/overhang?host=/run/postgresql&port=5433"])
+def test_a_database_url_is_taken_as_written(url, tmp_path):
+    assert load_settings([f"run_dir={tmp_path}", f"database={url}"], need_admin_token=False).database == url
+
+
+def test_a_server_that_cannot_reach_its_database_exits_for_the_service_to_retry(tmp_path, capsys):
+    from overhang_framework.experiment.__main__ import UNAVAILABLE, main
+
+    code = main([f"run_dir={tmp_path / 'run'}", f"port={_free_port()}", "admin_token=long-enough",
+                 "database=postgresql+psycopg://nobody:wrong@127.0.0.1:1/overhang"])
+    err = capsys.readouterr().err
+    assert code == UNAVAILABLE != 2  # the unit's RestartPreventExitStatus=2 keeps only refusals down
+    assert err.count("\n") == 1 and err.startswith("error: cannot reach the database: ") and "wrong" not in err

@@ -53,9 +53,10 @@ def test_ci_runs_the_readme_commands():
 
 
 def test_the_readme_says_how_to_run_the_postgresql_tests_as_ci_does():
-    line = 'eval "$(bash deploy/test-database.sh)"'
-    assert f"`{line} && .venv/bin/python -m pytest -q`" in README and "OVERHANG_TEST_POSTGRES_URL" in README
-    assert line in (ROOT / ".ci" / "run").read_text().splitlines()
+    line = 'url="$(bash deploy/test-database.sh)"'  # a failing script stops the command (an empty eval would not)
+    assert f'`{line} && eval "$url" && .venv/bin/python -m pytest -q`' in README and "OVERHANG_TEST_POSTGRES_URL" in README
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    assert line in ci and ci[ci.index(line) + 1] == 'eval "$url"' and "set -euo pipefail" in ci
     script = (ROOT / "deploy" / "test-database.sh").read_text()
     assert 'echo "export OVERHANG_TEST_POSTGRES_URL=' in script  # the line the eval runs
 

@@ -65,6 +65,9 @@ SUMMARIES = {
     "pilot": "simulated participants through the server, before people",
 }
 
+#: The exit status of a server that cannot reach its database (EX_TEMPFAIL): unlike 2 (a refusal that needs the
+#: operator), the systemd unit restarts it.
+UNAVAILABLE = 75
 #: How the server's worker processes get the command line's settings.
 SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
 
@@ -520,6 +523,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
         if not isinstance(err, SQLAlchemyError):
             raise
+        if command == "serve":  # a database not up yet (at boot): the service is to try again, so not status 2
+            print(f"error: cannot reach the database: {_first_line(err)}; exit status {UNAVAILABLE}: try again "
+                  "later (the service does)", file=sys.stderr)
+            return UNAVAILABLE
         print(f"error: cannot reach the database: {_first_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

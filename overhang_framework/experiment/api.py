@@ -32,7 +32,7 @@ from fastapi import Depends, FastAPI, Header, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse
 from pydantic import BaseModel, ConfigDict, Field, field_validator
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import SQLAlchemyError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from overhang_framework import __version__, rules
@@ -328,12 +328,13 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             "The page sent the study's server something it could not read. Please reload the page", settings)},
             status_code=422)
 
-    @app.exception_handler(DBAPIError)
-    async def _database(request: Request, err: DBAPIError):
+    @app.exception_handler(SQLAlchemyError)
+    async def _database(request: Request, err: SQLAlchemyError):
         import logging
 
         logging.getLogger("overhang_framework.experiment").error("%s %s: the database failed: %s", request.method,
-                                                                  request.url.path, str(err.orig or err)[:300])
+                                                                  request.url.path,
+                                                                  str(getattr(err, "orig", None) or err)[:300])
         return JSONResponse({"error": "the database cannot be reached or failed; GET /api/health says more",
                              "reason": "unavailable", **for_participant(
                                  "The study's server cannot store your answers just now. Please wait a minute and "

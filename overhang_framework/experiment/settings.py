@@ -8,6 +8,7 @@ token), so a mistake stops the server before it listens, in one line.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
@@ -103,7 +104,10 @@ def _quoted_database(word: str) -> str:
     key, sep, value = word.partition("=")
     if not sep or key.lstrip("+") != "database" or not value or value[0] in "'\"" or value == "null":
         return word
-    return f'{key}="{value.replace(chr(92), chr(92) * 2).replace(chr(34), chr(92) + chr(34))}"'
+    # Hydra's quoted strings escape a quote, and the backslashes just before a quote or the closing one
+    value = re.sub(r'(\\*)"', lambda m: m.group(1) * 2 + '\\"', value)
+    value = re.sub(r'(\\+)$', lambda m: m.group(1) * 2, value)
+    return f'{key}="{value}"'
 
 
 def database_url(value: Optional[str], run_dir: Path) -> str:

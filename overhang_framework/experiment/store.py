@@ -38,7 +38,7 @@ from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 from sqlalchemy import (JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, UniqueConstraint, create_engine,
                         delete, event, func, select, update)
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 
@@ -278,8 +278,11 @@ class Store:
             try:
                 yield
             finally:
-                connection.execute(text("SELECT pg_advisory_unlock(:key)"), {"key": STUDY_LOCK})
-                connection.commit()
+                # the lock goes with its connection anyway: a connection lost meanwhile (a restart of PostgreSQL)
+                # must not turn a clean stop into an error
+                with contextlib.suppress(SQLAlchemyError):
+                    connection.execute(text("SELECT pg_advisory_unlock(:key)"), {"key": STUDY_LOCK})
+                    connection.commit()
 
     def ping(self) -> Optional[str]:
         """None when the database answers a trivial query; else why not, in one line."""
