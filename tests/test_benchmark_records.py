@@ -65,13 +65,33 @@ def test_a_string_command_is_told_to_be_a_list_not_missing(tmp_path):
 
 @pytest.mark.parametrize("command,message", [
     ("[no-such-program-here]", "agent.command's program 'no-such-program-here' is not found on the PATH"),
-    ("[python3,no_such_agent.py]", "agent.command exited at once (exit code 2) before it was sent anything"),
+    ("[python3,no_such_agent.py]", "agent.command exited (exit code 2) before it answered anything"),
 ], ids=["missing", "exits"])
 def test_a_program_that_cannot_start_is_refused_before_the_first_episode(tmp_path, command, message):
     out, proc = bench(tmp_path, "agent=command", f"agent.command={command}", FIVE, check=False)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert message in proc.stderr
-    assert not out.exists()
+    # refused by the command line's check (nothing written), or, on a machine too busy for it to exit within
+    # the check's second, by its first decision (no episode played)
+    assert not out.exists() or not (out / "episodes.jsonl").read_text().strip()
+
+
+SLOW_TO_FAIL = '''
+import sys, time
+time.sleep(1.5)  # as a program that loads a large library first
+sys.exit("cannot load the model: weights.bin is missing")
+'''
+
+
+def test_a_program_that_fails_after_the_check_stops_the_run_at_its_first_decision(tmp_path):
+    program = tmp_path / "slow_to_fail.py"
+    program.write_text(SLOW_TO_FAIL)
+    out, proc = bench(tmp_path, "agent=command", f"agent.command=[{sys.executable},{program}]", FIVE, check=False)
+    assert proc.returncode == 2, proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: agent.command exited (exit code 1) before it answered anything: ") and \
+        line.endswith("cannot load the model: weights.bin is missing"), line
+    assert not (out / "episodes.jsonl").read_text().strip() and not (out / "scores.csv").exists()
 
 
 GARBAGE = '''

@@ -269,8 +269,9 @@ def test_a_pilot_stopped_midway_leaves_its_files_and_says_what_it_left_on_the_se
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     line = err.strip().splitlines()[-1]
-    assert line.startswith("interrupted: 2 participant(s) took part; its own server's database keeps what they "
-                           "placed, 2 participant(s) unfinished (pilot-001, pilot-002), stored as simulated"), line
+    assert line.startswith("interrupted: 2 session(s) were opened; its own server's database keeps what their "
+                           "participants placed, 2 participant(s) unfinished (pilot-001, pilot-002), stored as "
+                           "simulated"), line
     rows = truth(out)
     assert set(rows) == {"pilot-001", "pilot-002"}
     summary = json.loads((out / "pilot.json").read_text())

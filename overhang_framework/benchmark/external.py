@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from overhang_framework.benchmark.agents import Agent, AgentFailed, Choice, on_grid
+from overhang_framework.errors import OverhangError
 from overhang_framework.geometry import Action
 from overhang_framework.interfaces import State, Task, World
 
@@ -63,6 +64,8 @@ class CommandAgent(Agent):
         self.proc: Optional[subprocess.Popen] = None
         self.lines: "queue.Queue[Optional[str]]" = queue.Queue()
         self.restarts = 0
+        self._answered = False  # whether the program has answered any decision of the run
+        self._exit_code: Optional[int] = None
         self._fresh = False
         self._stderr: Optional[threading.Thread] = None
         self._renderer = None
@@ -108,7 +111,7 @@ class CommandAgent(Agent):
             return False
 
     def _died(self, step: int) -> AgentFailed:
-        code = self._reap()
+        code = self._exit_code = self._reap()
         return AgentFailed(f"agent crashed at placement {step} (exit code {code}); see agent.log")
 
     def _reap(self) -> Optional[int]:
@@ -145,13 +148,26 @@ class CommandAgent(Agent):
             self._spawn()
             line = self._ask(message, step)
         if line is None:
-            raise self._died(step)
+            failed = self._died(step)
+            if not self._answered:  # it never got as far as one answer: it cannot play, so the run stops
+                raise ProgramFailed(f"agent.command exited (exit code {self._exit_code}) before it answered "
+                                    f"anything: {' '.join(self.command)}{self._last_words()}")
+            raise failed
         self._fresh = False
+        self._answered = True
         action = _parse(line, step)
         chosen, why = on_grid(state, action, self.world)
         if chosen is None:
             raise AgentFailed(f"{why} (placement {step})")
         return Choice(chosen, None)
+
+    def _last_words(self) -> str:
+        """``: `` and the last line the program wrote to stderr (from ``agent.log``), or ''."""
+        try:
+            tail = (self.workdir / "agent.log").read_bytes()[-2000:].decode(errors="replace").strip().splitlines()
+        except OSError:
+            return ""
+        return f": {tail[-1].strip()[:200]}" if tail else ""
 
     def _ask(self, message: dict, step: int) -> Optional[str]:
         """Send ``message`` and wait for one line: the line, or ``None`` when the program is gone."""
@@ -260,6 +276,11 @@ def message_lines(message: dict, width: int = 100) -> str:
                                    break_on_hyphens=False)).replace("\u00a0", " ")
 
 
+class ProgramFailed(OverhangError):
+    """The program exited before it answered any decision of the run: it cannot play (a missing file or
+    module, a syntax error), so the run stops with one line rather than scoring every episode as a fault."""
+
+
 class CappedLog:
     """``agent.log``: what the program writes to stderr, appended up to :data:`LOG_CAP` bytes in all; past
     the cap one line says how much more was written, and it is dropped."""
@@ -312,8 +333,7 @@ def check_starts(command: Sequence[str], cwd: Optional[str] = None, wait: float 
     proc.stdin.close()
     proc.stderr.close()
     said = f": {err[-1].strip()[:200]}" if err else ""
-    return (f"agent.command exited at once (exit code {code}) before it was sent anything: "
-            f"{' '.join(command)}{said}")
+    return f"agent.command exited (exit code {code}) before it answered anything: {' '.join(command)}{said}"
 
 
 def _pump(stream, lines: "queue.Queue[Optional[str]]") -> None:

@@ -121,15 +121,16 @@ def build_agent(cfg_data: dict, workdir: Path):
     raise ConfigError(f"unknown agent type {kind!r}; allowed: {', '.join(AGENT_TYPES)}")
 
 
-def check_config(cfg: DictConfig) -> None:
+def check_config(cfg: DictConfig, start: bool = True) -> None:
     """Every value of a benchmark config that can be checked before the first episode: every problem found,
-    in one :class:`ConfigError` (problems joined by ``|``)."""
-    problems = config_problems(cfg)
+    in one :class:`ConfigError` (problems joined by ``|``); ``start``: also start an external program once to
+    see that it does not exit at once."""
+    problems = config_problems(cfg, start)
     if problems:
         raise ConfigError(" | ".join(problems))
 
 
-def config_problems(cfg: DictConfig) -> list[str]:
+def config_problems(cfg: DictConfig, start: bool = True) -> list[str]:
     """What is wrong with a benchmark config, each problem one sentence (empty when nothing is)."""
     problems: list[str] = []
     kind = cfg.agent.get("type")
@@ -173,7 +174,7 @@ def config_problems(cfg: DictConfig) -> list[str]:
                 registry.create(group, _container(cfg[group]), world=world)
     except (ConfigError, ValueError) as err:
         problems.append(str(err))
-    if not problems and kind == "command":
+    if not problems and kind == "command" and start:
         from overhang_framework.benchmark.external import check_starts
 
         why = check_starts(list(cfg.agent.command), cfg.agent.get("cwd"))
@@ -329,7 +330,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     from overhang_framework.progress import progress_bar
     from overhang_framework.results import atomic_write_json
 
-    check_config(cfg)
+    check_config(cfg, start=False)  # the command line's check started the program already
     check_output_dir(cfg, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg_data = _container(cfg)

@@ -252,6 +252,8 @@ class Pilot:
         self.lock = threading.Lock()
         #: Every session opened so far, whatever became of it (what a stopped pilot leaves on the server).
         self.takers: list[Taker] = []
+        #: The participant id of every session the server made, in order (some may have no taker yet).
+        self.opened: list[str] = []
 
     # -- sessions --------------------------------------------------------------------------------------------
 
@@ -266,6 +268,7 @@ class Pilot:
             client = Client(self.url, pid)
             try:
                 session = client.post("/api/sessions", {"params": {"participant": pid}, "simulated": True})
+                self.opened.append(pid)
                 client.token = session["token"]
                 if not session["consent"]["given"]:  # "I agree" on the consent page the server sent
                     client.post("/api/consent", {"version": session["consent"]["version"]})
@@ -579,8 +582,12 @@ def run(args) -> dict:
         takers = pilot.run(args.concurrency, progress=not args.no_progress and p.checked.progress)
     except (KeyboardInterrupt, PilotError) as err:
         # what the server holds of the pilot is said, and the pilot's files hold who they were
-        if pilot.takers:
+        if pilot.opened:
             result = write(pilot.takers, "interrupted" if isinstance(err, KeyboardInterrupt) else str(err))
+            finished = {t.pid for t in pilot.takers if t.phase in FINISHED}
+            result["unfinished"] = [pid for pid in pilot.opened if pid not in finished]
+            result["opened"] = len(pilot.opened)
+            atomic_write_json(out / SUMMARY, result)
             raise PilotStopped(result, err) from None
         raise
     finally:
@@ -599,7 +606,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         what = (f"{len(left)} participant(s) unfinished ({', '.join(left[:3])}{', ...' if len(left) > 3 else ''}), "
                 "stored as simulated" if left else "no participant unfinished")
         first = "interrupted" if isinstance(stopped.cause, KeyboardInterrupt) else f"error: {stopped.cause}"
-        print(f"{first}: {stopped.result['participants']} participant(s) took part; {where} keeps what they "
+        print(f"{first}: {stopped.result['opened']} session(s) were opened; {where} keeps what their participants "
               f"placed, {what}; {Path(args.out) / CSV} and {Path(args.out) / DECISIONS} say who they were",
               file=sys.stderr)
         return 130 if isinstance(stopped.cause, KeyboardInterrupt) else 1
@@ -607,7 +614,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2 if isinstance(err, ConfigError) or not isinstance(err, PilotError) else 1
     except KeyboardInterrupt:
-        print("interrupted before any session was opened: nothing was stored", file=sys.stderr)
+        print("interrupted before the server opened any session: nothing was stored", file=sys.stderr)
         return 130
     print(format_summary(result))
     where = f"run_dir={args.out}" if not args.url else f"--url {args.url}"
