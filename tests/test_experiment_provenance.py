@@ -320,33 +320,56 @@ def test_a_participant_who_does_not_agree_leaves_nothing_but_a_count(overrides):
     assert store.participant("P2") is not None
 
 
-@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0 or shutil.which("git") is None,
-                    reason="needs root (to give a checkout to another owner) and git")
-def test_the_commit_is_read_from_a_checkout_another_user_owns(tmp_path):
-    """The deployment's case: the service user reads a checkout that root owns (here: root reads one that
-    ``nobody`` owns), which git refuses as "dubious ownership" unless told it is safe."""
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0 or shutil.which("git") is None
+                    or not Path("/usr/bin/python3").exists(),
+                    reason="needs root (to run as another user), git and the system's Python")
+def test_the_commit_is_read_by_a_service_user_from_a_checkout_root_owns_and_not_from_another_users(
+        tmp_path, service_user):
+    """The deployment's case: the service's user reads a checkout that root owns, which plain git refuses as
+    "dubious ownership". A checkout of another unprivileged user is not trusted (its configuration could run
+    code as the reader): root gets no commit from it."""
+    import pwd
     import subprocess
+    import tempfile
+
+    from test_experiment_deploy import service_python
 
     from overhang_framework.version import commit_of
 
-    package = tmp_path / "checkout" / "overhang_framework"
-    package.mkdir(parents=True)
-    (package / "__init__.py").write_text("")
+    home = Path(tempfile.mkdtemp(prefix="overhang-checkout-", dir="/tmp"))
+    try:
+        os.chmod(home, 0o755)
+        package = home / "checkout" / "overhang_framework"
+        package.mkdir(parents=True)
+        (package / "__init__.py").write_text("")
 
-    def git(*args):
-        return subprocess.run(["git", "-c", "user.email=lab@example.org", "-c", "user.name=lab", *args],
-                              cwd=package.parent, check=True, capture_output=True, text=True).stdout.strip()
+        def git(*args):
+            return subprocess.run(["git", "-c", "user.email=lab@example.org", "-c", "user.name=lab", *args],
+                                  cwd=package.parent, check=True, capture_output=True, text=True).stdout.strip()
 
-    git("init", "-q")
-    git("add", ".")
-    git("commit", "-qm", "the lab's checkout")
-    head = git("rev-parse", "HEAD")
-    subprocess.run(["chown", "-R", "nobody", str(package.parent)], check=True)
-    refused = subprocess.run(["git", "rev-parse", "HEAD"], cwd=package, capture_output=True, text=True)
-    assert refused.returncode != 0 and "dubious ownership" in refused.stderr  # what plain git says
-    assert commit_of(package) == head
-    (package / "__init__.py").write_text("changed = True\n")
-    assert commit_of(package) == head + "-dirty"
+        git("init", "-q")
+        git("add", ".")
+        git("commit", "-qm", "the lab's checkout")
+        head = git("rev-parse", "HEAD")
+        subprocess.run(["chmod", "-R", "a+rX", str(home)], check=True)
+        user = pwd.getpwnam(service_user)
+        python = service_python(home)
+        ask = f"from pathlib import Path; from overhang_framework.version import commit_of; print(commit_of(Path({str(package)!r})))"
+
+        def as_service(*words):
+            return subprocess.run([*words], capture_output=True, text=True, user=user.pw_uid, group=user.pw_gid,
+                                  extra_groups=[], env={"PATH": "/usr/bin:/bin", "HOME": str(home)})
+
+        refused = as_service("git", "-C", str(package), "rev-parse", "HEAD")
+        assert refused.returncode != 0 and "dubious ownership" in refused.stderr  # what plain git says
+        assert as_service(python, "-c", ask).stdout.strip() == head
+        (package / "__init__.py").write_text("changed = True\n")
+        assert as_service(python, "-c", ask).stdout.strip() == head + "-dirty"
+        assert commit_of(package) == head + "-dirty"  # root reads its own checkout
+        subprocess.run(["chown", "-R", "nobody", str(package.parent)], check=True)
+        assert commit_of(package) == ""  # another unprivileged user's checkout: not trusted
+    finally:
+        shutil.rmtree(home, ignore_errors=True)
 
 
 def test_a_participant_who_started_before_an_allowed_change_exports_with_the_hash_and_limit_they_played_under(
