@@ -128,7 +128,7 @@ def _wait(url, process):
     pytest.fail("the server did not answer")
 
 
-def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path):
+def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path, monkeypatch):
     # one time-limited participant whose every decision takes 60 s (1.2 s at a time scale of 0.02), against a
     # server with a 0.1 s limit (and its 0.5 s grace); the client posts its placements, never a timeout
     process, url, words = _serve(tmp_path / "server", ["conditions=[time_limited]", "time_limit=0.1",
@@ -136,6 +136,7 @@ def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path):
     try:
         _wait(url, process)
         out = tmp_path / "pilot"
+        monkeypatch.setenv("OVERHANG_ADMIN_TOKEN", "pilot-test-admin")  # the study's: its sessions are simulated
         done = pilot(out, "--url", url, "--time-scale", "0.02", "--timeouts", "server", "cohort=small",
                      "cohort.participants.time_limited=1", "cohort.participants.unconstrained=0",
                      "cohort.decision_time.t0=60", "cohort.decision_time.per_call=0", "cohort.decision_time.noise=0")
@@ -167,15 +168,18 @@ def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path):
     assert truth(out)["pilot-001"]["screened_out"] == "True"
 
 
-def test_bad_pilot_options_stop_with_one_line_and_write_nothing(tmp_path, capsys):
+def test_bad_pilot_options_stop_with_one_line_and_write_nothing(tmp_path, capsys, monkeypatch):
     from overhang_framework.experiment.__main__ import main
 
     out = tmp_path / "pilot"
+    monkeypatch.delenv("OVERHANG_ADMIN_TOKEN", raising=False)
     for words, message in (
             (["--time-scale", "0", "cohort=small"], "--time-scale must be a number > 0"),
             (["cohort=small", "cohort.participants.time_limited=3"], "as many participants in each condition"),
             (["cohort=smal"], "cohort"),
-            (["--url", "http://127.0.0.1:1", "--serve", "workers=1", "cohort=small"], "leave it out with --url")):
+            (["--url", "http://127.0.0.1:1", "--serve", "workers=1", "cohort=small"], "leave it out with --url"),
+            (["--url", "http://127.0.0.1:1", "cohort=small"],
+             "a pilot of a running study needs its admin token in the environment variable OVERHANG_ADMIN_TOKEN")):
         assert main(["pilot", "--out", str(out), *words]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and err.strip().count("\n") == 0 and message in err, err

@@ -29,7 +29,7 @@ def _serve_app(overrides, clock=None):
 
 def _session(client, pid, consent=True, simulated=False):
     body = {"params": {"participant": pid}, **({"simulated": True} if simulated else {})}
-    s = client.post("/api/sessions", json=body).json()
+    s = client.post("/api/sessions", json=body, headers={"X-Admin-Token": ADMIN} if simulated else {}).json()
     h = {"Authorization": f"Bearer {s['token']}"}
     if consent:
         reply = client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h)
@@ -419,6 +419,10 @@ def test_a_pilots_participants_are_stored_as_simulated_and_left_out_of_a_default
     from overhang_framework.experiment.export import log_records, study_json, write_psychds
 
     client = _serve_app(overrides)
+    # a page cannot mark itself simulated: only a pilot with the study's admin token can
+    refused = client.post("/api/sessions", json={"params": {"participant": "sly"}, "simulated": True})
+    assert refused.status_code == 403 and "admin token" in refused.json()["error"]
+    assert client.app.state.store.participant("sly") is None
     _play(client, "person")
     _play(client, "pilot-001", simulated=True)
     _play(client, "pilot-002")  # a session the page starts is a person's, whatever its id
@@ -459,3 +463,15 @@ def test_a_new_contact_is_refused_as_the_consent_text_change_it_is_and_says_so(o
     with pytest.raises(ConfigError, match=r"consent_version: .* -> .*\) \(the consent text changed: it includes the "
                                           r"contact=, so a new contact or consent_file changes it\); serve"):
         _serve_app([*overrides, "contact=other-lab@example.org"])
+
+
+def test_a_pilots_sessions_do_not_unbalance_the_peoples_conditions(overrides):
+    client = _serve_app([*overrides, "conditions=[time_limited,unconstrained]"])
+    for k in range(3):  # a pilot against the live study, first
+        _session(client, f"pilot-{k}", consent=False, simulated=True)
+    store = client.app.state.store
+    people = [client.post("/api/sessions", json={"params": {"participant": f"P{k}"}}).json()["condition"]
+              for k in range(4)]
+    assert sorted(people) == ["time_limited"] * 2 + ["unconstrained"] * 2  # balanced among people alone
+    pilots = [store.participant(f"pilot-{k}").condition for k in range(3)]
+    assert sorted(set(pilots)) == ["time_limited", "unconstrained"]  # and the pilot's among themselves

@@ -415,8 +415,13 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         return out
 
     @app.post("/api/sessions")
-    def start(body: SessionIn, authorization: Annotated[Optional[str], Header()] = None):
+    def start(body: SessionIn, authorization: Annotated[Optional[str], Header()] = None,
+              x_admin_token: Annotated[Optional[str], Header()] = None):
         params = body.params
+        if body.simulated and not (x_admin_token and hmac.compare_digest(x_admin_token.encode(),
+                                                                         settings.admin_token.encode())):
+            raise Refused(403, "a simulated session needs the study's admin token (X-Admin-Token): only a pilot the "
+                               "lab runs marks its participants simulated")
         pid = params.get("PROLIFIC_PID") or params.get("participant")
         if not pid:
             raise Refused(422, "no participant: the page's URL needs PROLIFIC_PID (with STUDY_ID and SESSION_ID) "
@@ -460,10 +465,11 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             return Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
                                token_hash=token_hash(token), condition=condition, order=order,
                                time_limit=settings.limit_of(condition),
-                               source="simulated" if body.simulated or settings.source == "simulated" else "human",
+                               source=source,
                                settings_hash=provenance["settings_hash"])
 
-        p = store.add_newcomer(settings.conditions, newcomer)
+        source = "simulated" if body.simulated or settings.source == "simulated" else "human"
+        p = store.add_newcomer(settings.conditions, newcomer, source)
         if p is None:
             raise Refused(409, f"participant {pid} was started by another request at the same moment")
         return JSONResponse(session_payload(p, token), status_code=201)

@@ -211,10 +211,11 @@ class Client:
         self.http = httpx.Client(base_url=url.rstrip("/"), timeout=REQUEST_TIMEOUT)
         self.pid, self.token = pid, None
 
-    def post(self, path: str, body: dict) -> dict:
+    def post(self, path: str, body: dict, extra: Optional[dict] = None) -> dict:
         import httpx
 
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        headers.update(extra or {})
         try:
             reply = self.http.post(path, json=body, headers=headers)
         except httpx.HTTPError as err:
@@ -246,8 +247,9 @@ class Pilot:
     """The cohort of ``p`` as clients of the server at ``url``."""
 
     def __init__(self, p: Plan, url: str, time_scale: float = 1.0, timeouts: str = "page", prefix: str = "pilot",
-                 stop: Optional[threading.Event] = None):
+                 stop: Optional[threading.Event] = None, admin_token: Optional[str] = None):
         self.p, self.url, self.time_scale, self.timeouts, self.prefix = p, url, time_scale, timeouts, prefix
+        self.admin_token = admin_token  # marks the pilot's sessions simulated on the server
         self.stop = stop or threading.Event()
         self.lock = threading.Lock()
         #: Every session opened so far, whatever became of it (what a stopped pilot leaves on the server).
@@ -267,7 +269,8 @@ class Pilot:
             pid = f"{self.prefix}-{k:03d}"
             client = Client(self.url, pid)
             try:
-                session = client.post("/api/sessions", {"params": {"participant": pid}, "simulated": True})
+                session = client.post("/api/sessions", {"params": {"participant": pid}, "simulated": True},
+                                      {"X-Admin-Token": self.admin_token or ""})
                 self.opened.append(pid)
                 client.token = session["token"]
                 if not session["consent"]["given"]:  # "I agree" on the consent page the server sent
@@ -542,6 +545,11 @@ def run(args) -> dict:
         raise ConfigError("--serve sets up the pilot's own server; leave it out with --url")
     if args.url and not str(args.url).startswith(("http://", "https://")):
         raise ConfigError(f"--url must start with http:// or https://, got {args.url!r}")
+    from overhang_framework.experiment.settings import ADMIN_ENV
+
+    if args.url and not os.environ.get(ADMIN_ENV):
+        raise ConfigError(f"a pilot of a running study needs its admin token in the environment variable {ADMIN_ENV}, "
+                          "so that the server stores the pilot's participants as simulated")
     out = Path(args.out)
     check_writable(out, "--out DIR")
     if (out / CSV).exists() or (out / "experiment.sqlite").exists():
@@ -562,7 +570,8 @@ def run(args) -> dict:
         server = Server(words, settings.port, out / SERVER_LOG, settings.workers)
         url = server.url
     started = time.monotonic()
-    pilot = Pilot(p, url, args.time_scale, args.timeouts, args.prefix)
+    pilot = Pilot(p, url, args.time_scale, args.timeouts, args.prefix,
+                  admin_token=server.admin_token if server is not None else os.environ.get(ADMIN_ENV))
 
     def write(takers: Sequence[Taker], stopped: Optional[str] = None) -> dict:
         result = summary(takers, time.monotonic() - started, url, args.time_scale, args.timeouts)

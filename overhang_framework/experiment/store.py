@@ -305,10 +305,11 @@ class Store:
         with self._session() as s:
             return s.scalars(select(Participant).where(Participant.token_hash == token_hash(token))).first()
 
-    def add_newcomer(self, conditions: Sequence[str],
-                     make: Callable[[dict[str, int]], Participant]) -> Optional[Participant]:
-        """Store the participant ``make`` builds from the number of participants in each of ``conditions``;
-        None when one with that id was stored first.
+    def add_newcomer(self, conditions: Sequence[str], make: Callable[[dict[str, int]], Participant],
+                     source: str = "human") -> Optional[Participant]:
+        """Store the participant ``make`` builds from the number of participants of ``source`` (human or simulated:
+        a pilot's participants are balanced among themselves, and never unbalance the people) in each of
+        ``conditions``; None when one with that id was stored first.
 
         The counts are read and the participant stored in one transaction that first updates the
         ``newcomers`` row: a second server process assigning a newcomer at the same moment waits
@@ -316,7 +317,7 @@ class Store:
         """
         with self._session() as s:
             s.execute(update(Newcomers).where(Newcomers.id == 1).values(assigned=Newcomers.assigned + 1))
-            participant = make(_condition_counts(s, conditions))
+            participant = make(_condition_counts(s, conditions, source))
             s.add(participant)
             try:
                 s.commit()
@@ -533,8 +534,10 @@ def _delete_participant(session, participant: Participant) -> dict[str, int]:
     return deleted
 
 
-def _condition_counts(session, conditions: Sequence[str]) -> dict[str, int]:
-    rows = session.execute(select(Participant.condition, func.count()).group_by(Participant.condition)).all()
+def _condition_counts(session, conditions: Sequence[str], source: str = "human") -> dict[str, int]:
+    rows = session.execute(select(Participant.condition, func.count())
+                           .where(func.coalesce(Participant.source, "human") == source)
+                           .group_by(Participant.condition)).all()
     counts = {c: 0 for c in conditions}
     for condition, n in rows:
         if condition in counts:
