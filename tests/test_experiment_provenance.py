@@ -375,18 +375,21 @@ def test_the_commit_is_read_by_a_service_user_from_a_checkout_root_owns_and_not_
 def test_a_participant_who_started_before_an_allowed_change_exports_with_the_hash_and_limit_they_played_under(
         overrides):
     from overhang_framework.experiment.export import log_records, study_json
+    from overhang_framework.experiment.provenance import digest
 
     limited = [*overrides, "conditions=[time_limited]"]
     first = _serve_app(limited)
     s1, h1 = _session(first, "P1")  # starts under 5 s, places nothing yet
     old_hash = first.app.state.store.study().settings_hash
     first.app.state.store.close()
-    changed = _serve_app([*limited, "time_limit=4", "allow_settings_change=true"])
+    # the limit and the bonus change; P1 keeps their limit, and gets the new bonus
+    changed = _serve_app([*limited, "time_limit=4", "bonus_per_unit=0.3", "allow_settings_change=true"])
     store = changed.app.state.store
-    new_hash = store.study().settings_hash
-    assert new_hash != old_hash
-    # P1 goes on under the new server: their whole trial, then a newcomer's
-    changed.cookies.clear()
+    new = store.study()
+    new_hash = new.settings_hash
+    played = {**new.settings, "time_limit": 5.0}
+    played_hash = digest(played)
+    assert len({old_hash, new_hash, played_hash}) == 3
     for k, pt in enumerate(changed.settings.practice, 1):
         for step, (_, x, layer) in enumerate(pt.shown_tower[1:], 1):
             body = {"phase": "practice", "trial": k, "step": step}
@@ -404,15 +407,19 @@ def test_a_participant_who_started_before_an_allowed_change_exports_with_the_has
         if reply.json()["trial_over"]:
             break
     _play(changed, "P2")
-    assert {(r.participant_id, r.settings_hash) for r in store.placements()} == {("P1", old_hash), ("P2", new_hash)}
+    assert {(r.participant_id, r.settings_hash) for r in store.placements()} == {("P1", played_hash),
+                                                                                ("P2", new_hash)}
     records, _ = log_records(store)
-    played = {(r["participant"], r["settings_hash"], r["time_limit"]) for r in records}
-    assert played == {("P1", old_hash, 5.0), ("P2", new_hash, 4.0)}
-    # every hash a record carries is resolved by the sidecar: the current settings, or an earlier one in its history
+    assert {(r["participant"], r["settings_hash"], r["time_limit"]) for r in records} == {
+        ("P1", played_hash, 5.0), ("P2", new_hash, 4.0)}
+    # every hash a record carries resolves in the sidecar, to the settings in force for that participant
     study = study_json(store)["study"]
+    assert study["settings_hash"] == new_hash
+    assert study["played_settings"] == {played_hash: played}
+    assert played["time_limit"] == 5.0 and played["bonus_per_unit"] == 0.3
     earlier = {e["previous"]["settings_hash"]: e["previous"]["settings"] for e in study["history"]
                if e["what"] == "settings"}
-    assert study["settings_hash"] == new_hash and earlier[old_hash]["time_limit"] == 5.0
+    assert earlier[old_hash]["time_limit"] == 5.0
 
 
 def test_a_pilots_participants_are_stored_as_simulated_and_left_out_of_a_default_export(overrides, tmp_path):

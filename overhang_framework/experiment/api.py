@@ -18,6 +18,7 @@ timeout.
 from __future__ import annotations
 
 import hmac
+import json
 import os
 import re
 import secrets
@@ -38,6 +39,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from overhang_framework import __version__, rules
 from overhang_framework.experiment.forwarded import ForwardedHeaders
 from overhang_framework.experiment.outcome import Outcomes
+from overhang_framework.experiment.provenance import digest as settings_digest, study_settings
 from overhang_framework.experiment.settings import Settings
 from overhang_framework.experiment.store import (Conflict, Participant, Placement, SettingsChanged, Store, request_hash,
                                                  token_hash, utc_iso)
@@ -278,6 +280,24 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     provenance = {"framework_version": study.framework_version, "commit": study.commit,
                   "settings_hash": study.settings_hash, "tasks_hash": study.tasks_hash}
     outcomes = outcomes or Outcomes(settings.world, fps=settings.animation_fps, processes=settings.physics_processes)
+    in_force = json.loads(json.dumps(study_settings(settings)))  # as the study stores them
+    kept: set[str] = set()
+
+    def played_hash(p: Participant) -> str:
+        """The hash of the settings ``p`` plays under: the study's, with the time limit they started with (kept
+        through an allowed change); settings other than the study's are kept in the store under it."""
+        if p.time_limit == settings.limit_of(p.condition) or p.condition == "unconstrained":
+            return provenance["settings_hash"]
+        played = json.loads(json.dumps(in_force))
+        if p.condition == "time_limited":
+            played["time_limit"] = p.time_limit
+        else:
+            played["time_limits"] = {**played.get("time_limits", {}), p.condition: p.time_limit}
+        h = settings_digest(played)
+        if h not in kept:
+            store.keep_settings(h, played)
+            kept.add(h)
+        return h
 
     @asynccontextmanager
     async def lifespan(_app):
@@ -465,8 +485,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             return Participant(id=pid, study_id=params.get("STUDY_ID"), session_id=params.get("SESSION_ID"),
                                token_hash=token_hash(token), condition=condition, order=order,
                                time_limit=settings.limit_of(condition),
-                               source=source,
-                               settings_hash=provenance["settings_hash"])
+                               source=source)
 
         source = "simulated" if body.simulated or settings.source == "simulated" else "human"
         p = store.add_newcomer(settings.conditions, newcomer, source)
@@ -593,7 +612,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             trajectory=[list(s) for s in body.trajectory], dwell=[list(d) for d in body.dwell],
             tower_before=pos.tower, stable=stable, overhang=level, reward=reward, trial_over=trial_over,
             passed=passed, request_hash=digest, response={},
-            **{**provenance, "settings_hash": p.settings_hash or provenance["settings_hash"]})
+            **{**provenance, "settings_hash": played_hash(p)})
         attempts = settings.practice_max_attempts
         if passed is False and attempts is not None and pos.attempt >= attempts:
             after = Position("screened_out", pos.trial, pos.attempt, 0, [], pos.total_reward)

@@ -181,7 +181,7 @@ def study_json(store: Store) -> dict:
     return {"study": {"started_at": utc_iso(study.started_at), "framework_version": study.framework_version,
                       "commit": study.commit, "settings_hash": study.settings_hash, "tasks_hash": study.tasks_hash,
                       "public_url": study.public_url, "address": study.address, "history": study.history,
-                      "settings": study.settings}, **out}
+                      "settings": study.settings, "played_settings": store.played_settings()}, **out}
 
 
 def variables() -> dict[str, Variable]:

@@ -74,9 +74,6 @@ class Participant(Base):
     consented_at: Mapped[Optional[dt.datetime]] = mapped_column(DateTime(timezone=True))
     # human, or simulated: a pilot's participant (POST /api/sessions with "simulated": true), whatever the study
     source: Mapped[str] = mapped_column(String(20), default="human")
-    # the study's settings when the participant started: their records carry it (an allowed change of the
-    # settings later keeps their time limit, so they play on under these)
-    settings_hash: Mapped[Optional[str]] = mapped_column(String(64))
 
 
 class Study(Base):
@@ -100,6 +97,17 @@ class Study(Base):
     # enough to refuse their return, not to tell who they were without the database
     salt: Mapped[str] = mapped_column(String(64))
     withdrawn_keys: Mapped[list] = mapped_column(JSON, default=list)
+
+
+class PlayedSettings(Base):
+    """Settings some placements were played under that are not the study's own: the study's settings with a
+    participant's time limit kept from before an allowed change (:func:`overhang_framework.experiment.api.create_app`).
+    Keyed by their hash, so every ``settings_hash`` a record carries resolves to its settings."""
+
+    __tablename__ = "played_settings"
+
+    settings_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    settings: Mapped[dict] = mapped_column(JSON)
 
 
 class Newcomers(Base):
@@ -295,6 +303,21 @@ class Store:
         except SQLAlchemyError as err:
             return str(getattr(err, "orig", None) or err).strip().splitlines()[0]
         return None
+
+    def keep_settings(self, settings_hash: str, settings: dict) -> None:
+        """Keep ``settings`` under ``settings_hash`` (:class:`PlayedSettings`), once."""
+        with self._session() as s:
+            if s.get(PlayedSettings, settings_hash) is None:
+                s.add(PlayedSettings(settings_hash=settings_hash, settings=settings))
+                try:
+                    s.commit()
+                except IntegrityError:  # another server process kept them first
+                    s.rollback()
+
+    def played_settings(self) -> dict[str, dict]:
+        """Every :class:`PlayedSettings`, by hash."""
+        with self._session() as s:
+            return {r.settings_hash: r.settings for r in s.scalars(select(PlayedSettings))}
 
     # participants -------------------------------------------------------------------------------------------
     def participant(self, pid: str) -> Optional[Participant]:
