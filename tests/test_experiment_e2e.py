@@ -181,6 +181,17 @@ class ScriptedParticipant:
         loc = self.page.locator(selector)
         return loc.count() > 0 and loc.first.is_visible()
 
+    def clickable(self, testid) -> bool:
+        """A button the participant can press now: visible and enabled (the page disables a button while its
+        request is on its way, and may replace it once the answer is in)."""
+        from playwright.sync_api import Error
+
+        try:
+            return self.visible(f"[data-testid={testid}]") and self.page.get_by_test_id(testid).first.is_enabled(
+                timeout=1_000)
+        except Error:
+            return False
+
     def run(self, timeout=float(os.environ.get('E2E_TIMEOUT', 240))):
         page = self.page
         deadline = time.time() + timeout
@@ -190,7 +201,7 @@ class ScriptedParticipant:
             if self.visible("[data-testid=error]"):
                 raise AssertionError(f"the page shows an error: {page.get_by_test_id('error').inner_text()}")
             for testid in ("agree", "start-practice", "start-main", "resume", "continue", "finish", "leave"):
-                if self.visible(f"[data-testid={testid}]"):
+                if self.clickable(testid):
                     if testid in ("start-practice", "resume"):
                         self.in_tutorial = False
                     if testid == "continue" and self.visible("[data-testid=practice-feedback]"):
@@ -203,7 +214,12 @@ class ScriptedParticipant:
                     if testid == "finish":
                         shot(page, f"{self.pid}-debrief")
                     self.events.append(testid)
-                    page.get_by_test_id(testid).first.click()
+                    from playwright.sync_api import TimeoutError as ClickTimeout
+
+                    try:
+                        page.get_by_test_id(testid).first.click(timeout=10_000)
+                    except ClickTimeout:  # replaced by the page meanwhile: look again
+                        self.events.append(f"{testid} gone")
                     break
             else:
                 if self.visible("#jspsych-instructions-next"):
