@@ -521,22 +521,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except Exception as err:  # a database that refuses the user, is not there, or went away
         from sqlalchemy.exc import SQLAlchemyError
 
+        from overhang_framework.experiment.store import database_reason
+
         if not isinstance(err, SQLAlchemyError):
             raise
         if command == "serve":  # a database not up yet (at boot): the service is to try again, so not status 2
-            print(f"error: cannot reach the database: {_first_line(err)}; exit status {UNAVAILABLE}: try again "
+            print(f"error: cannot reach the database: {database_reason(err)}; exit status {UNAVAILABLE}: try again "
                   "later (the service does)", file=sys.stderr)
             return UNAVAILABLE
-        print(f"error: cannot reach the database: {_first_line(err)}", file=sys.stderr)
+        print(f"error: cannot reach the database: {database_reason(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
-
-
-def _first_line(err: Exception) -> str:
-    """A database error's own first line (the driver's), without SQLAlchemy's background link."""
-    text = str(getattr(err, "orig", None) or err).strip()
-    return text.splitlines()[0] if text else type(err).__name__
 
 
 if __name__ == "__main__":

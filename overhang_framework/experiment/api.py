@@ -41,8 +41,8 @@ from overhang_framework.experiment.forwarded import ForwardedHeaders
 from overhang_framework.experiment.outcome import Outcomes
 from overhang_framework.experiment.provenance import digest as settings_digest, study_settings
 from overhang_framework.experiment.settings import Settings
-from overhang_framework.experiment.store import (Conflict, Participant, Placement, SettingsChanged, Store, request_hash,
-                                                 token_hash, utc_iso)
+from overhang_framework.experiment.store import (Conflict, Participant, Placement, SettingsChanged, Store,
+                                                 database_reason, request_hash, token_hash, utc_iso)
 from overhang_framework.geometry import MAX_LAYER, Action, Geometry, overhang
 
 PARTICIPANT_ID = re.compile(r"^[A-Za-z0-9_.@:-]{1,200}$")
@@ -353,8 +353,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         import logging
 
         logging.getLogger("overhang_framework.experiment").error("%s %s: the database failed: %s", request.method,
-                                                                  request.url.path,
-                                                                  str(getattr(err, "orig", None) or err)[:300])
+                                                                  request.url.path, database_reason(err))
         return JSONResponse({"error": "the database cannot be reached or failed; GET /api/health says more",
                              "reason": "unavailable", **for_participant(
                                  "The study's server cannot store your answers just now. Please wait a minute and "

@@ -138,6 +138,8 @@ def _backup_postgres(database: str, out: Path) -> Copied:
     from sqlalchemy import create_engine, text
     from sqlalchemy.exc import SQLAlchemyError
 
+    from overhang_framework.experiment.store import database_reason
+
     pg_dump = _tool("pg_dump")
     address, env = libpq(database)
     engine = create_engine(database)
@@ -163,14 +165,10 @@ def _backup_postgres(database: str, out: Path) -> Copied:
                     raise _failed("pg_dump", done)
             connection.rollback()
     except SQLAlchemyError as err:
-        raise ConfigError(f"cannot reach the database: {_first_line(err)}") from None
+        raise ConfigError(f"cannot reach the database: {database_reason(err)}") from None
     finally:
         engine.dispose()
     return Copied("postgresql", participants, placements)
-
-
-def _first_line(err: Exception) -> str:
-    return str(getattr(err, "orig", None) or err).strip().splitlines()[0]
 
 
 # restoring ----------------------------------------------------------------------------------------------------
@@ -231,7 +229,7 @@ def _restore_postgres(backup_file: Path, database: str) -> None:
     from sqlalchemy import create_engine, inspect
     from sqlalchemy.exc import SQLAlchemyError
 
-    from overhang_framework.experiment.store import Base
+    from overhang_framework.experiment.store import Base, database_reason
 
     pg_restore = _tool("pg_restore")
     address, env = libpq(database)
@@ -239,7 +237,7 @@ def _restore_postgres(backup_file: Path, database: str) -> None:
     try:
         held = sorted(set(inspect(engine).get_table_names()) & set(Base.metadata.tables))
     except SQLAlchemyError as err:
-        raise ConfigError(f"cannot reach the database: {_first_line(err)}") from None
+        raise ConfigError(f"cannot reach the database: {database_reason(err)}") from None
     finally:
         engine.dispose()
     if held:

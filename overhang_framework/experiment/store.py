@@ -301,7 +301,7 @@ class Store:
             with self.engine.connect() as connection:
                 connection.execute(text("SELECT 1"))
         except SQLAlchemyError as err:
-            return str(getattr(err, "orig", None) or err).strip().splitlines()[0]
+            return database_reason(err)
         return None
 
     def keep_settings(self, settings_hash: str, settings: dict) -> None:
@@ -555,6 +555,12 @@ def _delete_participant(session, participant: Participant) -> dict[str, int]:
                for kind, model in (("placements", Placement), ("clocks", Clock))}
     session.delete(participant)
     return deleted
+
+
+def database_reason(err: Exception) -> str:
+    """A database error in one line: the driver's own first line, without SQLAlchemy's background link."""
+    text = str(getattr(err, "orig", None) or err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
 
 
 def _condition_counts(session, conditions: Sequence[str], source: str = "human") -> dict[str, int]:
