@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import os
 import queue
-import re
 import subprocess
 import threading
 from pathlib import Path
@@ -65,7 +64,6 @@ class CommandAgent(Agent):
         self.lines: "queue.Queue[Optional[str]]" = queue.Queue()
         self.restarts = 0
         self._answered = False  # whether the program has answered any decision of the run
-        self._exit_code: Optional[int] = None
         self._fresh = False
         self._stderr: Optional[threading.Thread] = None
         self._renderer = None
@@ -111,7 +109,10 @@ class CommandAgent(Agent):
             return False
 
     def _died(self, step: int) -> AgentFailed:
-        code = self._exit_code = self._reap()
+        code = self._reap()
+        if not self._answered:  # it never got as far as one answer: it cannot play, so the run stops
+            raise ProgramFailed(f"agent.command exited (exit code {code}) before it answered anything: "
+                                f"{' '.join(self.command)}{self._last_words()}")
         return AgentFailed(f"agent crashed at placement {step} (exit code {code}); see agent.log")
 
     def _reap(self) -> Optional[int]:
@@ -148,11 +149,7 @@ class CommandAgent(Agent):
             self._spawn()
             line = self._ask(message, step)
         if line is None:
-            failed = self._died(step)
-            if not self._answered:  # it never got as far as one answer: it cannot play, so the run stops
-                raise ProgramFailed(f"agent.command exited (exit code {self._exit_code}) before it answered "
-                                    f"anything: {' '.join(self.command)}{self._last_words()}")
-            raise failed
+            raise self._died(step)
         self._fresh = False
         self._answered = True
         action = _parse(line, step)
@@ -263,17 +260,6 @@ def example_messages(world: Optional[World] = None) -> tuple[dict, dict]:
 
     record = play(Prefix(), world, task, seed)
     return decision, end_message(task, seed, record)
-
-
-def message_lines(message: dict, width: int = 100) -> str:
-    """``message`` as one JSON object wrapped at ``width`` characters between items (the document's layout)."""
-    import textwrap
-
-    text = json.dumps(message).replace(": ", ":\u00a0")  # a key stays on its value's line
-    # and a list of numbers (a placement, a block, the sequence) on one line
-    text = re.sub(r"\[[^\[\]]*\]", lambda m: m.group(0).replace(", ", ",\u00a0"), text)
-    return "\n".join(textwrap.wrap(text, width=width, subsequent_indent=" ", break_long_words=False,
-                                   break_on_hyphens=False)).replace("\u00a0", " ")
 
 
 class ProgramFailed(OverhangError):

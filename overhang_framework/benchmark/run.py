@@ -339,7 +339,6 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     ident = json.loads(json.dumps(readable(identity(cfg)), default=str))  # as run.json keeps it
     run_file = out_dir / RUN
     episodes = out_dir / EPISODES
-    check_output_dir(cfg, out_dir)
     if cfg.overwrite:
         for name in (EPISODES, SCORES, SUMMARY, FIGURE):
             (out_dir / name).unlink(missing_ok=True)
