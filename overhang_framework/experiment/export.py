@@ -68,9 +68,9 @@ EXPORT_VARIABLES: dict[str, Variable] = {
     "commit": Variable("The git commit of the server's code that stored the placement (with -dirty when its files "
                        "differed from it); empty when it did not run from a git checkout.", "string"),
     "settings_hash": Variable(
-        "SHA-256 of the study's settings the participant started under, which they played under (what "
-        "participants see and how they are scored, the task set included; study.json has the settings in full, "
-        "and those of every earlier hash in its history).", "string"),
+        "SHA-256 of the settings the placement was played under: the study's in force, with the participant's own "
+        "time limit (what participants see and how they are scored, the task set included; study.json has them in "
+        "full: the current settings, a previous one of its history, or one of its played_settings).", "string"),
     "time_limit": Variable(
         "The participant's time limit per placement, in seconds, as it was when they started (kept through a later "
         "change of the study's settings); empty without one.", "number", "seconds", 0),

@@ -575,8 +575,10 @@ def run(args) -> dict:
 
     def write(takers: Sequence[Taker], stopped: Optional[str] = None) -> dict:
         result = summary(takers, time.monotonic() - started, url, args.time_scale, args.timeouts)
-        if stopped is not None:
-            result.update(stopped=stopped, unfinished=[t.pid for t in takers if t.phase not in FINISHED])
+        if stopped is not None:  # every session the server opened, one without a taker yet included
+            finished = {t.pid for t in takers if t.phase in FINISHED}
+            result.update(stopped=stopped, opened=len(pilot.opened),
+                          unfinished=[pid for pid in pilot.opened if pid not in finished])
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / DECISIONS, "".join(json.dumps(d) + "\n" for t in takers for d in t.decisions))
         atomic_write_json(out / RUN, {"config": result_config(_plain(p.cfg)), "pilot": {
@@ -593,10 +595,6 @@ def run(args) -> dict:
         # what the server holds of the pilot is said, and the pilot's files hold who they were
         if pilot.opened:
             result = write(pilot.takers, "interrupted" if isinstance(err, KeyboardInterrupt) else str(err))
-            finished = {t.pid for t in pilot.takers if t.phase in FINISHED}
-            result["unfinished"] = [pid for pid in pilot.opened if pid not in finished]
-            result["opened"] = len(pilot.opened)
-            atomic_write_json(out / SUMMARY, result)
             raise PilotStopped(result, err) from None
         raise
     finally:
