@@ -115,7 +115,7 @@ def trend(df: pd.DataFrame, levels: Sequence[str], column: str, permutations: in
     rl = (rl - rl.mean()) / rl.std()
     rho = float(np.mean(rx * rl))
     rng = np.random.default_rng(seed)
-    shuffled = np.array([rng.permutation(rl) for _ in range(permutations)])
+    shuffled = rng.permuted(np.broadcast_to(rl, (permutations, rl.size)), axis=1)  # one row a permutation
     null = (shuffled * rx).mean(axis=1)
     p = float((1 + np.sum(np.abs(null) >= abs(rho) - 1e-12)) / (permutations + 1))
     return rho, p

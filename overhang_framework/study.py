@@ -451,16 +451,11 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         steps.finish("fit", digest, time.perf_counter() - t0)
 
     if study in GRADED:
-        return _graded(study, out, sim_cfg, sizes, simulated, steps, resamples, seed, started, progress)
+        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started)
 
     # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
-    df = participant_table(out)
-    atomic_write_text(out / "participants.csv", df.to_csv(index=False))
-    pool_people = df[df["condition"].isin(sizes)]
-    # the study proper: the first participants of each condition; the rest of the pool only for redrawing
-    people = pd.concat([pool_people[pool_people["condition"] == c].sort_values("participant").head(n)
-                        for c, n in sizes.items()], ignore_index=True)
+    pool_people, people = _participants(out, sizes)
     found = evaluate(people, seed=seed)
     from overhang_framework.progress import progress_bar
 
@@ -530,19 +525,26 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     return {"out": str(out), "findings": table, "report": text}
 
 
-def _graded(study: str, out: Path, sim_cfg, sizes: dict[str, int], simulated: dict[str, int], steps: "Steps",
-            resamples: int, seed: int, started: float, progress: bool) -> dict:
+def _participants(out: Path, sizes: dict[str, int]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The participant table of the simulated pool (written to ``participants.csv``), and the study proper: the
+    first participants of each condition, as many as ``sizes`` says (the rest of the pool only for redrawing)."""
+    df = participant_table(out)
+    atomic_write_text(out / "participants.csv", df.to_csv(index=False))
+    pool_people = df[df["condition"].isin(sizes)]
+    people = pd.concat([pool_people[pool_people["condition"] == c].sort_values("participant").head(n)
+                        for c, n in sizes.items()], ignore_index=True)
+    return pool_people, people
+
+
+def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples: int, seed: int,
+            started: float) -> dict:
     """A graded study's step 4: each level's figures, the trends and the sample sizes (:mod:`overhang_framework.graded`)."""
     from overhang_framework import graded
 
     t0 = time.perf_counter()
-    df = participant_table(out)
-    atomic_write_text(out / "participants.csv", df.to_csv(index=False))
     limits = {name: sim_cfg.conditions[name].get("time_limit") for name in sizes}
     levels = graded.levels_of(limits)
-    pool_people = df[df["condition"].isin(sizes)]
-    people = pd.concat([pool_people[pool_people["condition"] == c].sort_values("participant").head(n)
-                        for c, n in sizes.items()], ignore_index=True)
+    pool_people, people = _participants(out, sizes)
     pred = graded.predictions(people, levels, seed=seed)
     found = graded.trends(people, levels, seed=seed)
     table = graded.power(pool_people, levels, resamples=resamples, seed=seed) if resamples else \
