@@ -55,33 +55,16 @@ def candidate_xs(width: float, resolution: float) -> np.ndarray:
 
 
 def legal_xs(geometry: Geometry, width: float, resolution: float) -> tuple[np.ndarray, np.ndarray]:
-    """The legal placements of :func:`legal_actions` as arrays ``(xs, layers)``, in the same order.
-
-    Vectorised over x: for each candidate layer, a candidate is kept when its
-    support length is positive and it overlaps no block of that layer.
-    """
-    xs = candidate_xs(width, resolution)
+    """The legal placements of :func:`legal_actions` as arrays ``(xs, layers)``, in the same order: layer by
+    layer, each layer's x on the grid ``k * resolution`` ascending, kept where :func:`legal_mask` allows them."""
     if not geometry.blocks:
         return np.zeros(0), np.zeros(0, dtype=int)
-    arr = geometry.as_array()
-    lefts, rights, layers = arr[:, 1] - arr[:, 0] / 2, arr[:, 1] + arr[:, 0] / 2, arr[:, 2].astype(int)
-    cl, cr = xs - width / 2, xs + width / 2
-    out_x, out_layer = [], []
-    for layer in range(1, min(int(layers.max()) + 1, MAX_LAYER) + 1):
-        below = layers == layer - 1
-        if not below.any():
-            continue
-        ov = np.minimum(cr[:, None], rights[below][None, :]) - np.maximum(cl[:, None], lefts[below][None, :])
-        ok = (ov > EPS).any(axis=1)
-        same = layers == layer
-        if same.any():
-            ov_same = np.minimum(cr[:, None], rights[same][None, :]) - np.maximum(cl[:, None], lefts[same][None, :])
-            ok &= ~(ov_same > EPS).any(axis=1)
-        out_x.append(xs[ok])
-        out_layer.append(np.full(int(ok.sum()), layer))
-    if not out_x:
-        return np.zeros(0), np.zeros(0, dtype=int)
-    return np.concatenate(out_x), np.concatenate(out_layer)
+    xs = candidate_xs(width, resolution)
+    top = min(max(b.layer for b in geometry.blocks) + 1, MAX_LAYER)
+    layers = np.repeat(np.arange(1, top + 1), len(xs))
+    xs = np.tile(xs, top)
+    ok = legal_mask(geometry, width, xs, layers)
+    return xs[ok], layers[ok]
 
 
 def legal_mask(geometry: Geometry, width: float, xs, layers) -> np.ndarray:
