@@ -324,6 +324,46 @@ def test_flow_transitions_count_trials_and_falls(tmp_path):
     assert flows.choose_task(df) == "custom00"            # played in 4 trials, custom01 in 3
 
 
+def test_lateral_extent_by_hand_and_in_any_row_order(tmp_path):
+    df = analysis.with_groups(read_log(people_log(tmp_path)))
+    people = flows.lateral(df).set_index("participant")
+    # u1: (-0.6, 0.6, 0.0) on custom01, (0.3, 0.6) on custom00, 0.8 on custom02; step 3 only on custom01
+    assert people.loc["u1", "placements"] == 6
+    assert people.loc["u1", "abs_x"] == pytest.approx((0.6 + 0.6 + 0.0 + 0.3 + 0.6 + 0.8) / 6)
+    assert people.loc["u1", "abs_x_late"] == pytest.approx(0.0)
+    assert people.loc["u1", "step_x"] == pytest.approx((0.6 + 1.2 + 0.6 + 0.3 + 0.3 + 0.8) / 6)
+    # t2 timed out after one placement on custom01: the timed-out record places nothing; no step 3 at all
+    assert people.loc["t2", "placements"] == 3 and np.isnan(people.loc["t2", "abs_x_late"])
+    assert people.loc["t2", "step_x"] == pytest.approx((0.0 + 0.0 + 0.9) / 3)
+    mixed = df.sample(frac=1.0, random_state=5)
+    pd.testing.assert_frame_equal(flows.lateral(mixed), flows.lateral(df))
+
+
+def test_the_flows_test_which_group_stacks_more_vertically(tmp_path):
+    """A group that places every block over the one below against one that steps out: the report says which,
+    with the direction, over every task."""
+    records = []
+    for n in range(4):
+        for k, task in enumerate(("custom00", "custom01")):
+            records += trial(f"v{n}", "time_limited", task, [1.2] * 5, k + 1, [[0.0, 1], [0.0, 2], [0.0, 3],
+                                                                             [0.1 * (n % 2), 4]])
+            records += trial(f"o{n}", "unconstrained", task, [1.2] * 5, k + 1, [[0.2, 1], [0.4, 2], [0.5, 3],
+                                                                              [0.5 + 0.1 * (n % 2), 4]])
+    path = tmp_path / "lateral.jsonl"
+    write_log(records, path)
+    out = tmp_path / "out"
+    assert main([str(path), "--out", str(out), "--only", "flows", "--n-resamples", "200", "--quiet",
+                 "--world", "world.physics=static"]) == 0
+    report = (out / "report.md").read_text()
+    assert "the mean |x| of placements from step 3 on is higher for unconstrained than for time_limited" \
+        in report.replace("The mean", "the mean")
+    assert "credible" in report and "| time_limited | 4 |" in report
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["lateral"]["time_limited"]["abs_x_late"]["mean"] == pytest.approx(0.025)
+    assert summary["lateral"]["unconstrained"]["abs_x_late"]["mean"] == pytest.approx(0.525)
+    assert summary["lateral"]["unconstrained"]["abs_x_late"]["n"] == 4
+
+
 def test_flow_task_defaults_to_the_paper_example_and_finds_its_optimum():
     from overhang_framework.config import compose_config
     from overhang_framework.tasks import tasks_from_config

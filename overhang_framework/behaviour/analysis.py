@@ -328,6 +328,8 @@ def summary(out: Path, sections: dict[str, Section], seconds: float, settings: S
     ``gamma[group]`` the mean and SEM across participants and tasks and ``gamma["p"]``, for the towers Γ
     counts (``gamma["reading"]``: ``completed`` or ``final``), and ``gamma["readings"][reading]`` the same
     for each reading; ``tasks`` the number of tasks in the log;
+    ``lateral[group][measure]`` the mean, SEM and n across participants of each lateral measure of the flows
+    (``abs_x``, ``abs_x_late``, ``step_x``: :func:`overhang_framework.behaviour.flows.lateral`);
     ``fig4[group][predictor]`` the mean log-likelihood of the executed placements; ``seconds`` each
     analysis's time and ``total``.
     """
@@ -350,6 +352,12 @@ def summary(out: Path, sections: dict[str, Section], seconds: float, settings: S
                                 "tasks_mean": _number(row.gamma_tasks_mean), "tasks_sem": _number(row.gamma_tasks_sem),
                                 "towers": int(row.towers)}
         data["gamma"] = {**readings[settings.gamma_towers], "reading": settings.gamma_towers, "readings": readings}
+    if (out / "fig3a_lateral.csv").exists() and "flows" in sections:
+        people = pd.read_csv(out / "fig3a_lateral.csv")
+        data["lateral"] = {
+            g: {c: {"mean": _number(mean_sem(at[c])[0]), "sem": _number(mean_sem(at[c])[1]),
+                    "n": int(at[c].notna().sum())} for c in ("abs_x", "abs_x_late", "step_x")}
+            for g, at in people.groupby("group", sort=True)}
     if (out / "fig4_placements.csv").exists() and "prediction" in sections:
         per = pd.read_csv(out / "fig4_placements.csv")
         cols = [c for c in per.columns if c.startswith("ll_")]
@@ -415,7 +423,7 @@ def run(paths: Sequence[str | Path], out: str | Path, settings: Settings,
                 elif name == "flows":
                     from overhang_framework.behaviour import flows
 
-                    sec = flows.section(df, staging, order, settings, world)
+                    sec = flows.section(df, staging, order, settings, world, compare)
                 else:
                     from overhang_framework.behaviour import prediction
 

@@ -11,6 +11,14 @@ crimson when it fell. The optimal path of the task under the world's physics is 
 
 Task: ``--flow-task`` or, by default, the paper's example sequence (0.6, 1.8, 1.2, 1.8, 0.6, 1.8) when
 the log holds it (the first such task id in sorted order), else the task played in the most trials.
+
+The paper reads the flows in words: "time-constrained participants exhibited a stronger tendency toward
+vertical stacking; early differences remain modest ..., with divergence clearer later", and unconstrained
+ones "explored more laterally extended configurations". :func:`lateral` makes that a test over every task:
+each participant's mean distance |x| of their placements from the centre of the ground block, over all
+placements and over the later ones (from step :data:`LATE_STEP` on), and the mean sideways step |Δx| from
+the block placed before (the ground block for the first); the groups' later |x| are compared with the
+analysis's permutation test (``fig3a_lateral.csv``).
 """
 
 from __future__ import annotations
@@ -22,11 +30,15 @@ from typing import Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from overhang_framework.behaviour.analysis import Section, colour, markdown_table, save_figure, write_csv
+from overhang_framework.behaviour.analysis import (Section, colour, finding, fmt_ms, markdown_table, mean_sem, p_is,
+                                                  permutation_p, save_figure, write_csv)
 from overhang_framework.behaviour.log import in_step_order, last_records
 
 EXAMPLE_SEQUENCE = (0.6, 1.8, 1.2, 1.8, 0.6, 1.8)
 CRIMSON = "#dc143c"
+#: The first of the later placements in :func:`lateral` (steps count placements from 1; a task of six blocks has
+#: five): the paper sees the groups diverge later in the trial.
+LATE_STEP = 3
 
 
 def choose_task(df: pd.DataFrame, wanted: Optional[str] = None) -> str:
@@ -103,6 +115,54 @@ def transitions(df: pd.DataFrame, task: str, resolution: float) -> pd.DataFrame:
                                        "from_count", "probability", "fell", "trials"])
 
 
+def lateral(df: pd.DataFrame) -> pd.DataFrame:
+    """One row per participant (sorted by group and participant, so the same for any order of ``df``'s rows):
+    ``placements``, ``abs_x`` (mean |x| of the placements), ``abs_x_late`` (the same from step
+    :data:`LATE_STEP` on; NaN without such a placement) and ``step_x`` (mean |Δx| from the block placed before,
+    the ground block at x = 0 for the first). Timed-out records place nothing and are left out."""
+    placed = df[~df["timed_out"].astype(bool)]
+    rows = []
+    for (g, pid), d in placed.groupby(["group", "participant"], sort=True):
+        d = d.sort_values(["trial", "step"])
+        x = d["x"].to_numpy(dtype=float)
+        before = d.groupby("trial", sort=False)["x"].shift(1).fillna(0.0).to_numpy(dtype=float)
+        late = d["step"].to_numpy() >= LATE_STEP
+        rows.append({"group": g, "participant": pid, "placements": len(d), "abs_x": float(np.abs(x).mean()),
+                     "abs_x_late": float(np.abs(x[late]).mean()) if late.any() else float("nan"),
+                     "step_x": float(np.abs(x - before).mean())})
+    return pd.DataFrame(rows, columns=["group", "participant", "placements", "abs_x", "abs_x_late", "step_x"])
+
+
+def _lateral_text(people: pd.DataFrame, order, compare, settings) -> str:
+    """The lateral extent's finding (with two groups compared) and its table."""
+    rows = []
+    for g in order:
+        at = people[people["group"] == g]
+        if len(at):
+            rows.append([g, len(at), *(fmt_ms(*mean_sem(at[c]), 3) for c in ("abs_x", "abs_x_late", "step_x"))])
+    if not rows:
+        return "**Lateral extent, every task.** No placement in the log."
+    text = "**Lateral extent, every task.**"
+    if compare and all((people["group"] == g).any() for g in compare):
+        def p_of(column: str) -> float:
+            a, b = (people.loc[people["group"] == g, column].to_numpy(dtype=float) for g in compare)
+            return permutation_p(a, b, settings.n_resamples, settings.seed)
+
+        ours = tuple(mean_sem(people.loc[people["group"] == g, "abs_x_late"])[0] for g in compare)
+        said = finding(f"the mean |x| of placements from step {LATE_STEP} on", compare, ours, p_of("abs_x_late"),
+                       None, lambda v: f"{v:.3f} m",
+                       no_paper="; the paper shows the flows of one task and says it in words (Fig. 3a: "
+                                "time-constrained people stack more vertically, the divergence clearer later)")
+        text += (f" **Finding** (credible: permutation p < .05): {said.text[0].upper() + said.text[1:]}. Over all "
+                 f"steps: {p_is(p_of('abs_x'))}; {settings.n_resamples} resamples.")
+    return (text + "\n\n" + markdown_table(["group", "participants", "mean \\|x\\| of placements",
+                                            f"mean \\|x\\| from step {LATE_STEP} on", "mean sideways step \\|Δx\\|"],
+                                           rows)
+            + "\n\nMean ± SEM across participants of each participant's mean over their placements, in metres; x is "
+              "a block's centre, the ground block's at 0; |Δx| is from the block placed just before (the ground block "
+              "for the first). File: `fig3a_lateral.csv`.")
+
+
 def _y(x: float, layer: int, step: int) -> float:
     """Where a node is drawn: its x, nudged by how far its layer is below a straight stack's."""
     return x + 0.04 * (layer - step)
@@ -170,13 +230,15 @@ def figure(edges: pd.DataFrame, order: Sequence[str], task: str, sequence: Seque
     return fig
 
 
-def section(df: pd.DataFrame, out: Path, order, settings, world) -> Section:
+def section(df: pd.DataFrame, out: Path, order, settings, world, compare=None) -> Section:
+    people = lateral(df)
+    write_csv(people, out / "fig3a_lateral.csv")
     task = choose_task(df, settings.flow_task)
     sequence = list(df.loc[df["task_id"] == task, "sequence"].iloc[0])
     resolution = float(getattr(world, "resolution", 0.1))
     edges = transitions(df, task, resolution)
     write_csv(edges, out / "fig3a_flows.csv")
-    files = ["fig3a_flows.csv"]
+    files = ["fig3a_flows.csv", "fig3a_lateral.csv"]
     optimum = optimal_path(sequence, task, world)
     last = last_records(df[df["task_id"] == task])
     best = last.groupby("group")["reward"].max().to_dict()
@@ -190,12 +252,13 @@ def section(df: pd.DataFrame, out: Path, order, settings, world) -> Section:
         mean_x = (e["to_x"].abs() * e["count"]).sum() / e["count"].sum()
         rows.append([g, int(e["trials"].iloc[0]), int(placed), int(final["count"].sum() - final["fell"].sum()),
                      f"{mean_x:.2f}", f"{best.get(g, float('nan')):.2f}"])
-    text = (f"Task `{task}` (widths {', '.join(f'{w:g}' for w in sequence)}); "
+    text = (_lateral_text(people, order, compare, settings) + "\n\n**The flows of one task.** "
+            f"Task `{task}` (widths {', '.join(f'{w:g}' for w in sequence)}); "
             + (f"optimum under this world: overhang {optimum['optimum']:.2f}." if optimum and optimum["same_physics"]
                else f"no stored optimum under this world's physics; drawn: the optimum under the {optimum['physics']} "
                     f"physics (overhang {optimum['optimum']:.2f}), which may not stand under this world's."
                if optimum else "no stored optimum for this task.") + "\n\n"
-            + markdown_table(["group", "trials", "first placements", "finished standing", "mean |x| of placements",
+            + markdown_table(["group", "trials", "first placements", "finished standing", "mean \\|x\\| of placements",
                               "best reward"], rows)
             + f"\n\nRules: nodes are (x rounded to the grid of {resolution:g}, layer) per step; each trial is mirrored "
               "so that its tower extends to the right; opacity = transition probability, width = share of the "
