@@ -36,16 +36,19 @@ The findings (:data:`FINDINGS`), each a test across participants at ``alpha = .0
 1. ``overhang``: lower average overhang under time pressure (permutation test, Table 1);
 2. ``stable``: no difference in the stable proportion (permutation test; holds when p >= alpha);
 3. ``gamma``: Γ lower under time pressure (permutation test);
-4. ``baseline``: both approximate models beat the veridical one on the executed placements (Fig. 4: each
+4. ``vertical``: placements nearer the centre under time pressure, Fig. 3a's "vertical stacking" (each
+   participant's mean |x| of their placements from step 3 on, :func:`overhang_framework.behaviour.flows.lateral`;
+   permutation test);
+5. ``baseline``: both approximate models beat the veridical one on the executed placements (Fig. 4: each
    participant's mean ``LL_ipe - LL_veridical`` and ``LL_cnn - LL_veridical``, one-sample t-tests; holds when
    both are above 0 at p < alpha);
-5. ``crossover``: the CNN overtakes the IPE as blocks accumulate (each participant's mean ``LL_cnn - LL_ipe``
+6. ``crossover``: the CNN overtakes the IPE as blocks accumulate (each participant's mean ``LL_cnn - LL_ipe``
    on towers of at least :data:`LATE` blocks minus that on towers of at most :data:`EARLY`; one-sample t-test);
-6. ``depth``: the fitted depth (of each participant's best model by BIC) lower under time pressure
+7. ``depth``: the fitted depth (of each participant's best model by BIC) lower under time pressure
    (permutation test);
-7. ``hybrid``: the hybrid family wins: random-effects BMS over families (each family's evidence the
+8. ``hybrid``: the hybrid family wins: random-effects BMS over families (each family's evidence the
    log-mean-exp of its models' ``-BIC/2``), protected exceedance probability above 0.95;
-8. ``switch``: the fitted switch point near the planted one: among participants whose best model is a
+9. ``switch``: the fitted switch point near the planted one: among participants whose best model is a
    hybrid, the mean absolute difference at most one stage (planted study only).
 
 A directional finding holds when its two-sided p is below ``alpha`` and the difference goes the paper's way,
@@ -114,6 +117,8 @@ FINDINGS = (
     Finding("overhang", "average overhang lower under time pressure", "1.321 against 1.460, p < .001"),
     Finding("stable", "no difference in the stable proportion", "70.2% against 67.8%, p = .482"),
     Finding("gamma", "Γ lower under time pressure", "0.15 against 0.24, p = .022"),
+    Finding("vertical", "placements nearer the centre under time pressure (Fig. 3a)",
+            "in words: more vertical stacking under time pressure, clearer later"),
     Finding("baseline", "both approximate models beat the veridical one (Fig. 4)", "both, p < .001"),
     Finding("crossover", "the CNN overtakes the IPE as blocks accumulate (Fig. 4)", "the CNN ahead later, p < .001"),
     Finding("depth", "fitted depth lower under time pressure", "shallower lookahead under time pressure"),
@@ -121,6 +126,8 @@ FINDINGS = (
     Finding("switch", "the fitted switch point within one stage of the planted one", "(planted study only)"),
 )
 TL, UN = "time_limited", "unconstrained"
+#: The analyses a study runs on its log.
+ANALYSES = ("table1", "gamma", "flows", "prediction")
 
 
 # --- per-participant quantities ------------------------------------------------------------------------
@@ -134,6 +141,9 @@ def participant_table(out: Path) -> pd.DataFrame:
     t1 = pd.read_csv(out / "analysis" / "table1_participants.csv")[
         ["participant", "stable_pct", "avg_overhang", "reward_per_trial"]]
     gamma = pd.read_csv(out / "analysis" / "gamma_participants.csv")[["participant", "gamma"]]
+    lateral = out / "analysis" / "fig3a_lateral.csv"
+    lateral = pd.read_csv(lateral)[["participant", "abs_x_late"]] if lateral.exists() else \
+        pd.DataFrame(columns=["participant", "abs_x_late"])
     fig4 = pd.read_csv(out / "analysis" / "fig4_placements.csv")
     rows = []
     for pid, at in fig4.groupby("participant", sort=True):
@@ -159,7 +169,7 @@ def participant_table(out: Path) -> pd.DataFrame:
                                                    index=table.index)
     evidence = pd.DataFrame(evidence).reset_index().rename(columns={"index": "participant"})
     df = truth
-    for part in (t1, gamma, prediction, best, evidence):
+    for part in (t1, gamma, lateral, prediction, best, evidence):
         part = part.copy()
         part["participant"] = part["participant"].astype(str)
         df = df.merge(part, on="participant", how="left")
@@ -217,6 +227,11 @@ def evaluate(df: pd.DataFrame, permutations: int = 10_000, seed: int = 0) -> dic
                      "holds": bool(np.isfinite(p) and p >= ALPHA),
                      "effect": float(np.nanmean(stable[0]) - np.nanmean(stable[1]))}
     compare("gamma", "gamma")
+    if "abs_x_late" in df.columns and df["abs_x_late"].notna().any():
+        compare("vertical", "abs_x_late")
+    else:
+        out["vertical"] = {"statistic": "not tested: the analysis has no flows", "p": float("nan"), "holds": False,
+                           "effect": float("nan"), "tested": False}
     mi, pi = _one_sample(df["ipe_vs_veridical"].to_numpy(dtype=float))
     mc, pc = _one_sample(df["cnn_vs_veridical"].to_numpy(dtype=float))
     out["baseline"] = {"statistic": f"LL_ipe − LL_vrd {mi:+.3f}, LL_cnn − LL_vrd {mc:+.3f}",
@@ -427,12 +442,12 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     # 2. the analyses a lab runs on people's logs
     from overhang_framework.behaviour.analysis import Settings, run as analyse
 
-    digest = _digest(log, extra={"world": list(world), "seed": seed})
+    digest = _digest(log, extra={"world": list(world), "seed": seed, "only": list(ANALYSES)})
     if not steps.current("analysis", digest):
         t0 = time.perf_counter()
-        say("analysing the log (Table 1, Γ, Fig. 4)")
+        say("analysing the log (Table 1, Γ, the flows' lateral extent, Fig. 4)")
         analyse([log], out / "analysis", Settings(world_overrides=tuple(world), seed=seed,
-                                                  only=("table1", "gamma", "prediction"), progress=progress))
+                                                  only=ANALYSES, progress=progress))
         steps.finish("analysis", digest, time.perf_counter() - t0)
 
     # 3. the fit

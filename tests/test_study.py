@@ -16,6 +16,7 @@ from overhang_framework.study import FINDINGS, evaluate, power, resample
 def _people(effect: bool, n: int = 40, seed: int = 0) -> pd.DataFrame:
     """Participants built by hand: with ``effect``, every finding of the paper is there, strongly; without, none."""
     rng = np.random.default_rng(seed)
+    lateral = np.random.default_rng(seed + 1000)  # its own draws: the other columns as before it was added
     rows = []
     for condition in ("time_limited", "unconstrained"):
         tl = condition == "time_limited"
@@ -27,6 +28,7 @@ def _people(effect: bool, n: int = 40, seed: int = 0) -> pd.DataFrame:
             rows.append({"participant": f"{condition}-{i}", "condition": condition,
                          "avg_overhang": 1.45 + 0.1 * shift + rng.normal(0, 0.05),
                          "stable_pct": 70 + rng.normal(0, 5), "gamma": 0.24 + 0.08 * shift + rng.normal(0, 0.05),
+                         "abs_x_late": 0.5 + 0.06 * shift + lateral.normal(0, 0.03),
                          "ipe_vs_veridical": (0.2 if effect else -0.2) + rng.normal(0, 0.1),
                          "cnn_vs_veridical": (0.2 if effect else -0.2) + rng.normal(0, 0.1),
                          "cnn_lead": (0.2 if effect else 0.0) + rng.normal(0, 0.1),
@@ -75,7 +77,7 @@ def test_the_report_names_what_was_not_found_and_what_the_cohort_says_about_it()
     assert why["gamma"] in below and why["hybrid"] in below
     null = report("null", table.assign(holds=False), Steps(Path("/nonexistent")), sizes, sizes, None, 10, False,
                   [1, 2], 1.0)
-    assert "- **As a null study should:** yes; none of the 5 effects the null cohort lacks appears at α = .05." in null
+    assert "- **As a null study should:** yes; none of the 6 effects the null cohort lacks appears at α = .05." in null
     assert "- **Kept by the null cohort** (its participants judge with a noisy IPE): both approximate" in null
     assert "Not found" not in null
     # the null cohort keeps approximate physics: the baseline appearing is not a false positive, a crossover is
@@ -86,7 +88,7 @@ def test_the_report_names_what_was_not_found_and_what_the_cohort_says_about_it()
     assert why["crossover"].startswith("each participant's late-minus-early CNN lead goes with the planted "
                                        "β (Spearman ρ = -") and why["crossover"].endswith(", p < .001)")
     null = report("null", kept, Steps(Path("/nonexistent")), sizes, sizes, None, 10, False, [1, 2], 1.0, why=why)
-    assert "- **As a null study should:** no; 1 of 5 effects the null cohort lacks appear at α = .05 (crossover)." in null
+    assert "- **As a null study should:** no; 1 of 6 effects the null cohort lacks appear at α = .05 (crossover)." in null
     above = next(line for line in null.splitlines() if line.startswith("- **Above α = .05:**"))
     assert "gamma (50%" in above and why["crossover"] in above and "baseline" not in above
     rates = next(line for line in null.splitlines() if line.startswith("- **False-positive rate**"))
@@ -129,7 +131,7 @@ def test_a_fit_of_one_family_leaves_the_family_finding_untested_and_says_so():
     sizes = {"time_limited": 20, "unconstrained": 20}
     text = report("paper_calibrated", table, Steps(Path("/nonexistent")), sizes, sizes, None, 5, True, [1, 2], 1.0)
     lines = text.splitlines()
-    assert next(x for x in lines if x.startswith("- **Found:**")).startswith("- **Found:** 6 of 6 effects")
+    assert next(x for x in lines if x.startswith("- **Found:**")).startswith("- **Found:** 7 of 7 effects")
     assert "- **Not tested:** hybrid (not tested: the fit has only the hybrid family)." in lines
     assert not any(x.startswith("- **Not found:**") for x in lines)
     row = next(x for x in lines if x.startswith("| the hybrid family wins"))
