@@ -31,6 +31,14 @@ the hybrid's switch point fitted, score tables in ``scores.sqlite``), then ``stu
 ``fit/check/`` (:mod:`overhang_framework.fit.check`, the study's own participants, not the pool's others),
 whose first finding ``study.md`` then adds.
 
+Participants simulated already (say, each condition's run at the paper's size, made sitting by sitting) are
+taken as they are with ``--sim DIR`` (once per run directory; each must be a finished simulation of the
+study's cohort, and no participant may appear twice): ``sim/`` then holds their logs and tables, the study
+proper is all of them, and power is a bootstrap of them. ``--no-fit`` leaves out the fit (and the predictive
+check); the findings of the fit (depth, hybrid, switch) are then reported as not tested::
+
+    python -m overhang_framework.study paper_people --out runs/pp_study --sim runs/pp_tl --sim runs/pp_un --no-fit
+
 The findings (:data:`FINDINGS`), each a test across participants at ``alpha = .05``:
 
 1. ``overhang``: lower average overhang under time pressure (permutation test, Table 1);
@@ -128,13 +136,16 @@ FINDINGS = (
 TL, UN = "time_limited", "unconstrained"
 #: The analyses a study runs on its log.
 ANALYSES = ("table1", "gamma", "flows", "prediction")
+#: What a finding of the fit says in a study without one.
+NO_FIT = "not tested: no fit (--no-fit)"
 
 
 # --- per-participant quantities ------------------------------------------------------------------------
 
-def participant_table(out: Path) -> pd.DataFrame:
+def participant_table(out: Path, fitted: bool = True) -> pd.DataFrame:
     """One row per participant: condition, the true parameters, Table 1's and Γ's values, Fig. 4's log-likelihood
-    differences, the best model by BIC, and each family's evidence (``evidence_<family>``)."""
+    differences, the best model by BIC, and each family's evidence (``evidence_<family>``); with ``fitted`` false,
+    the fit's columns empty (a study without a fit)."""
     truth = pd.read_csv(out / "sim" / "participants.csv").rename(columns={"id": "participant"})
     truth = truth.rename(columns={c: f"true_{c}" for c in ("sigma", "depth", "beta", "lapse", "switch", "risk",
                                                             "percept", "hand") if c in truth.columns})
@@ -155,6 +166,14 @@ def participant_table(out: Path) -> pd.DataFrame:
     prediction = pd.DataFrame(rows, columns=["participant", "ipe_vs_veridical", "cnn_vs_veridical", "cnn_lead"])
     from overhang_framework.fit.compare import per_participant, winners
 
+    if not fitted:
+        best = pd.DataFrame(columns=["participant", "best_model", "best_family", "fitted_depth", "fitted_switch"])
+        df = truth
+        for part in (t1, gamma, lateral, prediction, best):
+            part = part.copy()
+            part["participant"] = part["participant"].astype(str)
+            df = df.merge(part, on="participant", how="left")
+        return df.sort_values("participant").reset_index(drop=True)
     fits = pd.read_csv(out / "fit" / "fits.csv")
     keep = ["participant", "model", "family", "depth", "switch", *(["risk"] if "risk" in fits.columns else [])]
     best = winners(fits)[keep].rename(
@@ -240,10 +259,17 @@ def evaluate(df: pd.DataFrame, permutations: int = 10_000, seed: int = 0) -> dic
     ml, pl = _one_sample(df["cnn_lead"].to_numpy(dtype=float))
     out["crossover"] = {"statistic": f"LL_cnn − LL_ipe, late minus early {ml:+.3f}", "p": pl,
                         "holds": bool(np.isfinite(pl) and pl < ALPHA and ml > 0), "effect": ml}
-    compare("depth", "fitted_depth")
+    fitted = "fitted_depth" in df.columns and pd.to_numeric(df["fitted_depth"], errors="coerce").notna().any()
+    if fitted:
+        compare("depth", "fitted_depth")
+    else:
+        out["depth"] = {"statistic": NO_FIT, "p": float("nan"), "holds": False, "effect": float("nan"), "tested": False}
     pxp = family_pxp(df, seed)
     top = max(pxp, key=lambda k: (pxp[k] if np.isfinite(pxp[k]) else -1)) if pxp else None
-    if len(pxp) < 2:  # a fit of one family cannot tell families apart
+    if not fitted:
+        out["hybrid"] = {"statistic": NO_FIT, "p": float("nan"), "holds": False, "effect": float("nan"), "top": None,
+                         "tested": False}
+    elif len(pxp) < 2:  # a fit of one family cannot tell families apart
         out["hybrid"] = {"statistic": f"not tested: the fit has {'only the ' + next(iter(pxp)) + ' family' if pxp else 'no family'}",
                          "p": float("nan"), "holds": False, "effect": float("nan"), "top": top, "tested": False}
     else:
@@ -251,7 +277,10 @@ def evaluate(df: pd.DataFrame, permutations: int = 10_000, seed: int = 0) -> dic
                          "p": float("nan"), "holds": bool(pxp.get("hybrid", 0) > PXP), "effect": pxp.get("hybrid"),
                          "top": top}
     hybrid = df[(df["best_family"] == "hybrid") & df.get("true_switch", pd.Series(np.nan, index=df.index)).notna()]
-    if "true_switch" in df.columns and len(hybrid):
+    if not fitted:
+        out["switch"] = {"statistic": NO_FIT, "p": float("nan"), "holds": False, "effect": float("nan"),
+                         "tested": False}
+    elif "true_switch" in df.columns and len(hybrid):
         error = (hybrid["fitted_switch"] - hybrid["true_switch"]).abs()
         out["switch"] = {"statistic": f"fitted and planted differ by {error.mean():.2f} stages on average, over "
                                       f"{len(hybrid)} hybrid winners ({(error <= 1).mean():.0%} within one)",
@@ -396,8 +425,11 @@ def _compose(words: Sequence[str], config_name: str, what: str):
 def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: Optional[int] = None,
         jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 200, replicas: int = 39, seed: int = 0,
         world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
-        progress: bool = True, say: Callable[[str], None] = lambda s: None) -> dict:
-    """Run ``study`` into ``out``; see the module docstring."""
+        progress: bool = True, say: Callable[[str], None] = lambda s: None, sims: Sequence[str | Path] = (),
+        fit_models: bool = True) -> dict:
+    """Run ``study`` into ``out``; see the module docstring. ``sims``: finished simulations of the study's cohort
+    (``python -m overhang_framework.participants`` run directories) to take as the participants instead of
+    simulating them; ``fit_models`` false leaves out the fit (and the findings that need it)."""
     from omegaconf import OmegaConf
 
     if study not in STUDIES:
@@ -409,6 +441,11 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     for name, value, low in (("--jobs", jobs, 1), ("--resamples", resamples, 0), ("--replicas", replicas, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ConfigError(f"{name} must be a whole number >= {low}, got {value!r}")
+    if sims and (scale != 1.0 or pool != 2.0 or n_tasks is not None or participants):
+        raise ConfigError("--sim takes participants already simulated; --scale, --pool, --tasks and --participants "
+                          "are for simulating them: leave them out")
+    if sims and study in GRADED:
+        raise ConfigError(f"--sim: {study} simulates its own levels; --sim is for the studies of two conditions")
     cohort, model, planted = STUDIES[study]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -433,8 +470,21 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
 
     # 1. the participants
     t0 = time.perf_counter()
-    say(f"simulating {sum(simulated.values())} participants ({', '.join(f'{n} {k}' for k, n in simulated.items())})")
-    simulate(sim_cfg, out / "sim")
+    if sims:
+        sizes = gather(sims, out / "sim", str(base.cohort.name), list(counts), str(sim_cfg.world.physics))
+        simulated = dict(sizes)
+        tasks: dict[str, set] = {}
+        for line in (out / "sim" / "log.jsonl").read_text().splitlines():
+            if line.strip():
+                record = json.loads(line)
+                tasks.setdefault(str(record.get("participant")), set()).add(record.get("task_id"))
+        n_tasks = max((len(t) for t in tasks.values()), default=0)  # as the report says it
+        say(f"taking {sum(sizes.values())} participants ({', '.join(f'{n} {k}' for k, n in sizes.items())}) "
+            f"from {len(sims)} simulation{'s' * (len(sims) > 1)}")
+    else:
+        say(f"simulating {sum(simulated.values())} participants "
+            f"({', '.join(f'{n} {k}' for k, n in simulated.items())})")
+        simulate(sim_cfg, out / "sim")
     log = out / "sim" / "log.jsonl"
     if not steps.seconds("participants") or not steps.current("participants", _digest(log)):
         steps.finish("participants", _digest(log), time.perf_counter() - t0)
@@ -455,7 +505,9 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
 
     # how the fit runs (its processes, its progress bar) does not change what it finds
     digest = _digest(log, extra=[w for w in fit_words if not w.startswith(("jobs=", "progress="))])
-    if not steps.current("fit", digest):
+    if not fit_models:  # an earlier fit in ``out`` is kept, and not read
+        depths, replicas = (), 0
+    elif not steps.current("fit", digest):
         t0 = time.perf_counter()
         say("fitting the models")
         cfg = _compose(fit_words, "fit", "--fit")
@@ -470,7 +522,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
 
     # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
-    pool_people, people = _participants(out, sizes)
+    pool_people, people = _participants(out, sizes, fit_models)
     found = evaluate(people, seed=seed)
     from overhang_framework.progress import progress_bar
 
@@ -540,10 +592,55 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     return {"out": str(out), "findings": table, "report": text}
 
 
-def _participants(out: Path, sizes: dict[str, int]) -> tuple[pd.DataFrame, pd.DataFrame]:
+def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequence[str],
+           physics: Optional[str] = None) -> dict[str, int]:
+    """Take the participants of finished simulations of ``cohort`` (each a run directory of
+    ``python -m overhang_framework.participants`` with ``log.jsonl`` and ``participants.csv``) as a study's:
+    their logs and tables, in the order given, into ``into`` (rewritten only when they change). Returns the
+    participants per condition, in the order of ``conditions``; refuses, in one line, a directory without a
+    finished simulation, another cohort's, one under another physics than ``physics``, a participant id given
+    twice, and a condition with nobody."""
+    logs, tables, seen = [], [], {}
+    for where in map(Path, sims):
+        if not (where / "log.jsonl").is_file() or not (where / "participants.csv").is_file():
+            raise ConfigError(f"--sim {where}: no finished simulation there (log.jsonl and participants.csv); "
+                              "run python -m overhang_framework.participants into it first")
+        try:
+            name = json.loads((where / "run.json").read_text())["config"]["cohort"]["name"]
+        except (OSError, ValueError, KeyError, TypeError):
+            name = None
+        if name != cohort:
+            raise ConfigError(f"--sim {where}: a simulation of cohort {name!r}, not this study's {cohort!r}")
+        made = json.loads((where / "run.json").read_text())["config"].get("world", {}).get("physics")
+        if physics is not None and made != physics:
+            raise ConfigError(f"--sim {where}: simulated under world.physics={made}, and this study's world is "
+                              f"world.physics={physics} (give --world world.physics={made})")
+        table = pd.read_csv(where / "participants.csv", dtype={"id": str})
+        for pid in table["id"]:
+            if pid in seen:
+                raise ConfigError(f"--sim {where}: participant {pid} is in {seen[pid]} too; give each simulation once, "
+                                  "and simulations whose participants differ (e.g. one a condition)")
+            seen[pid] = where
+        text = (where / "log.jsonl").read_text()
+        logs.append(text if text.endswith("\n") or not text else text + "\n")
+        tables.append(table)
+    table = pd.concat(tables, ignore_index=True)
+    sizes = {c: int((table["condition"] == c).sum()) for c in conditions}
+    empty = [c for c, n in sizes.items() if not n]
+    if empty:
+        raise ConfigError(f"--sim: no {' or '.join(empty)} participants in the simulations given; a study compares "
+                          f"{' and '.join(conditions)}")
+    into.mkdir(parents=True, exist_ok=True)
+    for path, text in ((into / "log.jsonl", "".join(logs)), (into / "participants.csv", table.to_csv(index=False))):
+        if not path.exists() or path.read_text() != text:
+            atomic_write_text(path, text)
+    return sizes
+
+
+def _participants(out: Path, sizes: dict[str, int], fitted: bool = True) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The participant table of the simulated pool (written to ``participants.csv``), and the study proper: the
     first participants of each condition, as many as ``sizes`` says (the rest of the pool only for redrawing)."""
-    df = participant_table(out)
+    df = participant_table(out, fitted)
     atomic_write_text(out / "participants.csv", df.to_csv(index=False))
     pool_people = df[df["condition"].isin(sizes)]
     people = pd.concat([pool_people[pool_people["condition"] == c].sort_values("participant").head(n)
@@ -612,7 +709,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
         "none of the effects of a dual transition (beyond chance), and the approximate physics its cohort keeps"
     lines = [f"# Study: {study} ({kind})", "",
              f"{n} participants ({', '.join(f'{v} {k}' for k, v in sizes.items())}), "
-             f"{'all' if n_tasks is None else n_tasks} tasks each, fitted depths {', '.join(map(str, depths))}; "
+             f"{'all' if n_tasks is None else n_tasks} tasks each, "
+             f"{'fitted depths ' + ', '.join(map(str, depths)) if depths else 'no fit'}; "
              f"the study should show {expected}.", ""]
     names = ", ".join(f"{r.finding}" for r in holds.itertuples()) or "none"
     effects = len(shown[shown["finding"] != "stable"])
@@ -681,7 +779,8 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
     lines += ["", "## Steps", ""]
     lines.append(markdown_table(["step", "seconds"], [[k, f"{v['seconds']:.0f}"] for k, v in steps.done.items()]))
     checked = "`fit/check/check.md`, " if check_line else ""
-    lines += ["", f"Total this run: {seconds:.0f} s. Files: `sim/`, `analysis/report.md`, `fit/comparison.md`, "
+    fitted = "`fit/comparison.md`, " if depths else ""
+    lines += ["", f"Total this run: {seconds:.0f} s. Files: `sim/`, `analysis/report.md`, {fitted}"
                   f"{checked}`participants.csv`, `findings.csv`, `power.csv`."]
     return "\n".join(lines) + "\n"
 
@@ -703,6 +802,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--participants", action="append", default=[], metavar="OVERRIDE",
                     help="participants override (repeatable)")
     ap.add_argument("--fit", action="append", default=[], metavar="OVERRIDE", help="fit override (repeatable)")
+    ap.add_argument("--sim", action="append", default=[], metavar="DIR",
+                    help="take the participants of this finished simulation of the study's cohort instead of "
+                         "simulating (repeatable, e.g. one run a condition); power is then a bootstrap")
+    ap.add_argument("--no-fit", action="store_true", help="leave out the fit and the findings that need it")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
@@ -713,7 +816,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     try:
         summary = run(args.study, Path(args.out), args.scale, args.pool, args.tasks, args.jobs, depths, args.resamples,
-                      args.replicas, args.seed, args.world, args.participants, args.fit, not args.no_progress, say)
+                      args.replicas, args.seed, args.world, args.participants, args.fit, not args.no_progress, say,
+                      args.sim, not args.no_fit)
     except OverhangError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2

@@ -179,3 +179,53 @@ def test_an_unknown_study_or_a_bad_size_is_refused_in_one_line(tmp_path):
         proc = subprocess.run([sys.executable, "-m", "overhang_framework.study", *extra, "--out", str(tmp_path)],
                               capture_output=True, text=True)
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and message in proc.stderr, proc.stderr
+
+
+def test_a_study_of_participants_simulated_already_without_a_fit(tmp_path):
+    """Each condition simulated on its own (as a paper-size run is, sitting by sitting), then taken as one study:
+    the findings of the behaviour tested, those of the fit said to be untested, power a bootstrap; and what the
+    study cannot take is refused in one line, before any work."""
+    runs = {}
+    for condition, counts in (("tl", "{time_limited: 3, unconstrained: 0}"), ("un", "{time_limited: 0, unconstrained: 3}")):
+        runs[condition] = tmp_path / f"sim_{condition}"
+        proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
+                               "predictor=ipe", "predictor.K=10", f"cohort.participants={counts}", "cohort.n_tasks=2",
+                               "world.physics=static", "progress=false", f"hydra.run.dir={runs[condition]}"],
+                              capture_output=True, text=True, timeout=900)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    out = tmp_path / "study"
+    base = [sys.executable, "-m", "overhang_framework.study", "null", "--out", str(out), "--no-progress"]
+    args = [*base, "--sim", str(runs["tl"]), "--sim", str(runs["un"]), "--no-fit", "--resamples", "5",
+            "--world", "world.physics=static"]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "taking 6 participants (3 time_limited, 3 unconstrained) from 2 simulations" in proc.stderr
+    findings = pd.read_csv(out / "findings.csv").set_index("finding")
+    assert list(findings.index) == [f.name for f in FINDINGS]
+    assert set(findings.index[~findings["tested"]]) == {"depth", "hybrid", "switch"}
+    assert findings.loc["vertical", "tested"] and np.isfinite(findings.loc["vertical", "p"])
+    people = pd.read_csv(out / "participants.csv")
+    assert len(people) == 6 and people["abs_x_late"].notna().all() and people["fitted_depth"].isna().all()
+    text = (out / "study.md").read_text()
+    assert "2 tasks each, no fit;" in text
+    assert "with replacement from the study's own participants" in text and not (out / "fit").exists()
+    log = (out / "sim" / "log.jsonl").read_text()
+    assert log == (runs["tl"] / "log.jsonl").read_text() + (runs["un"] / "log.jsonl").read_text()
+    before = (out / "findings.csv").read_bytes()
+    again = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    assert again.returncode == 0 and (out / "findings.csv").read_bytes() == before  # the same study, the same answer
+    for extra, message in ((["--sim", str(runs["tl"]), "--sim", str(runs["tl"])], "is in"),
+                           (["--sim", str(runs["tl"])], "--sim: no unconstrained participants"),
+                           (["--sim", str(tmp_path / "nowhere")], "no finished simulation there"),
+                           (["--sim", str(runs["tl"]), "--sim", str(runs["un"]), "--scale", "0.5"],
+                            "--sim takes participants already simulated"),
+                           (["--sim", str(runs["tl"]), "--sim", str(runs["un"]), "--world", "world.physics=tiered"],
+                            "simulated under world.physics=static")):
+        proc = subprocess.run([*base, *extra, "--no-fit"] + ([] if "--world" in extra else
+                                                             ["--world", "world.physics=static"]),
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and message in proc.stderr, proc.stderr
+    other = subprocess.run([*base[:3], "paper_people", *base[4:], "--sim", str(runs["tl"]), "--sim", str(runs["un"]),
+                            "--no-fit", "--world", "world.physics=static"], capture_output=True, text=True, timeout=300)
+    assert other.returncode == 2 and "a simulation of cohort 'null_effect', not this study's 'paper_people'" \
+        in other.stderr, other.stderr
