@@ -285,10 +285,32 @@ def test_perceptual_noise_changes_choices_and_every_placement_stays_legal(tmp_pa
             assert world.is_legal(state, Action(r["x"], r["layer"]))
 
 
+def test_a_pace_scales_every_decision_time_and_changes_no_choice_unless_a_limit_cuts_it(tmp_path):
+    from overhang_framework.behaviour import read_log
+
+    free = "conditions.time_limited.time_limit=null"
+    base = read_log(simulate_into(tmp_path, free, name="base") / "log.jsonl")
+    slow_dir = simulate_into(tmp_path, free, "+cohort.parameters.pace={dist: fixed, value: 2.0}", name="slow")
+    slow = read_log(slow_dir / "log.jsonl")
+    assert list(slow["grid_x"]) == list(base["grid_x"]) and list(slow["x"].fillna(-9)) == list(base["x"].fillna(-9))
+    assert np.allclose(slow["decision_time"], 2 * base["decision_time"], rtol=1e-6, atol=0)  # (the log rounds)
+    assert participants(slow_dir)[0]["pace"] == "2.0"
+    assert "pace" not in participants(tmp_path / "base")[0]
+    # under the time-limited condition's 5 s a participant three times slower runs out of time
+    quick = read_log(simulate_into(tmp_path, name="quick") / "log.jsonl")
+    late = read_log(simulate_into(tmp_path, "+cohort.parameters.pace={dist: fixed, value: 3.0}", name="late")
+                    / "log.jsonl")
+    tl = lambda df: df[df["condition"] == "time_limited"]  # noqa: E731
+    assert tl(late)["timed_out"].mean() > tl(quick)["timed_out"].mean()
+    assert not late[late["condition"] == "unconstrained"]["timed_out"].any()
+
+
 @pytest.mark.parametrize("overrides, words", [
     (["+cohort.parameters.risk={dist: fixed, value: 1.5}"], "cohort.parameters.risk must give a risk aversion"),
     (["+cohort.parameters.percept={dist: normal, mean: 0.02, sd: 0.01}"], "cohort.parameters.percept must give"),
     (["+cohort.parameters.hand={dist: uniform, low: -0.1, high: 0.1}"], "cohort.parameters.hand must give"),
+    (["+cohort.parameters.pace={dist: fixed, value: 0.0}"], "cohort.parameters.pace must give a factor"),
+    (["+cohort.parameters.pace={dist: normal, mean: 1.0, sd: 0.2}"], "cohort.parameters.pace must give a factor"),
 ])
 def test_a_bad_axis_in_a_cohort_is_one_line(overrides, words):
     from overhang_framework.config import compose_config

@@ -27,13 +27,19 @@ draw for draw:
   placement error ``N(0, hand^2)`` (``predictor=hand``), so that an unsteady hand that knows it aims lower.
   The noise actually applied is the cohort's ``motor.sd``, whatever ``hand`` is.
 
+One more sets how long the participant takes, and nothing else:
+
+* ``pace``: a factor on every decision time of the participant (a slow deliberator has ``pace`` above 1),
+  so that participants differ in their times as people do; it draws nothing while deciding, so a
+  participant's choices are those it makes without it, unless a time limit cuts a slower decision off.
+
 Each decision runs the planner on the grid of legal actions under the
 condition's budget of predictor calls (``call_limit``, the machine-independent
 budget that truncates the search: the lookahead deepens iteratively and plays
 the best action of the deepest depth it completed). Its *decision time* is
 simulated from what the search cost, never measured::
 
-    t = (t0 + per_call * predictor_calls) * exp(noise * z),   z ~ N(0, 1)
+    t = pace * (t0 + per_call * predictor_calls) * exp(noise * z),   z ~ N(0, 1)
 
 A decision whose time is over the condition's ``time_limit`` times out: the
 trial ends with reward 0 (a timed-out record). Otherwise the block goes to the
@@ -65,14 +71,14 @@ from overhang_framework.interfaces import Budget, Task, World
 from overhang_framework.plugins import Registry, accepted_parameters
 
 #: The parameters each participant draws, and the model parameter each one sets.
-PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "hand")
+PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "hand", "pace")
 #: Where a drawn parameter goes: (model group, parameter name).
 TARGETS = {"sigma": ("predictor", "sigma"), "depth": ("planner", "depth"), "beta": ("planner", "beta"),
            "switch": ("predictor", "switch"), "risk": ("planner", "risk")}
 #: The largest risk aversion a participant draws (the planner's ``risk`` must be below 1).
 MAX_RISK = 0.999
 #: Parameters whose column ``participants.csv`` has only when some participant draws them.
-OPTIONAL = ("switch", "risk", "percept", "hand")
+OPTIONAL = ("switch", "risk", "percept", "hand", "pace")
 #: The deepest search a participant may have (a paper20 trial has 5 placements).
 MAX_DEPTH = 5
 #: The distributions a parameter may be drawn from, with their arguments.
@@ -379,6 +385,11 @@ def _distributions(where_all: str, params: Mapping[str, Any]) -> dict[str, Optio
             elif name == "risk":
                 _check_range(where, dist, 0.0, 1.0, "a risk aversion from 0 (risk-neutral) to 1 (a draw above "
                              f"{MAX_RISK} counts as {MAX_RISK})")
+            elif name == "pace":
+                _check_range(where, dist, 0.0, math.inf, "a factor on the decision time > 0")
+                if dist.support()[0] <= 0:
+                    raise ConfigError(f"{where} must give a factor on the decision time > 0, but its {dist.kind} "
+                                      f"distribution reaches {dist.support()[0]:g} (a lognormal is always above 0)")
             else:
                 _check_range(where, dist, 0.0, math.inf, "a number >= 0")
         dists[name] = dist
@@ -400,6 +411,7 @@ class Participant:
     risk: Optional[float] = None
     percept: Optional[float] = None
     hand: Optional[float] = None
+    pace: Optional[float] = None
 
 
 def participant_rngs(seed: int, index: int) -> tuple[np.random.Generator, np.random.Generator]:
@@ -431,7 +443,7 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
                 beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"]),
                 switch=None if drawn.get("switch") is None else int(drawn["switch"]),
                 risk=None if drawn.get("risk") is None else min(float(drawn["risk"]), MAX_RISK),
-                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("percept", "hand")}))
+                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("percept", "hand", "pace")}))
     return out
 
 
@@ -596,6 +608,8 @@ def decide(participant: Participant, spec: ConditionSpec, cohort: Cohort, state,
         action = legal[int(rng.integers(len(legal)))]
     calls = decision.spend.predictor_calls
     seconds = cohort.time_for(spec.name).sample(calls, rng)
+    if participant.pace is not None:
+        seconds *= participant.pace
     if time_limit is not None and seconds > time_limit:
         return Choice(action, lapsed, calls, decision.spend.depth_completed, seconds, True, None)
     x = _legal_x(world, state, action, cohort.motor_sd, cohort.motor_retries, rng)
