@@ -298,8 +298,8 @@ def test_a_pace_scales_every_decision_time_and_changes_no_choice_unless_a_limit_
     assert "pace" not in participants(tmp_path / "base")[0]
     # under the time-limited condition's 5 s a participant three times slower runs out of time
     quick = read_log(simulate_into(tmp_path, name="quick") / "log.jsonl")
-    late = read_log(simulate_into(tmp_path, "+cohort.parameters.pace={dist: fixed, value: 3.0}", name="late")
-                    / "log.jsonl")
+    late = read_log(simulate_into(tmp_path, "+cohort.parameters.pace={dist: lognormal, median: 3.0, sigma: 0.1}",
+                                  name="late") / "log.jsonl")
     tl = lambda df: df[df["condition"] == "time_limited"]  # noqa: E731
     assert tl(late)["timed_out"].mean() > tl(quick)["timed_out"].mean()
     assert not late[late["condition"] == "unconstrained"]["timed_out"].any()

@@ -387,7 +387,7 @@ def _distributions(where_all: str, params: Mapping[str, Any]) -> dict[str, Optio
                              f"{MAX_RISK} counts as {MAX_RISK})")
             elif name == "pace":
                 _check_range(where, dist, 0.0, math.inf, "a factor on the decision time > 0")
-                if dist.support()[0] <= 0:
+                if dist.support()[0] <= 0 and dist.kind != "lognormal":  # a lognormal's draws are all above 0
                     raise ConfigError(f"{where} must give a factor on the decision time > 0, but its {dist.kind} "
                                       f"distribution reaches {dist.support()[0]:g} (a lognormal is always above 0)")
             else:
