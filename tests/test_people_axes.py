@@ -545,8 +545,10 @@ def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_fal
 
     Tolerances, measured over seeds 1-4 of this draw: stable proportion 65.0-75.5% (the paper's 70.2),
     average overhang 1.327-1.358 (1.321), reward per trial 0.868-1.018 (0.913), decision time 2.43-2.46 s
-    (2.47); so within 10 points, 0.06, 0.15 and 0.15 s of the paper's. At the paper's size (43, seeds 0-2) the
-    cohort is within one SEM of the paper on every measure but Γ (docs/people.md)."""
+    (2.47); so within 10 points, 0.06, 0.15 and 0.15 s of the paper's. Each participant now draws a pace (a
+    factor on their times, lognormal σ 0.19, as the paper's people's times spread), so the mean time of ten has
+    an SD of about 0.15 s across draws and is held within 0.3 s. At the paper's size (43) the cohort is within
+    one SEM of the paper on every measure but Γ (docs/people.md)."""
     from overhang_framework.behaviour import table1
     from overhang_framework.behaviour.log import read_log
     from overhang_framework.config import compose_config
@@ -566,5 +568,5 @@ def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_fal
     assert got["stable_pct"] == pytest.approx(paper["stable_pct"], abs=10)
     assert got["avg_overhang"] == pytest.approx(paper["avg_overhang"], abs=0.06)
     assert got["reward_per_trial"] == pytest.approx(paper["reward_per_trial"], abs=0.15)
-    assert got["decision_time"] == pytest.approx(paper["decision_time"], abs=0.15)
+    assert got["decision_time"] == pytest.approx(paper["decision_time"], abs=0.3)
     assert got["avg_overhang"] < 1.45
