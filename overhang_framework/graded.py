@@ -12,7 +12,8 @@ this module gives:
   level's participants (:data:`DRAWS` draws, seeded);
 * **trends**: Spearman's ρ between each measure and the level's rank (more time, higher rank), its two-sided
   p from permuting the level labels over the participants (:data:`PERMUTATIONS`), and whether it goes the
-  expected way (:data:`MEASURES`: more time, larger overhang, larger Γ, deeper plans, less risk aversion; no
+  expected way (:data:`MEASURES`: more time, larger overhang, larger Γ, placements further from the centre
+  (Fig. 3a's flows, :func:`overhang_framework.behaviour.flows.lateral`), deeper plans, less risk aversion; no
   trend in the stable proportion);
 * **power and sample sizes**: for each of :data:`SIZES` participants per level, the share of studies of that
   size, drawn with replacement from the simulated pool, in which the trend holds (p < ``alpha`` in the expected
@@ -54,6 +55,7 @@ MEASURES = (
     Measure("overhang", "avg_overhang", "average overhang", +1),
     Measure("stable", "stable_pct", "stable proportion (%)", 0),
     Measure("gamma", "gamma", "Γ", +1),
+    Measure("vertical", "abs_x_late", "distance of placements from the centre, step 3 on (m)", +1),
     Measure("depth", "fitted_depth", "fitted depth", +1),
     Measure("risk", "fitted_risk", "fitted risk aversion", -1),
 )

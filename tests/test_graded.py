@@ -95,7 +95,7 @@ def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
                  "--fit", "+models.hybrid.risk=[0.0,0.9]"]) == 0
     pred = pd.read_csv(out / "predictions.csv")
     assert set(pred["level"]) == {"limit_2_5s", "time_limited", "limit_10s", "unconstrained"}
-    assert {"overhang", "gamma", "depth", "risk"} <= set(pred["measure"])
+    assert {"overhang", "gamma", "vertical", "depth", "risk"} <= set(pred["measure"])
     people = pd.read_csv(out / "participants.csv")
     assert {"true_risk", "true_hand", "true_percept", "fitted_risk"} <= set(people.columns)
     assert (people.loc[people["condition"] == "time_limited", "true_risk"] == 0.9).all()
