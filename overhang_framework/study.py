@@ -473,12 +473,6 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     if sims:
         sizes = gather(sims, out / "sim", str(base.cohort.name), list(counts), str(sim_cfg.world.physics))
         simulated = dict(sizes)
-        tasks: dict[str, set] = {}
-        for line in (out / "sim" / "log.jsonl").read_text().splitlines():
-            if line.strip():
-                record = json.loads(line)
-                tasks.setdefault(str(record.get("participant")), set()).add(record.get("task_id"))
-        n_tasks = max((len(t) for t in tasks.values()), default=0)  # as the report says it
         say(f"taking {sum(sizes.values())} participants ({', '.join(f'{n} {k}' for k, n in sizes.items())}) "
             f"from {len(sims)} simulation{'s' * (len(sims) > 1)}")
     else:
@@ -499,6 +493,8 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         analyse([log], out / "analysis", Settings(world_overrides=tuple(world), seed=seed,
                                                   only=ANALYSES, progress=progress))
         steps.finish("analysis", digest, time.perf_counter() - t0)
+    if sims:  # the tasks each did, as the report says it
+        n_tasks = int(pd.read_csv(out / "analysis" / "table1_participants.csv")["trials"].max())
 
     # 3. the fit
     from overhang_framework.fit.__main__ import run as fit_run
@@ -606,12 +602,13 @@ def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequ
             raise ConfigError(f"--sim {where}: no finished simulation there (log.jsonl and participants.csv); "
                               "run python -m overhang_framework.participants into it first")
         try:
-            name = json.loads((where / "run.json").read_text())["config"]["cohort"]["name"]
+            config = json.loads((where / "run.json").read_text())["config"]
+            name = config["cohort"]["name"]
         except (OSError, ValueError, KeyError, TypeError):
-            name = None
+            config, name = {}, None
         if name != cohort:
             raise ConfigError(f"--sim {where}: a simulation of cohort {name!r}, not this study's {cohort!r}")
-        made = json.loads((where / "run.json").read_text())["config"].get("world", {}).get("physics")
+        made = config.get("world", {}).get("physics")
         if physics is not None and made != physics:
             raise ConfigError(f"--sim {where}: simulated under world.physics={made}, and this study's world is "
                               f"world.physics={physics} (give --world world.physics={made})")

@@ -354,10 +354,9 @@ def summary(out: Path, sections: dict[str, Section], seconds: float, settings: S
         data["gamma"] = {**readings[settings.gamma_towers], "reading": settings.gamma_towers, "readings": readings}
     if (out / "fig3a_lateral.csv").exists() and "flows" in sections:
         people = pd.read_csv(out / "fig3a_lateral.csv")
-        data["lateral"] = {
-            g: {c: {"mean": _number(mean_sem(at[c])[0]), "sem": _number(mean_sem(at[c])[1]),
-                    "n": int(at[c].notna().sum())} for c in ("abs_x", "abs_x_late", "step_x")}
-            for g, at in people.groupby("group", sort=True)}
+        data["lateral"] = {g: {c: dict(zip(("mean", "sem"), map(_number, mean_sem(at[c]))), n=int(at[c].notna().sum()))
+                               for c in ("abs_x", "abs_x_late", "step_x")}
+                           for g, at in people.groupby("group", sort=True)}
     if (out / "fig4_placements.csv").exists() and "prediction" in sections:
         per = pd.read_csv(out / "fig4_placements.csv")
         cols = [c for c in per.columns if c.startswith("ll_")]
