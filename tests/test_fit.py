@@ -81,6 +81,9 @@ def test_a_cached_table_equals_a_fresh_one_and_tables_do_not_depend_on_what_was_
     first = tables(world, value, ipe, 2, cache)
     a, b = first.table(FIRST), first.table(SECOND)
     assert first.stats.computed == 2 and len(cache) == 2
+    # each table is its own commit: WAL without a flush to disk per commit (NORMAL), so writing is not the cost
+    assert cache._db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert cache._db.execute("PRAGMA synchronous").fetchone()[0] == 1
     cache.close()
     again = ScoreCache(tmp_path / "scores.sqlite")
     warm = tables(world, value, ipe, 2, again)
