@@ -122,6 +122,30 @@ def test_the_hybrids_of_every_switch_point_share_their_parts_answers_and_give_th
     assert any(not np.array_equal(a, b) for a, b in zip(together[0], together[-1]))
 
 
+def test_the_models_of_one_ipe_at_every_depth_and_risk_ask_it_once_and_give_the_tables_computed_alone(world, value):
+    space = model_space({"ipe": {"predictor": "ipe", "K": 10, "sigma": 0.04, "risk": [0.0, 0.5, 0.9]}}, [1, 2])
+    models = [m for index in space for m in index.variants]
+    assert len(models) == 6
+    registry = Registry()
+    shared = Predictors(registry, world)
+    tables = [ScoreTables(world, value, shared(m.predictor), m, CONTEXT) for m in models]
+    assert len({id(t.predictor) for t in tables}) == 1
+    together = {(t.model.depth, t.model.risk): [t.table(s) for s in STATES] for t in tables}
+    counts = tables[0].predictor.stats()
+    # the first depth-2 model simulates; every other model's questions are remembered answers
+    alone = {}
+    for m in models:
+        fresh = ScoreTables(world, value, registry.create("predictor", dict(m.predictor), world=world), m, CONTEXT)
+        alone[(m.depth, m.risk)] = [fresh.table(s) for s in STATES]
+        first = fresh.predictor.stats()["calls"]
+    assert counts["calls"] - counts["remembered"] == first
+    for key, scores in together.items():
+        for got, want in zip(scores, alone[key]):
+            np.testing.assert_array_equal(got, want)
+    # risk changes the depth-2 tables, so the remembered answers are weighed anew by each model
+    assert any(not np.array_equal(a, b) for a, b in zip(together[(2, 0.0)], together[(2, 0.9)]))
+
+
 def test_fit_index_reports_the_switch_point_and_counts_it_as_a_parameter(world, value):
     from overhang_framework.fit.fitting import Placement
 

@@ -248,11 +248,12 @@ CHUNK = 8
 class Predictors:
     """The predictors of a model space, built once per settings and shared.
 
-    Models that differ only in depth share one predictor; a hybrid whose early or late part has the
-    settings of a predictor of the space (or of another hybrid's part) is given that predictor as its part.
-    A hybrid's parts remember their answers (the CNN by tower, always; the IPE by tower, actions and draws,
-    turned on here), so the hybrids of every switch point, and a hybrid and the model of its part's
-    settings where their draws agree (the CNN's always do), ask once: the same numbers, computed once.
+    Models that differ only in depth or risk aversion share one predictor; a hybrid whose early or late
+    part has the settings of a predictor of the space (or of another hybrid's part) is given that predictor
+    as its part. Every predictor that can remember its answers does (the CNN by tower, always; the IPE by
+    tower, actions and draws, turned on here), so the models of one predictor at every depth and risk, the
+    hybrids of every switch point, and a hybrid and the model of its part's settings where their draws
+    agree (the CNN's always do), ask once: the same numbers, computed once.
     """
 
     #: Answers a hybrid's IPE part remembers (see :meth:`IPEPredictor.remember`): the switch points' tables
@@ -275,6 +276,7 @@ class Predictors:
             if config.get("name") == HAND and hasattr(predictor, "inner"):  # a hand asks the family's predictor
                 predictor.inner = self(without_hand(config))
             self.built[key] = predictor
+            self._remember(predictor)  # models of these settings at other depths or risks ask the same questions
             for other in list(self.built.values()):
                 self._share(other)
         return self.built[key]
