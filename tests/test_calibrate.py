@@ -273,3 +273,54 @@ def test_a_library_that_draws_the_new_axes_fits_them_and_writes_them_into_the_co
     assert cohort.parameters_for("time_limited")["risk"].kind == "beta"
     with pytest.raises(Exception, match="must give its distribution"):
         library.weights(CANDIDATE)
+
+
+def test_measure_takes_a_run_a_running_run_and_several_runs_and_gives_each_distance_in_the_papers_sems(tmp_path, capsys):
+    """``calibrate measure``: one run's ten measures; the same from the participants a run has finished
+    (``parts/``); one run a condition gives the one run's numbers; a run given twice (seeds) is a mean of two
+    runs with each run's distance; Γ under the world the run simulated; a directory without a run refused."""
+    from overhang_framework.behaviour import read_log, table1
+    from overhang_framework.behaviour.log import write_log
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, run
+
+    cfg = compose_config(["cohort=proposal", "predictor=hybrid", "world.physics=static", "progress=false",
+                          "cohort.participants.time_limited=3", "cohort.participants.unconstrained=2", "tasks=custom",
+                          "tasks.sequences=[[1.2,0.6,1.2,0.6],[0.6,1.2,0.6,0.6]]", "+predictor.early_params.K=10"],
+                         config_name=CONFIG_NAME)
+    run(cfg, tmp_path / "both")
+    assert calibrate.run_world(tmp_path / "both").physics_name == "static"
+    df = read_log(tmp_path / "both" / "log.jsonl")
+
+    def table(*dirs) -> list[list[str]]:
+        assert calibrate.main(["measure", *map(str, dirs)]) == 0
+        lines = capsys.readouterr().out.strip().splitlines()[2:]
+        return [[c.strip() for c in line.strip("|").split("|")] for line in lines]
+
+    whole = table(tmp_path / "both")
+    assert [r[:2] for r in whole] == [[c, m] for c in ("time_limited", "unconstrained") for m in calibrate.METRICS]
+    people = table1.per_participant(df.assign(group=df["condition"])).set_index("participant")
+    tl = people[people.index.str.startswith("sim-tl")]["avg_overhang"]
+    row = whole[2]
+    assert row[2] == f"{tl.mean():.3f} ± {tl.std(ddof=1) / math.sqrt(3):.3f}"
+    assert float(row[4]) == pytest.approx((tl.mean() - 1.321) / 0.023, abs=0.006)
+
+    # a run still going: its finished participants, one file each, in any order
+    (tmp_path / "running" / "parts").mkdir(parents=True)
+    for i, (who, records) in enumerate(reversed(list(df.groupby("participant")))):
+        write_log(records, tmp_path / "running" / "parts" / f"{who}.jsonl")
+    (tmp_path / "running" / "parts" / "sim-un-009.jsonl").write_text('{"half a rec')  # being written: skipped
+    assert table(tmp_path / "running") == whole
+    # one run a condition
+    for condition in ("time_limited", "unconstrained"):
+        (tmp_path / condition).mkdir()
+        write_log(df[df["condition"] == condition], tmp_path / condition / "log.jsonl")
+    assert table(tmp_path / "time_limited", tmp_path / "unconstrained") == whole
+    # seeds: the mean of the runs, and each run's distance
+    twice = table(tmp_path / "both", tmp_path / "running")
+    assert [r[4] for r in twice] == [r[4] for r in whole]
+    assert twice[2][2] == f"{tl.mean():.3f} (mean of 2 runs)" and twice[2][5] == f"{row[4]}, {row[4]}"
+    # nothing to measure
+    (tmp_path / "empty").mkdir()
+    assert calibrate.main(["measure", str(tmp_path / "empty")]) == 2
+    assert "no log.jsonl and no finished participants" in capsys.readouterr().err

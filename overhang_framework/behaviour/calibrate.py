@@ -164,19 +164,74 @@ def measured(df: pd.DataFrame, world) -> dict[str, dict[str, tuple[float, float]
     return out
 
 
-def measured_table(result: Mapping[str, Mapping[str, tuple[float, float]]]) -> str:
-    """The measures beside the paper's, with each one's distance in the paper's SEMs (a markdown table)."""
+def measured_table(result: Mapping[str, Mapping[str, tuple[float, float]]] | Sequence[Mapping[str, Mapping[str, tuple[float, float]]]]
+                   ) -> str:
+    """The measures beside the paper's, with each one's distance in the paper's SEMs (a markdown table).
+
+    ``result`` is one run's :func:`measured`, or several runs' (the seeds of a cohort, or one run a
+    condition): a condition that several runs have is given as the mean of their means, its distance is
+    that mean's, and a last column gives each run's own distance, in the order of the runs."""
     from overhang_framework.behaviour.analysis import markdown_table
 
+    runs = [result] if isinstance(result, Mapping) else list(result)
+    conditions: list[str] = []
+    for one in runs:
+        conditions += [c for c in one if c not in conditions]
+    several = any(sum(c in one for one in runs) > 1 for c in conditions)
+
+    def z(mean: float, paper) -> float:
+        return (mean - paper[0]) / paper[1] if paper else math.nan
+
     rows = []
-    for condition, row in result.items():
+    for condition in conditions:
+        have = [one[condition] for one in runs if condition in one]
         for metric in METRICS:
-            mean, sem = row[metric]
             paper = TARGETS.get(condition, {}).get(metric)
-            z = (mean - paper[0]) / paper[1] if paper else math.nan
-            rows.append([condition, metric, f"{mean:.3f} ± {sem:.3f}",
-                         f"{paper[0]:.3f} ± {paper[1]:.3f}" if paper else "", "" if math.isnan(z) else f"{z:+.2f}"])
-    return markdown_table(["condition", "measure", "simulated", "paper", "distance (paper SEMs)"], rows)
+            means = [row[metric][0] for row in have]
+            mean = float(np.mean(means))
+            shown = f"{mean:.3f} ± {have[0][metric][1]:.3f}" if len(have) == 1 else \
+                f"{mean:.3f} (mean of {len(have)} runs)"
+            distance = z(mean, paper)
+            row = [condition, metric, shown, f"{paper[0]:.3f} ± {paper[1]:.3f}" if paper else "",
+                   "" if math.isnan(distance) else f"{distance:+.2f}"]
+            if several:
+                row.append(", ".join(f"{z(m, paper):+.2f}" for m in means) if paper and len(have) > 1 else "")
+            rows.append(row)
+    header = ["condition", "measure", "simulated", "paper", "distance (paper SEMs)"]
+    return markdown_table(header + (["each run's distance"] if several else []), rows)
+
+
+def run_log(run_dir: Path) -> tuple[pd.DataFrame, Optional[int]]:
+    """A participants run's log (``log.jsonl``), or, while the run goes on, the participants it has finished
+    (``parts/``) with their number; :class:`ConfigError` when the directory has neither."""
+    from overhang_framework.behaviour import read_log
+    from overhang_framework.behaviour.log import to_frame
+    from overhang_framework.participants import LOG, PARTS, _read_part
+
+    run_dir = Path(run_dir)
+    if (run_dir / LOG).exists():
+        return read_log(run_dir / LOG), None
+    parts = [_read_part(p) for p in sorted((run_dir / PARTS).glob("*.jsonl"))] if (run_dir / PARTS).is_dir() else []
+    records = [r for part in parts if part for r in part]
+    if not records:
+        raise ConfigError(f"{run_dir} has no {LOG} and no finished participants in {PARTS}/: give the directory "
+                          "of a participants run")
+    return to_frame(records), sum(1 for part in parts if part)
+
+
+def run_world(run_dir: Path, overrides: Sequence[str] = ()):
+    """The world a participants run simulated (its ``run.json``), or the run config's with ``overrides``."""
+    from overhang_framework.plugins import Registry
+
+    if not overrides:
+        try:
+            world = json.loads((Path(run_dir) / "run.json").read_text())["config"]["world"]
+            return Registry().create("world", dict(world))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    from overhang_framework.behaviour.analysis import build_world
+
+    return build_world(list(overrides))
 
 
 # ----------------------------------------------------------------------------------------------- library
@@ -436,18 +491,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    help="the concentration of a candidate's beta distribution of risk")
     f.add_argument("--axis-spread", type=float, default=AXIS_SPREAD,
                    help="the lognormal sigma of a candidate's percept and hand")
-    m = sub.add_parser("measure", help="the ten measures of a participants run, beside the paper's")
-    m.add_argument("run_dir", type=Path)
-    m.add_argument("--world", nargs="*", default=["world.physics=static"], help="world overrides for Γ")
+    m = sub.add_parser("measure", help="the ten measures of participants runs, beside the paper's")
+    m.add_argument("run_dirs", type=Path, nargs="+", metavar="run_dir",
+                   help="a participants run (one still running: its finished participants); several: the seeds "
+                        "of a cohort, or one run a condition")
+    m.add_argument("--world", nargs="*", default=None,
+                   help="world overrides for Γ (default: the world each run simulated, from its run.json)")
     args = parser.parse_args(argv)
     try:
         if args.command == "measure":
-            from overhang_framework.behaviour import read_log
-            from overhang_framework.behaviour.analysis import build_world
-
-            if not (args.run_dir / "log.jsonl").exists():
-                raise ConfigError(f"{args.run_dir} has no log.jsonl: give the directory of a participants run")
-            print(measured_table(measured(read_log(args.run_dir / "log.jsonl"), build_world(args.world))))
+            results = []
+            for run_dir in args.run_dirs:
+                df, finished = run_log(run_dir)
+                if finished is not None:
+                    print(f"{run_dir}: still running; its {finished} finished participants", file=sys.stderr)
+                results.append(measured(df, run_world(run_dir, args.world or ())))
+            print(measured_table(results))
             return 0
         if args.command == "library":
             from overhang_framework.results import atomic_output
