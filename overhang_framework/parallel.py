@@ -10,7 +10,8 @@ in whatever order. Each worker builds the run's models once from the resolved
 config and plays the episodes it is given; placements are reported back as
 they happen, so the progress bar still moves per placement. Workers ignore
 Ctrl-C: the parent process handles it, stops them, and keeps every episode
-that finished.
+that finished. A worker whose parent is gone (killed outright, which runs no
+cleanup) ends itself within a second (:func:`exit_with_parent`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import os
 import queue as queue_module
 import signal
 import sys
+import threading
+import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
 
@@ -27,9 +30,24 @@ _STATE: Any = None
 _TICKS = None
 
 
+def exit_with_parent(interval: float = 1.0) -> None:
+    """In a worker process: end this process once its parent is gone. A parent killed outright (``kill``,
+    a job's time limit) runs no cleanup, and its workers would otherwise go on computing for nobody."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(interval)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def _init(setup: Callable[..., Any], args: tuple, ticks) -> None:
     global _STATE, _TICKS
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    exit_with_parent()
     # One compute thread per worker: the workers already fill the cores, and oversubscribed
     # thread pools (torch's, BLAS's) slow every process down (a model's own `threads` still wins).
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):

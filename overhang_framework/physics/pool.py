@@ -19,6 +19,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from overhang_framework.geometry import Geometry
+from overhang_framework.parallel import exit_with_parent
 from overhang_framework.physics.pybullet_backend import (
     Outcome,
     PyBulletParams,
@@ -35,6 +36,7 @@ class PoolCrashed(RuntimeError):
 def _init_worker(params: PyBulletParams) -> None:
     global _SIM
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    exit_with_parent()
     _SIM = PyBulletSimulator(params)
 
 
