@@ -616,3 +616,27 @@ def test_worker_items_keep_the_states_order_and_ask_each_missing_table_once(monk
     others = [i for i, s in enumerate(states) if split[state_key(s)] == 1]
     order = list(dict.fromkeys(states.index(s) for item in seen["items"] for k, chunk in item for s in chunk))
     assert others and order == given + others[::-1] and seen["args"][-1] == "scores.sqlite"
+
+
+def test_the_fit_takes_its_model_space_from_conf_space_and_the_explanations_space_is_the_recoverys(capsys):
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.fit.__main__ import main
+    from overhang_framework.fit.space import model_space
+
+    default = compose_config([], config_name="fit")
+    assert sorted(default.models) == ["cnn", "hybrid", "ipe"] and list(default.depths) == [1, 2]
+    explained = compose_config(["space=explanations"], config_name="fit")
+    recovery = compose_config([], config_name="recovery_explanations")
+    assert OmegaConf.to_container(explained.models) == OmegaConf.to_container(recovery.models)
+    space = model_space(OmegaConf.to_container(explained.models), list(explained.depths))
+    assert {i.label for i in space} == {f"{f}/{d}" for f in ("plain", "noise", "risk", "hand", "percept")
+                                        for d in ("myopic", "D2")}
+    assert {m.risk for i in space if i.label == "risk/D2" for m in i.variants} == {0.5, 0.7, 0.9}
+    # overrides change a chosen space as they change the default
+    less = compose_config(["space=explanations", "~models.percept", "depths=[1]"], config_name="fit")
+    assert "percept" not in less.models and list(less.depths) == [1]
+    with pytest.raises(SystemExit) as stop:
+        main(["log.jsonl", "--out", "out", "space=nope"])
+    assert stop.value.code == 2 and "unknown space 'nope'; available: default, explanations" in capsys.readouterr().err

@@ -1,7 +1,7 @@
 """Model fitting: ``python -m overhang_framework.fit LOG [LOG ...] --out DIR [OVERRIDES ...]``.
 
-Fits every model of the model space (config ``conf/fit.yaml``: predictor
-families x depths) to every participant of the behaviour logs, and to each
+Fits every model of the model space (``conf/space/default.yaml`` through ``conf/fit.yaml``: predictor
+families x depths; ``space=explanations`` for the explanations of people's errors, docs/people.md) to every participant of the behaviour logs, and to each
 condition pooled, and writes into ``DIR``: ``fits.csv`` (one row per
 participant x model: parameters, log-likelihood, k, n, BIC, AIC),
 ``comparison.md`` / ``comparison.csv`` / ``comparison.png`` (what was found, in
@@ -20,6 +20,7 @@ Examples::
     python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit
     python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit '~models.hybrid' depths=[1,2,3]
     python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit_cv cv=5
+    python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/explained space=explanations
     python -m overhang_framework.fit runs/sim/log.jsonl --out runs/sim/fit -m shard=0,1 shards=2 \\
         hydra/launcher=joblib hydra.launcher.n_jobs=2
 """
