@@ -305,7 +305,37 @@ def test_a_pace_scales_every_decision_time_and_changes_no_choice_unless_a_limit_
     assert not late[late["condition"] == "unconstrained"]["timed_out"].any()
 
 
+def test_steadiness_scales_the_hand_a_participant_has_and_the_one_it_plans_for(tmp_path):
+    from overhang_framework.behaviour import read_log
+    from overhang_framework.behaviour.participants import Participant
+    from overhang_framework.fit.compare import read_truth
+
+    one = Participant("p", 0, "time_limited", None, None, None, 0.0, hand=0.1, steadiness=1.5)
+    assert one.planned_hand == pytest.approx(0.15) and one.motor_sd(0.02) == pytest.approx(0.03)
+    assert Participant("q", 0, "time_limited", None, None, None, 0.0, steadiness=2.0).planned_hand is None
+    free, motor = "conditions.time_limited.time_limit=null", "cohort.motor.sd=0.02"
+    hand = lambda v: f"+cohort.parameters.hand={{dist: fixed, value: {v}}}"  # noqa: E731
+    steady = lambda v: f"+cohort.parameters.steadiness={{dist: fixed, value: {v}}}"  # noqa: E731
+    base = simulate_into(tmp_path, free, motor, hand(0.1), name="base")
+    unit = simulate_into(tmp_path, free, motor, hand(0.1), steady(1.0), name="unit")
+    assert (unit / "log.jsonl").read_bytes() == (base / "log.jsonl").read_bytes()
+    assert participants(unit)[0]["steadiness"] == "1.0" and "steadiness" not in participants(base)[0]
+    # a hand half as steady that plans for the same 0.1 m: the same first choice of every trial, twice its error
+    shaky = simulate_into(tmp_path, free, motor, hand(0.05), steady(2.0), name="shaky")
+    a, b = read_log(base / "log.jsonl"), read_log(shaky / "log.jsonl")
+    first = lambda df: df[df["step"] == df.groupby(["participant", "trial"])["step"].transform("min")]  # noqa: E731
+    fa, fb = first(a).reset_index(drop=True), first(b).reset_index(drop=True)
+    assert list(fa["grid_x"]) == list(fb["grid_x"])
+    da, db = (fa["x"] - fa["grid_x"]).to_numpy(), (fb["x"] - fb["grid_x"]).to_numpy()
+    doubled = np.isclose(db, 2 * da, atol=2e-6) & (np.abs(da) > 1e-3)
+    assert doubled.sum() >= 0.75 * len(da)  # the rest were drawn again where the wider error was not legal
+    truth = read_truth([shaky / "participants.csv"], {"ipe": "ipe"})
+    assert np.allclose(truth["true_hand"], 0.1)  # the hand its planner planned for
+
+
 @pytest.mark.parametrize("overrides, words", [
+    (["+cohort.parameters.steadiness={dist: fixed, value: 0.0}"], "cohort.parameters.steadiness must give a factor"),
+    (["+cohort.parameters.steadiness={dist: normal, mean: 1.0, sd: 0.3}"], "cohort.parameters.steadiness must give"),
     (["+cohort.parameters.risk={dist: fixed, value: 1.5}"], "cohort.parameters.risk must give a risk aversion"),
     (["+cohort.parameters.percept={dist: normal, mean: 0.02, sd: 0.01}"], "cohort.parameters.percept must give"),
     (["+cohort.parameters.hand={dist: uniform, low: -0.1, high: 0.1}"], "cohort.parameters.hand must give"),

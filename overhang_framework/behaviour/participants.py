@@ -25,7 +25,10 @@ draw for draw:
   plans on the tower it sees, and places the block in the real one (:func:`perceive`);
 * ``hand``: the motor noise its planner plans for, metres: its predictor's answers are averaged over a
   placement error ``N(0, hand^2)`` (``predictor=hand``), so that an unsteady hand that knows it aims lower.
-  The noise actually applied is the cohort's ``motor.sd``, whatever ``hand`` is.
+  The noise actually applied is the cohort's ``motor.sd``, whatever ``hand`` is;
+* ``steadiness``: a factor on the participant's hand, both the one it has and the one it plans for: its
+  placements are off by ``N(0, (steadiness * motor.sd)^2)`` and its planner plans for
+  ``steadiness * hand``, so that a steadier hand that knows it aims further, and falls no more often.
 
 One more sets how long the participant takes, and nothing else:
 
@@ -71,14 +74,14 @@ from overhang_framework.interfaces import Budget, Task, World
 from overhang_framework.plugins import Registry, accepted_parameters
 
 #: The parameters each participant draws, and the model parameter each one sets.
-PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "hand", "pace")
+PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "hand", "pace", "steadiness")
 #: Where a drawn parameter goes: (model group, parameter name).
 TARGETS = {"sigma": ("predictor", "sigma"), "depth": ("planner", "depth"), "beta": ("planner", "beta"),
            "switch": ("predictor", "switch"), "risk": ("planner", "risk")}
 #: The largest risk aversion a participant draws (the planner's ``risk`` must be below 1).
 MAX_RISK = 0.999
 #: Parameters whose column ``participants.csv`` has only when some participant draws them.
-OPTIONAL = ("switch", "risk", "percept", "hand", "pace")
+OPTIONAL = ("switch", "risk", "percept", "hand", "pace", "steadiness")
 #: The deepest search a participant may have (a paper20 trial has 5 placements).
 MAX_DEPTH = 5
 #: The distributions a parameter may be drawn from, with their arguments.
@@ -385,10 +388,11 @@ def _distributions(where_all: str, params: Mapping[str, Any]) -> dict[str, Optio
             elif name == "risk":
                 _check_range(where, dist, 0.0, 1.0, "a risk aversion from 0 (risk-neutral) to 1 (a draw above "
                              f"{MAX_RISK} counts as {MAX_RISK})")
-            elif name == "pace":
-                _check_range(where, dist, 0.0, math.inf, "a factor on the decision time > 0")
+            elif name in ("pace", "steadiness"):
+                what = "a factor on the decision time" if name == "pace" else "a factor on the hand"
+                _check_range(where, dist, 0.0, math.inf, f"{what} > 0")
                 if dist.support()[0] <= 0 and dist.kind != "lognormal":  # a lognormal's draws are all above 0
-                    raise ConfigError(f"{where} must give a factor on the decision time > 0, but its {dist.kind} "
+                    raise ConfigError(f"{where} must give {what} > 0, but its {dist.kind} "
                                       f"distribution reaches {dist.support()[0]:g} (a lognormal is always above 0)")
             else:
                 _check_range(where, dist, 0.0, math.inf, "a number >= 0")
@@ -412,6 +416,16 @@ class Participant:
     percept: Optional[float] = None
     hand: Optional[float] = None
     pace: Optional[float] = None
+    steadiness: Optional[float] = None
+
+    @property
+    def planned_hand(self) -> Optional[float]:
+        """The motor noise the planner plans for: ``hand``, times ``steadiness`` when drawn."""
+        return None if not self.hand else self.hand * (self.steadiness if self.steadiness is not None else 1.0)
+
+    def motor_sd(self, cohort_sd: float) -> float:
+        """The motor noise of the participant's placements: the cohort's, times ``steadiness`` when drawn."""
+        return cohort_sd * self.steadiness if self.steadiness is not None else cohort_sd
 
 
 def participant_rngs(seed: int, index: int) -> tuple[np.random.Generator, np.random.Generator]:
@@ -443,7 +457,7 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
                 beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"]),
                 switch=None if drawn.get("switch") is None else int(drawn["switch"]),
                 risk=None if drawn.get("risk") is None else min(float(drawn["risk"]), MAX_RISK),
-                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("percept", "hand", "pace")}))
+                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("percept", "hand", "pace", "steadiness")}))
     return out
 
 
@@ -511,7 +525,8 @@ class Agents:
                         config[key] = value
             if group == "predictor" and participant.hand:
                 inner = {k: v for k, v in config.items() if k != "name"}
-                config = {"name": "hand", "inner": config["name"], "inner_params": inner, "sd": participant.hand}
+                config = {"name": "hand", "inner": config["name"], "inner_params": inner,
+                          "sd": participant.planned_hand}
             built[group] = self.registry.create(group, config, world=self.world)
         return built["predictor"], built["planner"]
 
@@ -612,7 +627,7 @@ def decide(participant: Participant, spec: ConditionSpec, cohort: Cohort, state,
         seconds *= participant.pace
     if time_limit is not None and seconds > time_limit:
         return Choice(action, lapsed, calls, decision.spend.depth_completed, seconds, True, None)
-    x = _legal_x(world, state, action, cohort.motor_sd, cohort.motor_retries, rng)
+    x = _legal_x(world, state, action, participant.motor_sd(cohort.motor_sd), cohort.motor_retries, rng)
     return Choice(action, lapsed, calls, decision.spend.depth_completed, seconds, False, x)
 
 

@@ -101,11 +101,14 @@ def read_truth(paths: Sequence[Path], families: Mapping[str, str],
             risk = _number(getattr(r, "risk", None))
             if risk is None:
                 risk = _number(planner.get("risk"))
+            hand, steadiness = _number(getattr(r, "hand", None)), _number(getattr(r, "steadiness", None))
+            if hand is not None and steadiness is not None:  # the hand its planner planned for
+                hand *= steadiness
             label = Model({"name": name}, int(depth), family).label if family and depth else None
             rows.append({"participant": str(r.id), "true_predictor": name, "true_family": family, "true_model": label,
                          "true_depth": depth, "depth_reached": None, "true_sigma": sigma, "true_beta": beta,
                          "true_lapse": _number(r.lapse), "true_switch": switch, "true_risk": risk,
-                         "true_hand": _number(getattr(r, "hand", None)),
+                         "true_hand": hand,
                          "true_percept": _number(getattr(r, "percept", None))})
     if not rows:
         return None
