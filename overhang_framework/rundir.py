@@ -44,6 +44,15 @@ class RunDirError(OverhangError):
     """A run directory that holds results this run may not continue or replace."""
 
 
+def run_config(directory: str | Path) -> dict:
+    """The config a run directory's ``run.json`` holds; empty when the file is missing or is not a run's."""
+    try:
+        config = json.loads((Path(directory) / RUN_FILE).read_text()).get("config")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return dict(config) if isinstance(config, dict) else {}
+
+
 def result_config(cfg: Mapping[str, Any]) -> dict:
     """The part of a resolved run config that decides its results."""
     return {k: v for k, v in cfg.items() if k not in PRESENTATION_KEYS}

@@ -91,6 +91,7 @@ import pandas as pd
 
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.results import atomic_write_json, atomic_write_text
+from overhang_framework.rundir import run_config
 
 #: Study name -> (cohort config, participants overrides, planted).
 STUDIES = {"dual_transition": ("dual_transition", ["predictor=hybrid"], True),
@@ -601,11 +602,9 @@ def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequ
         if not (where / "log.jsonl").is_file() or not (where / "participants.csv").is_file():
             raise ConfigError(f"--sim {where}: no finished simulation there (log.jsonl and participants.csv); "
                               "run python -m overhang_framework.participants into it first")
-        try:
-            config = json.loads((where / "run.json").read_text())["config"]
-            name = config["cohort"]["name"]
-        except (OSError, ValueError, KeyError, TypeError):
-            config, name = {}, None
+        config = run_config(where)
+        cohort_config = config.get("cohort")
+        name = cohort_config.get("name") if isinstance(cohort_config, dict) else None
         if name != cohort:
             raise ConfigError(f"--sim {where}: a simulation of cohort {name!r}, not this study's {cohort!r}")
         made = config.get("world", {}).get("physics")

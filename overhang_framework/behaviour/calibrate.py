@@ -164,8 +164,10 @@ def measured(df: pd.DataFrame, world) -> dict[str, dict[str, tuple[float, float]
     return out
 
 
-def measured_table(result: Mapping[str, Mapping[str, tuple[float, float]]] | Sequence[Mapping[str, Mapping[str, tuple[float, float]]]]
-                   ) -> str:
+Measured = Mapping[str, Mapping[str, tuple[float, float]]]
+
+
+def measured_table(result: Measured | Sequence[Measured]) -> str:
     """The measures beside the paper's, with each one's distance in the paper's SEMs (a markdown table).
 
     ``result`` is one run's :func:`measured`, or several runs' (the seeds of a cohort, or one run a
@@ -221,15 +223,16 @@ def run_log(run_dir: Path) -> tuple[pd.DataFrame, Optional[int]]:
 
 def run_world(run_dir: Path, overrides: Sequence[str] = ()):
     """The world a participants run simulated (its ``run.json``), or the run config's with ``overrides``."""
-    from overhang_framework.plugins import Registry
-
-    if not overrides:
-        try:
-            world = json.loads((Path(run_dir) / "run.json").read_text())["config"]["world"]
-            return Registry().create("world", dict(world))
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
     from overhang_framework.behaviour.analysis import build_world
+    from overhang_framework.plugins import Registry
+    from overhang_framework.rundir import run_config
+
+    world = run_config(run_dir).get("world") if not overrides else None
+    if isinstance(world, dict):
+        try:
+            return Registry().create("world", dict(world))
+        except (ValueError, KeyError, TypeError):
+            pass
 
     return build_world(list(overrides))
 

@@ -457,7 +457,8 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
                 beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"]),
                 switch=None if drawn.get("switch") is None else int(drawn["switch"]),
                 risk=None if drawn.get("risk") is None else min(float(drawn["risk"]), MAX_RISK),
-                **{k: None if drawn.get(k) is None else float(drawn[k]) for k in ("percept", "hand", "pace", "steadiness")}))
+                **{k: None if drawn.get(k) is None else float(drawn[k])
+                   for k in ("percept", "hand", "pace", "steadiness")}))
     return out
 
 

@@ -1,9 +1,9 @@
 """Model fitting: ``python -m overhang_framework.fit LOG [LOG ...] --out DIR [OVERRIDES ...]``.
 
 Fits every model of the model space (``conf/space/default.yaml`` through ``conf/fit.yaml``: predictor
-families x depths; ``space=explanations`` for the explanations of people's errors, docs/people.md) to every participant of the behaviour logs, and to each
-condition pooled, and writes into ``DIR``: ``fits.csv`` (one row per
-participant x model: parameters, log-likelihood, k, n, BIC, AIC),
+families x depths; ``space=explanations`` for the explanations of people's errors, docs/people.md) to
+every participant of the behaviour logs, and to each condition pooled, and writes into ``DIR``:
+``fits.csv`` (one row per participant x model: parameters, log-likelihood, k, n, BIC, AIC),
 ``comparison.md`` / ``comparison.csv`` / ``comparison.png`` (what was found, in
 sentences; winners, summed BIC, random-effects BMS, parameters between conditions;
 for simulated participants their true models and parameters beside the fitted ones,

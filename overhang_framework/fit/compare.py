@@ -3,7 +3,6 @@ parameters between conditions, and for simulated participants their true models 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
@@ -17,6 +16,7 @@ from overhang_framework.fit.bms import BMSResult, bms
 from overhang_framework.fit.run import POOLED
 from overhang_framework.fit.scores import Model
 from overhang_framework.results import atomic_write_text
+from overhang_framework.rundir import run_config
 
 #: Resamples of the permutation tests between conditions.
 N_RESAMPLES = 10_000
@@ -79,7 +79,7 @@ def read_truth(paths: Sequence[Path], families: Mapping[str, str],
         if missing:
             raise ConfigError(f"truth: {path} is not a participants.csv of the participants command "
                               f"(no column {missing[0]!r})")
-        config = _run_config(path.parent / "run.json")
+        config = run_config(path.parent)
         predictor = dict(config.get("predictor") or {})
         planner = dict(config.get("planner") or {})
         name = predictor.get("name")
@@ -117,13 +117,6 @@ def read_truth(paths: Sequence[Path], families: Mapping[str, str],
         reached = records.groupby(records["participant"].astype(str))["depth_completed"].median()
         truth["depth_reached"] = [_number(reached.get(p)) for p in truth["participant"]]
     return truth
-
-
-def _run_config(path: Path) -> dict:
-    try:
-        return dict(json.loads(path.read_text()).get("config") or {})
-    except (OSError, ValueError, AttributeError):
-        return {}
 
 
 def _blank(value) -> str:
