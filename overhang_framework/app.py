@@ -21,6 +21,7 @@ from overhang_framework.advice import run_notes
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
 from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError, first_line
+from overhang_framework.interrupts import ctrl_c_seen
 from overhang_framework.parallel import merge_stats
 from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework.plugins import Registry
@@ -218,6 +219,14 @@ class Terminated(BaseException):
     errors broadly does not take it for one and carry on."""
 
 
+def _stop_if_asked(sigterm: list) -> None:
+    """Raise the stop that a signal asked for, if a finaliser dropped the handler's own exception."""
+    if sigterm:
+        raise Terminated()
+    if ctrl_c_seen():
+        raise KeyboardInterrupt()
+
+
 @contextlib.contextmanager
 def _sigterm_stops_the_run() -> Iterator[list]:
     """Turn SIGTERM into :class:`Terminated` for the duration (main thread only).
@@ -339,6 +348,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
         records = serial()
     try:
         with _sigterm_stops_the_run() as sigterm, EpisodeLog(rundir.episodes, append=True) as episode_log:
+            _stop_if_asked(sigterm)
             for record in records:
                 key = (record["task_index"], record["repeat"])
                 bar.update(length[key] - len(record["steps"]))  # placements a collapse cut short
@@ -347,8 +357,7 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
                 log.info("episode %s repeat %d: reward %.3f, %d placements, %s", record["task_id"], key[1],
                          record["reward"], len(record["steps"]),
                          "stood throughout" if record["stable_throughout"] else "collapsed")
-                if sigterm:
-                    raise Terminated()
+                _stop_if_asked(sigterm)
     except (KeyboardInterrupt, Terminated) as stop:
         bar.close()
         summary_of(complete=False)

@@ -127,6 +127,10 @@ def _plugins_command(args: Sequence[str]) -> None:
 def main(argv: Optional[Sequence[str]] = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     try:
+        if argv is None:
+            from overhang_framework.interrupts import remember_ctrl_c
+
+            remember_ctrl_c()
         _main(args)
     except KeyboardInterrupt:
         print("interrupted before the first episode; nothing was written", file=sys.stderr)

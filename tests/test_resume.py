@@ -247,3 +247,40 @@ def test_a_sigterm_that_a_finaliser_swallows_is_still_seen_between_episodes():
         Finalised()  # collected at once
     assert received == [signal.SIGTERM]
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the dropped exception, as intended
+def test_a_ctrl_c_that_a_finaliser_swallows_still_stops_the_run(monkeypatch):
+    from overhang_framework import app, interrupts
+
+    monkeypatch.setattr(interrupts, "_CTRL_C", [])
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        interrupts.remember_ctrl_c()
+        assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+
+        class Finalised:
+            def __del__(self):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.2)  # the handler runs here, and Python drops its KeyboardInterrupt
+
+        Finalised()  # collected at once; no exception reaches this frame
+        assert interrupts.ctrl_c_seen()
+        with pytest.raises(KeyboardInterrupt):
+            app._stop_if_asked([])
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def test_remembering_ctrl_c_leaves_a_handler_of_its_own_alone(monkeypatch):
+    from overhang_framework import interrupts
+
+    def own(signum, frame):
+        pass
+
+    before = signal.signal(signal.SIGINT, own)
+    try:
+        interrupts.remember_ctrl_c()
+        assert signal.getsignal(signal.SIGINT) is own
+    finally:
+        signal.signal(signal.SIGINT, before)

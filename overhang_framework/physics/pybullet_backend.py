@@ -126,6 +126,8 @@ class PyBulletSimulator:
     """True: create the blocks in the order they are listed (the order-dependent behaviour of earlier
     versions, kept for side-by-side benchmarks only)."""
 
+    _client: Optional[int] = None  # until connected: an interrupted construction still closes cleanly
+
     def __init__(self, params: PyBulletParams = PyBulletParams()):
         pybullet = import_pybullet()
         self.params = params
