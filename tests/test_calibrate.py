@@ -324,3 +324,21 @@ def test_measure_takes_a_run_a_running_run_and_several_runs_and_gives_each_dista
     (tmp_path / "empty").mkdir()
     assert calibrate.main(["measure", str(tmp_path / "empty")]) == 2
     assert "no log.jsonl and no finished participants" in capsys.readouterr().err
+    # the per-participant measures, saved small, measure as the run did; rows in any order
+    saved = tmp_path / "kept" / "both.csv"
+    assert calibrate.main(["measure", str(tmp_path / "both"), "--save", str(saved)]) == 0
+    capsys.readouterr()
+    kept = pd.read_csv(saved)
+    assert list(kept.columns) == list(calibrate.PEOPLE_COLUMNS) and len(kept) == 5
+    kept.iloc[::-1].to_csv(tmp_path / "reversed.csv", index=False)
+    assert table(saved) == whole and table(tmp_path / "reversed.csv") == whole
+    assert table(saved, tmp_path / "running") == twice
+    # refused in one line: --save of several runs, a CSV of something else, a participant twice
+    assert calibrate.main(["measure", str(tmp_path / "both"), str(saved), "--save", str(tmp_path / "x.csv")]) == 2
+    assert "--save writes one run's participants; 2 runs were given" in capsys.readouterr().err
+    (tmp_path / "other.csv").write_text("a,b\n1,2\n")
+    assert calibrate.main(["measure", str(tmp_path / "other.csv")]) == 2
+    assert "lacks participant, condition" in capsys.readouterr().err
+    pd.concat([kept, kept.iloc[:1]]).to_csv(tmp_path / "twice.csv", index=False)
+    assert calibrate.main(["measure", str(tmp_path / "twice.csv")]) == 2
+    assert "is listed twice" in capsys.readouterr().err

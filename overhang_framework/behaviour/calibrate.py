@@ -44,7 +44,7 @@ from scipy.special import expit, logit
 from scipy.stats import norm
 
 from overhang_framework.behaviour.participants import Distribution, TimeModel
-from overhang_framework.errors import ConfigError
+from overhang_framework.errors import ConfigError, first_line
 
 #: The measures the fit matches, per condition: the paper's (mean, SEM) (Table 1; Γ from Fig. 3b).
 TARGETS = {
@@ -138,10 +138,14 @@ class Candidate:
 
 # ----------------------------------------------------------------------------------------------- measured
 
-def measured(df: pd.DataFrame, world) -> dict[str, dict[str, tuple[float, float]]]:
-    """The ten measures of a simulated (or real) cohort's log, measured directly: per condition, the mean and
-    SEM over participants of reward per trial, stable proportion, average overhang of successful trials,
-    decision time and Γ (of completed towers), as the paper's Table 1 and Fig. 3b report them."""
+PEOPLE_COLUMNS = ("participant", "condition", *METRICS)
+"""The columns of a saved table of per-participant measures (``measure --save``)."""
+
+
+def people_measures(df: pd.DataFrame, world) -> pd.DataFrame:
+    """One row per participant of a simulated (or real) cohort's log: its condition and the five measures
+    (reward per trial, stable proportion, average overhang of successful trials, decision time, Γ of completed
+    towers), as the paper's Table 1 and Fig. 3b take them per person."""
     from overhang_framework.behaviour.analysis import with_groups
     from overhang_framework.behaviour.gamma import per_participant as gamma_people
     from overhang_framework.behaviour.gamma import tower_gammas
@@ -152,9 +156,17 @@ def measured(df: pd.DataFrame, world) -> dict[str, dict[str, tuple[float, float]
     gammas = gamma_people(tower_gammas(df, world)).set_index("participant")["gamma"]
     people["gamma"] = gammas.reindex(people.index)
     condition = df.drop_duplicates("participant").set_index("participant")["condition"]
+    people["condition"] = condition.reindex(people.index)
+    return people.reset_index()[list(PEOPLE_COLUMNS)].sort_values("participant", kind="stable").reset_index(drop=True)
+
+
+def measured_people(people: pd.DataFrame) -> dict[str, dict[str, tuple[float, float]]]:
+    """The ten measures from per-participant rows (:func:`people_measures`): per condition, the mean and SEM
+    over participants of each measure."""
     out: dict[str, dict[str, tuple[float, float]]] = {}
-    for name in sorted(set(condition), key=lambda c: (c not in TARGETS, list(TARGETS).index(c) if c in TARGETS else 0, c)):
-        group = people[condition.reindex(people.index) == name]
+    for name in sorted(set(people["condition"]),
+                       key=lambda c: (c not in TARGETS, list(TARGETS).index(c) if c in TARGETS else 0, c)):
+        group = people[people["condition"] == name]
         row = {}
         for metric in METRICS:
             v = group[metric].dropna().to_numpy(dtype=float)
@@ -162,6 +174,30 @@ def measured(df: pd.DataFrame, world) -> dict[str, dict[str, tuple[float, float]
                            float(v.std(ddof=1) / math.sqrt(len(v))) if len(v) > 1 else math.nan)
         out[name] = row
     return out
+
+
+def measured(df: pd.DataFrame, world) -> dict[str, dict[str, tuple[float, float]]]:
+    """The ten measures of a simulated (or real) cohort's log, measured directly: per condition, the mean and
+    SEM over participants of reward per trial, stable proportion, average overhang of successful trials,
+    decision time and Γ (of completed towers), as the paper's Table 1 and Fig. 3b report them."""
+    return measured_people(people_measures(df, world))
+
+
+def read_people(path: Path) -> pd.DataFrame:
+    """A table of per-participant measures that ``measure --save`` wrote; :class:`ConfigError` naming what
+    is wrong when it is not one."""
+    try:
+        people = pd.read_csv(path)
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: not a readable CSV of per-participant measures ({first_line(err)})") from None
+    missing = [c for c in PEOPLE_COLUMNS if c not in people.columns]
+    if missing:
+        raise ConfigError(f"{path}: not a table of per-participant measures; it lacks {', '.join(missing)} "
+                          f"(expected columns: {', '.join(PEOPLE_COLUMNS)}, as measure --save writes them)")
+    if people["participant"].duplicated().any():
+        raise ConfigError(f"{path}: participant {people.loc[people['participant'].duplicated(), 'participant'].iloc[0]!r} "
+                          "is listed twice")
+    return people
 
 
 Measured = Mapping[str, Mapping[str, tuple[float, float]]]
@@ -495,20 +531,36 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     f.add_argument("--axis-spread", type=float, default=AXIS_SPREAD,
                    help="the lognormal sigma of a candidate's percept and hand")
     m = sub.add_parser("measure", help="the ten measures of participants runs, beside the paper's")
-    m.add_argument("run_dirs", type=Path, nargs="+", metavar="run_dir",
-                   help="a participants run (one still running: its finished participants); several: the seeds "
-                        "of a cohort, or one run a condition")
+    m.add_argument("run_dirs", type=Path, nargs="+", metavar="run",
+                   help="a participants run (one still running: its finished participants), or a CSV that "
+                        "--save wrote; several: the seeds of a cohort, or one run a condition")
     m.add_argument("--world", nargs="*", default=None,
                    help="world overrides for Γ (default: the world each run simulated, from its run.json)")
+    m.add_argument("--save", type=Path, default=None, metavar="CSV",
+                   help="write the per-participant measures of the one run given (small enough to keep; "
+                        "measure reads it back as a run)")
     args = parser.parse_args(argv)
     try:
         if args.command == "measure":
+            if args.save is not None and len(args.run_dirs) != 1:
+                raise ConfigError(f"--save writes one run's participants; {len(args.run_dirs)} runs were given")
             results = []
             for run_dir in args.run_dirs:
-                df, finished = run_log(run_dir)
-                if finished is not None:
-                    print(f"{run_dir}: still running; its {finished} finished participants", file=sys.stderr)
-                results.append(measured(df, run_world(run_dir, args.world or ())))
+                if run_dir.is_file():
+                    people = read_people(run_dir)
+                else:
+                    df, finished = run_log(run_dir)
+                    if finished is not None:
+                        print(f"{run_dir}: still running; its {finished} finished participants", file=sys.stderr)
+                    people = people_measures(df, run_world(run_dir, args.world or ()))
+                if args.save is not None:
+                    from overhang_framework.results import atomic_output
+
+                    args.save.parent.mkdir(parents=True, exist_ok=True)
+                    with atomic_output(args.save) as tmp:
+                        people.to_csv(tmp, index=False, float_format="%.10g")
+                    print(f"{args.save}: {len(people)} participants", file=sys.stderr)
+                results.append(measured_people(people))
             print(measured_table(results))
             return 0
         if args.command == "library":
