@@ -604,6 +604,14 @@ def test_the_fit_benchmark_compares_the_tables_with_the_code_before_and_as_a_fit
     assert in_fit["max_score_difference"] < 1e-4
 
 
+def test_the_fit_benchmark_names_an_unknown_space_in_one_line(capsys):
+    from overhang_framework.bench import fit
+
+    assert fit.main(["--space", "nope", "--states", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err == "error: --space: unknown space 'nope'; available: default, explanations\n"
+
+
 def test_mirror_settings_parse_from_words_and_booleans():
     from overhang_framework.cnn.model import parse_mirror
 

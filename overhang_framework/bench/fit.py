@@ -15,8 +15,9 @@ It then projects the cold-cache cost of fitting the log in one process (tables x
 distinct decision states as the fit builds them by default, ``states=logged``, one
 table per sigma of a grid) from the measured seconds per table.
 
-With ``--space``, it also times the fit's default model space (``conf/fit.yaml``: the IPE's sigma grid, the
-CNN, the hybrid at every switch point; myopic and D=2) on whole trials, as one fit process computes them
+With ``--space``, it also times the fit's default model space (``conf/space/default.yaml``: the IPE's sigma grid,
+the CNN, the hybrid at every switch point; myopic and D=2), or with ``--space NAME`` another
+(``--space explanations``: the explanations of people's errors, docs/people.md), on whole trials, as one fit process computes them
 (predictors shared, one expander per model), with the tables that are the same numbers shared
 (:func:`~overhang_framework.fit.scores.share_tables`: the hybrid's switch points) and without, alternating
 trial by trial, and prints tables computed, seconds and the largest difference between the two.
@@ -113,8 +114,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--reference", choices=("engine", "nnls"), default="engine",
                     help="with --compare, what 'before' is: the code before issue 33's engine (default), or "
                          "today's with the LP stage's systems built in NumPy and solved by SciPy one by one (nnls)")
-    ap.add_argument("--space", action="store_true",
-                    help="also time the fit's default model space on --trials trials, tables shared and not")
+    ap.add_argument("--space", nargs="?", const="default", default=None, metavar="NAME",
+                    help="also time a fit's model space (conf/space/NAME.yaml; default: default) on --trials trials, "
+                         "tables shared and not")
     ap.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = ap.parse_args(argv)
     from overhang_framework.preflight import overrides_problem
@@ -123,6 +125,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if problem is not None:
         print(f"error: --world: {problem}", file=sys.stderr)
         return 2
+    if args.space is not None:
+        from overhang_framework.errors import OverhangError
+        from overhang_framework.preflight import compose_checked
+
+        try:
+            compose_checked([f"space={args.space}"], config_name="fit")
+        except OverhangError as err:
+            print(f"error: --space: {err}", file=sys.stderr)
+            return 2
 
     from overhang_framework.behaviour.analysis import build_world
     from overhang_framework.behaviour.log import read_log
@@ -264,7 +275,7 @@ def _space(world, value, context, placements, blocks, args, rng) -> dict:
     from overhang_framework.fit.space import model_space
     from overhang_framework.plugins import Registry
 
-    conf = compose_config([], config_name="fit")
+    conf = compose_config([f"space={args.space}"], config_name="fit")
     space = model_space(OmegaConf.to_container(conf.models, resolve=True), list(conf.depths), blocks)
     by_trial: dict[tuple, list] = {}
     for p in placements:
@@ -276,7 +287,7 @@ def _space(world, value, context, placements, blocks, args, rng) -> dict:
     names = ("shared", "each", "before")
     arms = {a: {"seconds": 0.0, "computed": 0} for a in names}
     difference = 0.0
-    print(f"\nthe fit's default model space ({len(models)} models) on {len(trials)} logged trials "
+    print(f"\nthe fit's {args.space} model space ({len(models)} models) on {len(trials)} logged trials "
           f"({sum(len(t) for t in trials)} states): as a fit computes it, each model's own tables, and "
           "hybrids drawing their own (before):", flush=True)
     own_draws = mock.patch.object(Model, "draw_settings", lambda self: self.predictor)
@@ -307,7 +318,7 @@ def _space(world, value, context, placements, blocks, args, rng) -> dict:
           f"({each:.2f}x)", flush=True)
     print(f"  now:                         {arms['shared']['computed']} tables, {arms['shared']['seconds']:.1f} s; "
           f"the same as each model's own to {difference:.1e}", flush=True)
-    return {"models": len(models), "trials": len(trials), **{f"{k}_{m}": v for k, a in arms.items() for m, v in a.items()},
+    return {"space": args.space, "models": len(models), "trials": len(trials), **{f"{k}_{m}": v for k, a in arms.items() for m, v in a.items()},
             "speedup": each, "speedup_over_before": before, "max_difference": difference}
 
 
