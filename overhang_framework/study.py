@@ -33,8 +33,17 @@ whose first finding ``study.md`` then adds.
 
 Participants simulated already (say, each condition's run at the paper's size, made sitting by sitting) are
 taken as they are with ``--sim DIR`` (once per run directory; each must be a finished simulation of the
-study's cohort, and no participant may appear twice): ``sim/`` then holds their logs and tables, the study
-proper is all of them, and power is a bootstrap of them. ``--no-fit`` leaves out the fit (and the predictive
+study's cohort, or of another whose participants are the study's people condition by condition
+(:func:`population`), and no participant may appear twice): ``sim/`` then holds their logs and tables, the
+study proper is all of them, and power is a bootstrap of them. A graded study's 5 s and no-limit levels are
+``cohort=paper_people``'s two conditions, so its runs serve there, and only the other levels need simulating::
+
+    python -m overhang_framework.participants cohort=graded_budgets \
+        'cohort.participants={limit_2_5s: 40, time_limited: 0, limit_10s: 40, unconstrained: 0}' hydra.run.dir=runs/graded_new
+    python -m overhang_framework.study graded_budgets --out runs/graded --sim runs/graded_new \
+        --sim runs/pp_tl --sim runs/pp_un
+
+ ``--no-fit`` leaves out the fit (and the predictive
 check); the findings of the fit (depth, hybrid, switch) are then reported as not tested::
 
     python -m overhang_framework.study paper_people --out runs/pp_study --sim runs/pp_tl --sim runs/pp_un --no-fit
@@ -445,8 +454,6 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     if sims and (scale != 1.0 or pool != 2.0 or n_tasks is not None or participants):
         raise ConfigError("--sim takes participants already simulated; --scale, --pool, --tasks and --participants "
                           "are for simulating them: leave them out")
-    if sims and study in GRADED:
-        raise ConfigError(f"--sim: {study} simulates its own levels; --sim is for the studies of two conditions")
     cohort, model, planted = STUDIES[study]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -472,7 +479,8 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     # 1. the participants
     t0 = time.perf_counter()
     if sims:
-        sizes = gather(sims, out / "sim", str(base.cohort.name), list(counts), str(sim_cfg.world.physics))
+        sizes = gather(sims, out / "sim", str(base.cohort.name), list(counts), str(sim_cfg.world.physics),
+                       OmegaConf.to_container(sim_cfg, resolve=True))
         simulated = dict(sizes)
         say(f"taking {sum(sizes.values())} participants ({', '.join(f'{n} {k}' for k, n in sizes.items())}) "
             f"from {len(sims)} simulation{'s' * (len(sims) > 1)}")
@@ -515,7 +523,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         steps.finish("fit", digest, time.perf_counter() - t0)
 
     if study in GRADED:
-        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started)
+        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models)
 
     # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
@@ -589,29 +597,79 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     return {"out": str(out), "findings": table, "report": text}
 
 
+def population(config: Mapping, condition: str) -> dict:
+    """What the participants of ``condition`` in a participants run of ``config`` (its ``run.json`` config, or a
+    composed participants config) are drawn from and do: their parameters' distributions and decision times
+    (the cohort's, with the condition's own on top, key by key), the motor noise, the task set, the condition's
+    limits, the models and the world (not how many of the tasks each did: the study says that). Two runs whose
+    populations for a condition are equal simulate the same people there, whatever their cohorts are called
+    (a graded study's 5 s and no-limit levels are ``cohort=paper_people``'s two conditions)."""
+    cohort = dict(config.get("cohort") or {})
+    own = dict((cohort.get("by_condition") or {}).get(condition) or {})
+    return {
+        "parameters": {**(cohort.get("parameters") or {}), **(own.get("parameters") or {})},
+        "decision_time": {**(cohort.get("decision_time") or {}), **(own.get("decision_time") or {})},
+        "motor": cohort.get("motor"),
+        "condition": dict((config.get("conditions") or {}).get(condition) or {}),
+        **{k: config.get(k) for k in ("planner", "predictor", "value", "tasks", "world")},
+    }
+
+
+def _differences(a: Mapping, b: Mapping, prefix: str = "") -> list[str]:
+    """The dotted keys where two nested configs differ (numbers equal to 9 digits are equal)."""
+    out = []
+    for key in sorted(set(a) | set(b), key=str):
+        x, y = a.get(key), b.get(key)
+        if isinstance(x, Mapping) and isinstance(y, Mapping):
+            out += _differences(x, y, f"{prefix}{key}.")
+        elif _numbers(x, y) and math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12):
+            continue  # a run.json keeps its numbers to 12 digits
+        elif x != y:
+            out.append(f"{prefix}{key}")
+    return out
+
+
+def _numbers(*values) -> bool:
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+
+
 def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequence[str],
-           physics: Optional[str] = None) -> dict[str, int]:
-    """Take the participants of finished simulations of ``cohort`` (each a run directory of
-    ``python -m overhang_framework.participants`` with ``log.jsonl`` and ``participants.csv``) as a study's:
-    their logs and tables, in the order given, into ``into`` (rewritten only when they change). Returns the
-    participants per condition, in the order of ``conditions``; refuses, in one line, a directory without a
-    finished simulation, another cohort's, one under another physics than ``physics``, a participant id given
-    twice, and a condition with nobody."""
+           physics: Optional[str] = None, config: Optional[Mapping] = None) -> dict[str, int]:
+    """Take the participants of finished simulations (each a run directory of ``python -m
+    overhang_framework.participants`` with ``log.jsonl`` and ``participants.csv``) as a study's: their logs and
+    tables, in the order given, into ``into`` (rewritten only when they change). A simulation of ``cohort``
+    is taken whole; one of another cohort is taken where its participants are this study's people: each of its
+    conditions with participants must be one of ``conditions`` with the same :func:`population` as ``config``
+    (the study's participants config) gives it. Returns the participants per condition, in the order of
+    ``conditions``; refuses, in one line, a directory without a finished simulation, another population, one
+    under another physics than ``physics``, a participant id given twice, and a condition with nobody."""
     logs, tables, seen = [], [], {}
     for where in map(Path, sims):
         if not (where / "log.jsonl").is_file() or not (where / "participants.csv").is_file():
             raise ConfigError(f"--sim {where}: no finished simulation there (log.jsonl and participants.csv); "
                               "run python -m overhang_framework.participants into it first")
-        config = run_config(where)
-        cohort_config = config.get("cohort")
+        made_config = run_config(where)
+        cohort_config = made_config.get("cohort")
         name = cohort_config.get("name") if isinstance(cohort_config, dict) else None
-        if name != cohort:
-            raise ConfigError(f"--sim {where}: a simulation of cohort {name!r}, not this study's {cohort!r}")
-        made = config.get("world", {}).get("physics")
+        made = made_config.get("world", {}).get("physics")
         if physics is not None and made != physics:
             raise ConfigError(f"--sim {where}: simulated under world.physics={made}, and this study's world is "
                               f"world.physics={physics} (give --world world.physics={made})")
         table = pd.read_csv(where / "participants.csv", dtype={"id": str})
+        if name != cohort:
+            present = [c for c in dict.fromkeys(table["condition"].astype(str))]
+            if config is None:
+                raise ConfigError(f"--sim {where}: a simulation of cohort {name!r}, not this study's {cohort!r}")
+            for condition in present:
+                if condition not in conditions:
+                    raise ConfigError(f"--sim {where}: a simulation of cohort {name!r}, not this study's {cohort!r}, "
+                                      f"and its {condition} participants are in none of the study's conditions "
+                                      f"({', '.join(conditions)})")
+                differ = _differences(population(made_config, condition), population(config, condition))
+                if differ:
+                    shown = ", ".join(differ[:4]) + (f" and {len(differ) - 4} more" if len(differ) > 4 else "")
+                    raise ConfigError(f"--sim {where}: a simulation of cohort {name!r}, not this study's {cohort!r}; "
+                                      f"its {condition} participants are other people (they differ in {shown})")
         for pid in table["id"]:
             if pid in seen:
                 raise ConfigError(f"--sim {where}: participant {pid} is in {seen[pid]} too; give each simulation once, "
@@ -645,14 +703,14 @@ def _participants(out: Path, sizes: dict[str, int], fitted: bool = True) -> tupl
 
 
 def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples: int, seed: int,
-            started: float) -> dict:
+            started: float, fitted: bool = True) -> dict:
     """A graded study's step 4: each level's figures, the trends and the sample sizes (:mod:`overhang_framework.graded`)."""
     from overhang_framework import graded
 
     t0 = time.perf_counter()
     limits = {name: sim_cfg.conditions[name].get("time_limit") for name in sizes}
     levels = graded.levels_of(limits)
-    pool_people, people = _participants(out, sizes)
+    pool_people, people = _participants(out, sizes, fitted)
     pred = graded.predictions(people, levels, seed=seed)
     found = graded.trends(people, levels, seed=seed)
     table = graded.power(pool_people, levels, resamples=resamples, seed=seed) if resamples else \
@@ -662,6 +720,9 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
     steps.finish("findings", "", time.perf_counter() - t0)
     text = graded.report(pred, found, table, levels, limits, {c: int((pool_people["condition"] == c).sum())
                                                               for c in levels})
+    if not fitted:
+        text += ("\nNo fit (`--no-fit`): the fitted depth and risk aversion are neither predicted nor tested; "
+                 "run the study again without `--no-fit` to add them.\n")
     text += ("\n## Steps\n\n" + "\n".join(f"- {k}: {v['seconds']:.0f} s" for k, v in steps.done.items())
              + f"\n\nTotal this run: {time.perf_counter() - started:.0f} s. Files: `sim/`, `analysis/report.md`, "
              "`fit/comparison.md`, `participants.csv`, `predictions.csv`, `trends.csv`, `power.csv`.\n")
@@ -799,8 +860,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     help="participants override (repeatable)")
     ap.add_argument("--fit", action="append", default=[], metavar="OVERRIDE", help="fit override (repeatable)")
     ap.add_argument("--sim", action="append", default=[], metavar="DIR",
-                    help="take the participants of this finished simulation of the study's cohort instead of "
-                         "simulating (repeatable, e.g. one run a condition); power is then a bootstrap")
+                    help="take the participants of this finished simulation of the study's cohort (or of another "
+                         "whose participants are the study's people) instead of simulating (repeatable, e.g. one "
+                         "run a condition); power is then a bootstrap")
     ap.add_argument("--no-fit", action="store_true", help="leave out the fit and the findings that need it")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)

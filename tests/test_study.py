@@ -229,3 +229,64 @@ def test_a_study_of_participants_simulated_already_without_a_fit(tmp_path):
                             "--no-fit", "--world", "world.physics=static"], capture_output=True, text=True, timeout=300)
     assert other.returncode == 2 and "a simulation of cohort 'null_effect', not this study's 'paper_people'" \
         in other.stderr, other.stderr
+
+
+def _fake_run(where, cohort_words, conditions):
+    """A finished participants run directory as --sim reads it: run.json's config composed from
+    ``cohort_words``, a participant table with ``conditions`` ({condition: code}) and a log line each."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from overhang_framework.participants import CONFIG_NAME
+    from overhang_framework.study import _compose
+
+    from overhang_framework.results import readable
+
+    config = OmegaConf.to_container(_compose(cohort_words, CONFIG_NAME, "--participants"), resolve=True)
+    where.mkdir(parents=True)
+    (where / "run.json").write_text(json.dumps({"config": readable(config)}))  # as a run keeps it (numbers rounded)
+    ids = [f"sim-{code}-001" for code in conditions.values()]
+    pd.DataFrame({"id": ids, "condition": list(conditions)}).to_csv(where / "participants.csv", index=False)
+    (where / "log.jsonl").write_text("".join(f'{{"participant": "{i}"}}\n' for i in ids))
+    return config
+
+
+def test_a_graded_study_takes_paper_people_runs_for_the_levels_whose_people_they_are(tmp_path):
+    """The graded cohort's 5 s and no-limit levels are paper_people's two conditions (the two files must not
+    drift apart), so a graded study takes paper_people's runs there; other people are refused, in one line
+    that names what differs."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.errors import ConfigError
+    from overhang_framework.participants import CONFIG_NAME
+    from overhang_framework.study import _differences, gather, population
+
+    graded = OmegaConf.to_container(compose_config(["cohort=graded_budgets"], config_name=CONFIG_NAME), resolve=True)
+    people = OmegaConf.to_container(compose_config(["cohort=paper_people"], config_name=CONFIG_NAME), resolve=True)
+    for level in ("time_limited", "unconstrained"):
+        assert _differences(population(people, level), population(graded, level)) == []
+    assert "parameters.risk.value" in _differences(population(people, "time_limited"), population(graded, "limit_10s"))
+
+    levels = ["limit_2_5s", "time_limited", "limit_10s", "unconstrained"]
+    new = _fake_run(tmp_path / "new", ["cohort=graded_budgets"], {"limit_2_5s": "limit_2_5s", "limit_10s": "limit_10s"})
+    _fake_run(tmp_path / "pp", ["cohort=paper_people"], {"time_limited": "tl", "unconstrained": "un"})
+    sizes = gather([tmp_path / "new", tmp_path / "pp"], tmp_path / "sim", "graded_budgets", levels,
+                   "tiered", graded)
+    assert sizes == dict.fromkeys(levels, 1)
+    assert len(pd.read_csv(tmp_path / "sim" / "participants.csv")) == 4
+    assert new["cohort"]["name"] == "graded_budgets"
+
+    _fake_run(tmp_path / "bolder", ["cohort=paper_people", "cohort.by_condition.time_limited.parameters.risk.value=0.5"],
+              {"time_limited": "tl"})
+    with pytest.raises(ConfigError, match=r"a simulation of cohort 'paper_people', not this study's 'graded_budgets'; "
+                                          r"its time_limited participants are other people \(they differ in "
+                                          r"parameters.risk.value\)"):
+        gather([tmp_path / "new", tmp_path / "bolder"], tmp_path / "sim2", "graded_budgets", levels, "tiered", graded)
+    _fake_run(tmp_path / "null", ["cohort=null_effect"], {"time_limited": "tl"})
+    with pytest.raises(ConfigError, match="its time_limited participants are other people"):
+        gather([tmp_path / "null"], tmp_path / "sim3", "graded_budgets", levels, "tiered", graded)
+    _fake_run(tmp_path / "other", ["cohort=dual_transition"], {"switching": "sw"})
+    with pytest.raises(ConfigError, match="its switching participants are in none of the study's conditions"):
+        gather([tmp_path / "other"], tmp_path / "sim4", "graded_budgets", levels, "tiered", graded)
