@@ -21,7 +21,7 @@ from overhang_framework.advice import run_notes
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
 from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError, first_line
-from overhang_framework.interrupts import ctrl_c_seen
+from overhang_framework.interrupts import stop_if_ctrl_c
 from overhang_framework.parallel import merge_stats
 from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework.plugins import Registry
@@ -223,8 +223,7 @@ def _stop_if_asked(sigterm: list) -> None:
     """Raise the stop that a signal asked for, if a finaliser dropped the handler's own exception."""
     if sigterm:
         raise Terminated()
-    if ctrl_c_seen():
-        raise KeyboardInterrupt()
+    stop_if_ctrl_c()
 
 
 @contextlib.contextmanager

@@ -127,11 +127,13 @@ def _plugins_command(args: Sequence[str]) -> None:
 def main(argv: Optional[Sequence[str]] = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     try:
-        if argv is None:
+        if argv is None:  # the process's own command line: a Ctrl-C that Python drops still stops the run
             from overhang_framework.interrupts import remember_ctrl_c
 
-            remember_ctrl_c()
-        _main(args)
+            with remember_ctrl_c():
+                _main(args)
+        else:
+            _main(args)
     except KeyboardInterrupt:
         print("interrupted before the first episode; nothing was written", file=sys.stderr)
         sys.exit(130)

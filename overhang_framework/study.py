@@ -34,16 +34,18 @@ whose first finding ``study.md`` then adds.
 Participants simulated already (say, each condition's run at the paper's size, made sitting by sitting) are
 taken as they are with ``--sim DIR`` (once per run directory; each must be a finished simulation of the
 study's cohort, or of another whose participants are the study's people condition by condition
-(:func:`population`), and no participant may appear twice): ``sim/`` then holds their logs and tables, the
-study proper is all of them, and power is a bootstrap of them. A graded study's 5 s and no-limit levels are
-``cohort=paper_people``'s two conditions, so its runs serve there, and only the other levels need simulating::
+(:func:`population`); no participant may appear twice, and no two runs may draw their participants from
+the same random streams, i.e. the same seed, since participant ``i`` of a seed draws from the same streams in
+every run): ``sim/`` then holds their logs and tables, the study proper is all of them, and power is a
+bootstrap of them. A graded study's 5 s and no-limit levels are ``cohort=paper_people``'s two conditions, so
+its runs serve there, and only the other levels need simulating::
 
-    python -m overhang_framework.participants cohort=graded_budgets \
+    python -m overhang_framework.participants cohort=graded_budgets seed=10 \
         'cohort.participants={limit_2_5s: 40, time_limited: 0, limit_10s: 40, unconstrained: 0}' hydra.run.dir=runs/graded_new
     python -m overhang_framework.study graded_budgets --out runs/graded --sim runs/graded_new \
-        --sim runs/pp_tl --sim runs/pp_un
+        --sim runs/pp_tl --sim runs/pp_un        # the paper_people runs at seeds of their own, e.g. 1 and 0
 
- ``--no-fit`` leaves out the fit (and the predictive
+``--no-fit`` leaves out the fit (and the predictive
 check); the findings of the fit (depth, hybrid, switch) are then reported as not tested::
 
     python -m overhang_framework.study paper_people --out runs/pp_study --sim runs/pp_tl --sim runs/pp_un --no-fit
@@ -601,17 +603,19 @@ def population(config: Mapping, condition: str) -> dict:
     """What the participants of ``condition`` in a participants run of ``config`` (its ``run.json`` config, or a
     composed participants config) are drawn from and do: their parameters' distributions and decision times
     (the cohort's, with the condition's own on top, key by key), the motor noise, the task set, the condition's
-    limits, the models and the world (not how many of the tasks each did: the study says that). Two runs whose
-    populations for a condition are equal simulate the same people there, whatever their cohorts are called
-    (a graded study's 5 s and no-limit levels are ``cohort=paper_people``'s two conditions)."""
+    limits, the models and the world, and how many of the tasks each does (``cohort.n_tasks``); not how the
+    work is done (``world.workers``, ``world.cache``). Two runs whose populations for a condition are equal
+    simulate the same people there, whatever their cohorts are called (a graded study's 5 s and no-limit
+    levels are ``cohort=paper_people``'s two conditions)."""
     cohort = dict(config.get("cohort") or {})
     own = dict((cohort.get("by_condition") or {}).get(condition) or {})
+    world = {k: v for k, v in dict(config.get("world") or {}).items() if k not in ("workers", "cache")}
     return {
         "parameters": {**(cohort.get("parameters") or {}), **(own.get("parameters") or {})},
         "decision_time": {**(cohort.get("decision_time") or {}), **(own.get("decision_time") or {})},
-        "motor": cohort.get("motor"),
+        "motor": cohort.get("motor"), "n_tasks": cohort.get("n_tasks"),
         "condition": dict((config.get("conditions") or {}).get(condition) or {}),
-        **{k: config.get(k) for k in ("planner", "predictor", "value", "tasks", "world")},
+        **{k: config.get(k) for k in ("planner", "predictor", "value", "tasks")}, "world": world,
     }
 
 
@@ -622,11 +626,20 @@ def _differences(a: Mapping, b: Mapping, prefix: str = "") -> list[str]:
         x, y = a.get(key), b.get(key)
         if isinstance(x, Mapping) and isinstance(y, Mapping):
             out += _differences(x, y, f"{prefix}{key}.")
-        elif _numbers(x, y) and math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12):
-            continue  # a run.json keeps its numbers to 12 digits
-        elif x != y:
+        elif not _same(x, y):
             out.append(f"{prefix}{key}")
     return out
+
+
+def _same(x, y) -> bool:
+    """Equal values, numbers to 9 digits (a run.json keeps its numbers to 12), lists item by item."""
+    if _numbers(x, y):
+        return math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12)
+    if isinstance(x, (list, tuple)) and isinstance(y, (list, tuple)):
+        return len(x) == len(y) and all(_same(a, b) for a, b in zip(x, y))
+    if isinstance(x, Mapping) and isinstance(y, Mapping):
+        return not _differences(x, y)
+    return x == y
 
 
 def _numbers(*values) -> bool:
@@ -642,8 +655,10 @@ def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequ
     conditions with participants must be one of ``conditions`` with the same :func:`population` as ``config``
     (the study's participants config) gives it. Returns the participants per condition, in the order of
     ``conditions``; refuses, in one line, a directory without a finished simulation, another population, one
-    under another physics than ``physics``, a participant id given twice, and a condition with nobody."""
-    logs, tables, seen = [], [], {}
+    under another physics than ``physics``, a participant id given twice, two runs whose participants draw
+    from the same random streams (the same seed and index: the same people, paired across conditions), and a
+    condition with nobody."""
+    logs, tables, seen, streams = [], [], {}, {}
     for where in map(Path, sims):
         if not (where / "log.jsonl").is_file() or not (where / "participants.csv").is_file():
             raise ConfigError(f"--sim {where}: no finished simulation there (log.jsonl and participants.csv); "
@@ -675,6 +690,14 @@ def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequ
                 raise ConfigError(f"--sim {where}: participant {pid} is in {seen[pid]} too; give each simulation once, "
                                   "and simulations whose participants differ (e.g. one a condition)")
             seen[pid] = where
+        seed = made_config.get("seed")
+        if "index" in table.columns and seed is not None:
+            for index in table["index"].astype(int):
+                if (seed, index) in streams:
+                    raise ConfigError(f"--sim {where}: its participants draw from the same random streams (seed {seed}) "
+                                      f"as {streams[(seed, index)]}'s, participant by participant, and would be paired "
+                                      "across the study's conditions; simulate one of the two with another seed=")
+            streams.update({(seed, int(i)): where for i in table["index"]})
         text = (where / "log.jsonl").read_text()
         logs.append(text if text.endswith("\n") or not text else text + "\n")
         tables.append(table)

@@ -342,3 +342,14 @@ def test_measure_takes_a_run_a_running_run_and_several_runs_and_gives_each_dista
     pd.concat([kept, kept.iloc[:1]]).to_csv(tmp_path / "twice.csv", index=False)
     assert calibrate.main(["measure", str(tmp_path / "twice.csv")]) == 2
     assert "is listed twice" in capsys.readouterr().err
+    for name, frame, words in (("header.csv", kept.iloc[:0], "no participants"),
+                               ("blank.csv", kept.assign(condition=[None] + list(kept["condition"][1:])),
+                                "line 2 has no participant or no condition"),
+                               ("word.csv", kept.astype({"gamma": object}).assign(gamma=["high"] + list(kept["gamma"][1:])),
+                                "gamma on line 2 is 'high', not a number")):
+        frame.to_csv(tmp_path / name, index=False)
+        assert calibrate.main(["measure", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err, err
+    assert calibrate.main(["measure", str(saved), "--world", "world.physics=static"]) == 2
+    assert "keeps Γ already computed" in capsys.readouterr().err

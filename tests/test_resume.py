@@ -250,29 +250,32 @@ def test_a_sigterm_that_a_finaliser_swallows_is_still_seen_between_episodes():
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the dropped exception, as intended
-def test_a_ctrl_c_that_a_finaliser_swallows_still_stops_the_run(monkeypatch):
+def test_a_ctrl_c_that_a_finaliser_swallows_is_remembered_until_a_run_acts_on_it():
     from overhang_framework import app, interrupts
 
-    monkeypatch.setattr(interrupts, "_CTRL_C", [])
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        interrupts.remember_ctrl_c()
-        assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+        with interrupts.remember_ctrl_c():
+            assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
 
-        class Finalised:
-            def __del__(self):
-                os.kill(os.getpid(), signal.SIGINT)
-                time.sleep(0.2)  # the handler runs here, and Python drops its KeyboardInterrupt
+            class Finalised:
+                def __del__(self):
+                    os.kill(os.getpid(), signal.SIGINT)
+                    time.sleep(0.2)  # the handler runs here, and Python drops its KeyboardInterrupt
 
-        Finalised()  # collected at once; no exception reaches this frame
-        assert interrupts.ctrl_c_seen()
-        with pytest.raises(KeyboardInterrupt):
+            Finalised()  # collected at once; no exception reaches this frame
+            assert interrupts.ctrl_c_seen()
+            with pytest.raises(KeyboardInterrupt):
+                app._stop_if_asked([])
+            assert not interrupts.ctrl_c_seen()  # acted on once
             app._stop_if_asked([])
+            interrupts._CTRL_C.append(signal.SIGINT)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler and not interrupts.ctrl_c_seen()
     finally:
         signal.signal(signal.SIGINT, before)
 
 
-def test_remembering_ctrl_c_leaves_a_handler_of_its_own_alone(monkeypatch):
+def test_remembering_ctrl_c_leaves_a_handler_of_its_own_alone():
     from overhang_framework import interrupts
 
     def own(signum, frame):
@@ -280,7 +283,34 @@ def test_remembering_ctrl_c_leaves_a_handler_of_its_own_alone(monkeypatch):
 
     before = signal.signal(signal.SIGINT, own)
     try:
-        interrupts.remember_ctrl_c()
-        assert signal.getsignal(signal.SIGINT) is own
+        with interrupts.remember_ctrl_c():
+            assert signal.getsignal(signal.SIGINT) is own
     finally:
         signal.signal(signal.SIGINT, before)
+
+
+@pytest.mark.parametrize("after", [0, 1])
+def test_a_dropped_ctrl_c_stops_the_run_before_its_first_episode_or_after_the_one_it_came_in(tmp_path, monkeypatch,
+                                                                                             capsys, after):
+    """A Ctrl-C whose exception Python dropped (the record holds it, nothing was raised) stops the run where
+    it checks: before its first episode, or after the episode during which it came; the finished ones kept."""
+    from overhang_framework import app, interrupts
+    from overhang_framework.cli import main
+
+    play = app.play_run_episode
+    played = []
+
+    def play_then_drop(*args, **kwargs):
+        record = play(*args, **kwargs)
+        played.append(record)
+        if len(played) == after:
+            interrupts._CTRL_C.append(signal.SIGINT)
+        return record
+
+    monkeypatch.setattr(app, "play_run_episode", play_then_drop)
+    monkeypatch.setattr(interrupts, "_CTRL_C", [signal.SIGINT] if after == 0 else [])
+    with pytest.raises(SystemExit) as stopped:
+        main([*FAST, f"hydra.run.dir={tmp_path / 'run'}"])
+    assert stopped.value.code == 130 and len(played) == after
+    assert f"interrupted: {after} of 2 episodes finished" in capsys.readouterr().err
+    assert not interrupts.ctrl_c_seen()

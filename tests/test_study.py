@@ -186,12 +186,13 @@ def test_a_study_of_participants_simulated_already_without_a_fit(tmp_path):
     the findings of the behaviour tested, those of the fit said to be untested, power a bootstrap; and what the
     study cannot take is refused in one line, before any work."""
     runs = {}
-    for condition, counts in (("tl", "{time_limited: 3, unconstrained: 0}"), ("un", "{time_limited: 0, unconstrained: 3}")):
+    for condition, counts, seed in (("tl", "{time_limited: 3, unconstrained: 0}", 1),
+                                    ("un", "{time_limited: 0, unconstrained: 3}", 0)):
         runs[condition] = tmp_path / f"sim_{condition}"
         proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
                                "predictor=ipe", "predictor.K=10", f"cohort.participants={counts}", "cohort.n_tasks=2",
-                               "world.physics=static", "progress=false", f"hydra.run.dir={runs[condition]}"],
-                              capture_output=True, text=True, timeout=900)
+                               f"seed={seed}", "world.physics=static", "progress=false",
+                               f"hydra.run.dir={runs[condition]}"], capture_output=True, text=True, timeout=900)
         assert proc.returncode == 0, proc.stderr[-2000:]
     out = tmp_path / "study"
     base = [sys.executable, "-m", "overhang_framework.study", "null", "--out", str(out), "--no-progress"]
@@ -247,7 +248,8 @@ def _fake_run(where, cohort_words, conditions):
     where.mkdir(parents=True)
     (where / "run.json").write_text(json.dumps({"config": readable(config)}))  # as a run keeps it (numbers rounded)
     ids = [f"sim-{code}-001" for code in conditions.values()]
-    pd.DataFrame({"id": ids, "condition": list(conditions)}).to_csv(where / "participants.csv", index=False)
+    pd.DataFrame({"id": ids, "index": range(len(ids)), "condition": list(conditions)}).to_csv(
+        where / "participants.csv", index=False)
     (where / "log.jsonl").write_text("".join(f'{{"participant": "{i}"}}\n' for i in ids))
     return config
 
@@ -270,7 +272,8 @@ def test_a_graded_study_takes_paper_people_runs_for_the_levels_whose_people_they
     assert "parameters.risk.value" in _differences(population(people, "time_limited"), population(graded, "limit_10s"))
 
     levels = ["limit_2_5s", "time_limited", "limit_10s", "unconstrained"]
-    new = _fake_run(tmp_path / "new", ["cohort=graded_budgets"], {"limit_2_5s": "limit_2_5s", "limit_10s": "limit_10s"})
+    new = _fake_run(tmp_path / "new", ["cohort=graded_budgets", "seed=10"],
+                    {"limit_2_5s": "limit_2_5s", "limit_10s": "limit_10s"})
     _fake_run(tmp_path / "pp", ["cohort=paper_people"], {"time_limited": "tl", "unconstrained": "un"})
     sizes = gather([tmp_path / "new", tmp_path / "pp"], tmp_path / "sim", "graded_budgets", levels,
                    "tiered", graded)
@@ -278,7 +281,8 @@ def test_a_graded_study_takes_paper_people_runs_for_the_levels_whose_people_they
     assert len(pd.read_csv(tmp_path / "sim" / "participants.csv")) == 4
     assert new["cohort"]["name"] == "graded_budgets"
 
-    _fake_run(tmp_path / "bolder", ["cohort=paper_people", "cohort.by_condition.time_limited.parameters.risk.value=0.5"],
+    _fake_run(tmp_path / "bolder", ["cohort=paper_people", "cohort.by_condition.time_limited.parameters.risk.value=0.5",
+                                    "seed=2"],
               {"time_limited": "tl"})
     with pytest.raises(ConfigError, match=r"a simulation of cohort 'paper_people', not this study's 'graded_budgets'; "
                                           r"its time_limited participants are other people \(they differ in "
@@ -287,6 +291,13 @@ def test_a_graded_study_takes_paper_people_runs_for_the_levels_whose_people_they
     _fake_run(tmp_path / "null", ["cohort=null_effect"], {"time_limited": "tl"})
     with pytest.raises(ConfigError, match="its time_limited participants are other people"):
         gather([tmp_path / "null"], tmp_path / "sim3", "graded_budgets", levels, "tiered", graded)
+    _fake_run(tmp_path / "fewer", ["cohort=paper_people", "cohort.n_tasks=5", "seed=3"], {"time_limited": "tl"})
+    with pytest.raises(ConfigError, match=r"they differ in n_tasks\)"):
+        gather([tmp_path / "new", tmp_path / "fewer"], tmp_path / "sim5", "graded_budgets", levels, "tiered", graded)
+    # the same seed draws the same people: the 2.5 s level at seed 0 is paper_people's first time-limited ones
+    _fake_run(tmp_path / "same", ["cohort=graded_budgets", "seed=0"], {"limit_2_5s": "limit_2_5s"})
+    with pytest.raises(ConfigError, match=r"draw from the same random streams \(seed 0\) as .*pp's.*another seed="):
+        gather([tmp_path / "pp", tmp_path / "same"], tmp_path / "sim6", "graded_budgets", levels, "tiered", graded)
     _fake_run(tmp_path / "other", ["cohort=dual_transition"], {"switching": "sw"})
     with pytest.raises(ConfigError, match="its switching participants are in none of the study's conditions"):
         gather([tmp_path / "other"], tmp_path / "sim4", "graded_budgets", levels, "tiered", graded)

@@ -187,16 +187,28 @@ def read_people(path: Path) -> pd.DataFrame:
     """A table of per-participant measures that ``measure --save`` wrote; :class:`ConfigError` naming what
     is wrong when it is not one."""
     try:
-        people = pd.read_csv(path)
+        people = pd.read_csv(path, dtype={"participant": str, "condition": str})
     except (OSError, ValueError) as err:
         raise ConfigError(f"{path}: not a readable CSV of per-participant measures ({first_line(err)})") from None
     missing = [c for c in PEOPLE_COLUMNS if c not in people.columns]
     if missing:
         raise ConfigError(f"{path}: not a table of per-participant measures; it lacks {', '.join(missing)} "
                           f"(expected columns: {', '.join(PEOPLE_COLUMNS)}, as measure --save writes them)")
+    if people.empty:
+        raise ConfigError(f"{path}: no participants (a header and no rows)")
+    blank = people["participant"].isna() | people["condition"].isna()
+    if blank.any():
+        raise ConfigError(f"{path}: line {int(blank.to_numpy().argmax()) + 2} has no participant or no condition")
     if people["participant"].duplicated().any():
-        raise ConfigError(f"{path}: participant {people.loc[people['participant'].duplicated(), 'participant'].iloc[0]!r} "
+        raise ConfigError(f"{path}: participant {people.loc[people['participant'].duplicated(), 'participant'].iloc[0]} "
                           "is listed twice")
+    for column in METRICS:
+        values = pd.to_numeric(people[column], errors="coerce")
+        bad = values.isna() & people[column].notna()
+        if bad.any():
+            raise ConfigError(f"{path}: {column} on line {int(bad.to_numpy().argmax()) + 2} is "
+                              f"{people[column][bad].iloc[0]!r}, not a number")
+        people[column] = values
     return people
 
 
@@ -544,6 +556,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.command == "measure":
             if args.save is not None and len(args.run_dirs) != 1:
                 raise ConfigError(f"--save writes one run's participants; {len(args.run_dirs)} runs were given")
+            kept = [str(r) for r in args.run_dirs if r.is_file()]
+            if kept and args.world is not None:
+                raise ConfigError(f"--world changes the Γ of a run's towers, and {kept[0]} keeps Γ already computed; "
+                                  "give the run directory instead")
             results = []
             for run_dir in args.run_dirs:
                 if run_dir.is_file():

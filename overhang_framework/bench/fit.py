@@ -126,13 +126,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: --world: {problem}", file=sys.stderr)
         return 2
     if args.space is not None:
-        from overhang_framework.errors import OverhangError
-        from overhang_framework.preflight import compose_checked
+        from overhang_framework.config import group_options
 
-        try:
-            compose_checked([f"space={args.space}"], config_name="fit")
-        except OverhangError as err:
-            print(f"error: --space: {err}", file=sys.stderr)
+        spaces = group_options("space")
+        if args.space not in spaces:
+            print(f"error: --space: unknown space {args.space!r}; available: {', '.join(spaces)}", file=sys.stderr)
             return 2
 
     from overhang_framework.behaviour.analysis import build_world
