@@ -138,8 +138,8 @@ def trends(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] 
     """One row per measure: ρ, p, the expected direction and whether the trend holds."""
     rows = []
     for measure in measures:
-        if measure.column not in df.columns:
-            continue
+        if measure.column not in df.columns or not df[measure.column].notna().any():
+            continue  # not measured (a study without a fit has no fitted depth)
         rho, p = trend(df, levels, measure.column, permutations, seed)
         rows.append({"measure": measure.name, "rho": rho, "p": p, "direction": measure.direction,
                      "holds": holds(rho, p, measure.direction)})
@@ -189,6 +189,15 @@ def sample_sizes(power_table: pd.DataFrame, target: float = TARGET_POWER) -> dic
     return out
 
 
+def _extremes(pred: pd.DataFrame, measure: str) -> str:
+    """``"; lowest at `a` (x), highest at `b` (y)"``: where a measure without an expected trend differs."""
+    at = pred[(pred["measure"] == measure) & np.isfinite(pred["mean"])]
+    if len(at) < 2:
+        return ""
+    low, high = at.loc[at["mean"].idxmin()], at.loc[at["mean"].idxmax()]
+    return f"; lowest at `{low['level']}` ({low['mean']:.3g}), highest at `{high['level']}` ({high['mean']:.3g})"
+
+
 def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, levels: Sequence[str],
            limits: Mapping[str, Optional[float]], pool: Mapping[str, int]) -> str:
     """``graded.md``: the per-level predictions, the trends, and the sample sizes, in sentences and tables."""
@@ -208,6 +217,8 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
                 continue
             r = row.iloc[0]
             cells.append(f"{r['mean']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
+        if not any(cells):
+            continue  # not measured
         lines.append(f"| {label.get(measure, measure)} | " + " | ".join(cells) + " |")
     lines += ["", "(mean over the level's participants, 95% bootstrap interval)", "", "## Trends and sample sizes", ""]
     for _, r in found.iterrows():
@@ -215,7 +226,7 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
         n = sizes.get(r["measure"])
         if r["direction"] == 0:
             lines.append(f"- **{what}**: no trend expected; ρ = {r['rho']:+.2f}, p = {r['p']:.3f} "
-                         f"({'none found' if r['holds'] else 'a trend found'}).")
+                         f"({'none found' if r['holds'] else 'a trend found'}){_extremes(pred, r['measure'])}.")
             continue
         way = "grows" if r["direction"] > 0 else "shrinks"
         found_text = "shows" if r["holds"] else "does not show"
@@ -232,7 +243,10 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
     for measure, at in power_table.groupby("measure", sort=False):
         at = at.sort_values("per_level")
         lines.append(f"| {label.get(measure, measure)} | " + " | ".join(f"{v:.2f}" for v in at["power"]) + " |")
+    flat = [label.get(r["measure"], r["measure"]) for _, r in found.iterrows()
+            if r["direction"] == 0 and r["measure"] in set(power_table["measure"])]
     lines += ["", "(power: the share of studies of that many participants per level, drawn with replacement from "
-              "the simulated pool, in which the trend holds at p < .05 the expected way; a pool smaller than the "
-              "size makes it optimistic)", ""]
+              "the simulated pool, in which the trend holds at p < .05 the expected way"
+              + (f"; for {', '.join(flat)}, of which no trend is expected, the share in which none shows" if flat
+                 else "") + "; a pool smaller than the size makes it optimistic)", ""]
     return "\n".join(lines)

@@ -74,6 +74,20 @@ def test_power_grows_with_the_size_and_the_sample_size_is_the_first_to_reach_80_
     assert f"{first} participants per level give 80% power" in text
 
 
+def test_a_study_without_a_fit_claims_nothing_of_the_fitted_depth_and_says_where_a_flat_measure_differs():
+    levels = graded.levels_of(LEVELS)
+    df = cohort(30, 0.03)
+    df["fitted_depth"] = np.nan
+    df.loc[df["condition"] == "limit_2_5s", "stable_pct"] -= 15  # the shortest limit: more towers fall
+    found = graded.trends(df, levels)
+    assert "depth" not in set(found["measure"]) and {"overhang", "stable", "gamma"} <= set(found["measure"])
+    table = graded.power(df, levels, [graded.MEASURES[0], graded.MEASURES[1]], sizes=(10, 20), resamples=20)
+    text = graded.report(graded.predictions(df, levels), found, table, levels, LEVELS, {lv: 30 for lv in levels})
+    assert "fitted depth" not in text
+    assert "lowest at `limit_2_5s`" in text
+    assert "for stable proportion (%), of which no trend is expected, the share in which none shows" in text
+
+
 @pytest.mark.parametrize("values", [[np.nan] * 8, [1.0] * 8])
 def test_a_measure_without_spread_has_no_trend(values):
     df = pd.DataFrame({"participant": [f"p{i}" for i in range(8)],
