@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import signal
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +19,7 @@ from overhang_framework.advice import run_notes
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
 from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError, first_line
-from overhang_framework.interrupts import stop_if_ctrl_c
+from overhang_framework.interrupts import raising, stop_if_ctrl_c
 from overhang_framework.parallel import merge_stats
 from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework.plugins import Registry
@@ -226,26 +224,10 @@ def _stop_if_asked(sigterm: list) -> None:
     stop_if_ctrl_c()
 
 
-@contextlib.contextmanager
-def _sigterm_stops_the_run() -> Iterator[list]:
-    """Turn SIGTERM into :class:`Terminated` for the duration (main thread only).
-
-    Yields a list that holds the signal once it came. A handler's exception raised while Python runs a
-    finaliser is printed and dropped, so the caller also checks the list between episodes."""
-    received: list = []
-    if threading.current_thread() is not threading.main_thread():
-        yield received
-        return
-
-    def stop(signum, frame):
-        received.append(signum)
-        raise Terminated()
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield received
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+def _sigterm_stops_the_run():
+    """Turn SIGTERM into :class:`Terminated` for the duration (main thread only); yields a list that holds
+    the signal once it came, which the caller also checks between episodes (:func:`overhang_framework.interrupts.raising`)."""
+    return raising(signal.SIGTERM, Terminated, [])
 
 
 def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:

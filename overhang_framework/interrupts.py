@@ -12,27 +12,38 @@ _CTRL_C: list = []
 
 
 @contextlib.contextmanager
-def remember_ctrl_c() -> Iterator[None]:
-    """For the duration, remember every Ctrl-C as well as raising :class:`KeyboardInterrupt` for it.
+def raising(signum: int, exception: type, record: list, replace_own: bool = True) -> Iterator[list]:
+    """For the duration, a signal ``signum`` raises ``exception`` and is appended to ``record``.
 
-    A handler's exception raised while Python runs a finaliser (or while a C extension imports) is
-    dropped, and the run would go on as if the key had not been pressed; the run checks the record
-    (:func:`stop_if_ctrl_c`) before its first episode and between episodes. Main thread only; a handler
-    other than Python's default is left alone. On exit the previous handler is back and the record empty."""
+    A handler's exception raised while Python runs a finaliser (or while a C extension imports) is dropped,
+    so a run also checks ``record`` between its steps. Main thread only; with ``replace_own`` false, a handler
+    other than Python's default is left alone. On exit the previous handler is back. Yields ``record``."""
+    default = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
     if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield
+            (not replace_own and signal.getsignal(signum) is not default):
+        yield record
         return
 
-    def interrupt(signum, frame):
-        _CTRL_C.append(signum)
-        raise KeyboardInterrupt()
+    def handler(number, frame):
+        record.append(number)
+        raise exception()
 
-    previous = signal.signal(signal.SIGINT, interrupt)
+    previous = signal.signal(signum, handler)
     try:
-        yield
+        yield record
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(signum, previous)
+
+
+@contextlib.contextmanager
+def remember_ctrl_c() -> Iterator[None]:
+    """For the duration, remember every Ctrl-C as well as raising :class:`KeyboardInterrupt` for it
+    (:func:`raising`); the run checks the record (:func:`stop_if_ctrl_c`) before its first episode and
+    between episodes. A handler of the program's own is left alone. On exit the record is empty."""
+    try:
+        with raising(signal.SIGINT, KeyboardInterrupt, _CTRL_C, replace_own=False):
+            yield
+    finally:
         _CTRL_C.clear()
 
 
