@@ -512,6 +512,33 @@ def test_one_process_computes_every_models_tables_of_a_state_together_in_the_sta
     assert totals == [11] and len(ticks) == 11
 
 
+def test_worker_processes_compute_a_risk_averse_models_tables_with_its_risk(world, value, tmp_path):
+    """Tables filled by two worker processes are the ones this process computes, for a risk-averse model too
+    (a worker rebuilds each model whole: its risk, not only its predictor), and are kept in the cache under that
+    model's key."""
+    from overhang_framework.fit import run
+
+    ipe = {"name": "ipe", "K": 10, "sigma": 0.05}
+    states = [FIRST, SECOND] + [state([[1.2, 0.0, 0], [0.6, 0.1 * i, 1]], [1.2, 0.6]) for i in range(6)]
+
+    def make(risk, cache=None):
+        return ScoreTables(world, value, Registry().create("predictor", dict(ipe), world=world),
+                           Model(ipe, 2, "risk", risk=risk), CONTEXT, cache)
+
+    here = [make(0.0), make(0.8)]
+    for t in here:
+        for s in states:
+            t.compute(s)
+    cache = ScoreCache(tmp_path / "scores.sqlite")
+    there = [make(0.0, cache), make(0.8, cache)]
+    run.fill_tables(there, states, jobs=2)
+    for a, b in zip(here, there):
+        for s in states:
+            assert np.array_equal(a.table(s), b.table(s))
+            assert np.array_equal(cache.get(ScoreCache.entry(b.key, s)), a.table(s))
+    assert any(not np.allclose(here[0].table(s), here[1].table(s)) for s in states)
+
+
 def test_jobs_sharing_a_cache_split_the_states_they_all_need_and_balance_their_tables():
     from overhang_framework.fit import run
     from overhang_framework.search import state_key
