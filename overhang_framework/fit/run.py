@@ -399,7 +399,9 @@ def _fill(all_tables: Sequence[ScoreTables], rows: Sequence[tuple[State, list[in
         return
     first = all_tables[0]
     cache = first.cache.path if first.cache is not None else None  # the workers read and write it themselves
-    setup = (dict(first.context), [_model_fields(t.model) for t in all_tables], cache)
+    # each model whole (its risk too), its predictor config a plain dict for the worker processes
+    setup = (dict(first.context), [dataclasses.replace(t.model, predictor=dict(t.model.predictor)) for t in all_tables],
+             cache)
     for item, results, _ in pool_map(_tables_setup, setup, _tables_work, items, jobs, on_table):
         for (k, chunk), (scores, stats) in zip(item, results):
             all_tables[k].receive(chunk, scores, stats, written=cache is not None)
@@ -424,15 +426,7 @@ def _missing(all_tables: Sequence[ScoreTables], states: Sequence[State],
     return rows
 
 
-def _model_fields(model) -> dict[str, Any]:
-    """A model as a worker process rebuilds it: every field that changes its tables (the risk too)."""
-    fields = {f.name: getattr(model, f.name) for f in dataclasses.fields(model)}
-    fields["predictor"] = dict(model.predictor)
-    return fields
-
-
-def _tables_setup(context: Mapping[str, Any], models: list[dict[str, Any]], cache: Optional[Path] = None) -> list:
-    from overhang_framework.fit.scores import Model
+def _tables_setup(context: Mapping[str, Any], models: list, cache: Optional[Path] = None) -> list:
     from overhang_framework.plugins import Registry
 
     registry = Registry()
@@ -440,7 +434,7 @@ def _tables_setup(context: Mapping[str, Any], models: list[dict[str, Any]], cach
     value = registry.create("value", dict(context["value"]), world=world)
     built = Predictors(registry, world)
     shared = ScoreCache(cache) if cache is not None else None
-    tables = [ScoreTables(world, value, built(fields["predictor"]), Model(**fields), context, shared) for fields in models]
+    tables = [ScoreTables(world, value, built(model.predictor), model, context, shared) for model in models]
     share_memory(tables)
     share_tables(tables)
     return tables
