@@ -16,6 +16,7 @@ cleanup) ends itself within a second (:func:`exit_with_parent`).
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing as mp
 import os
 import queue as queue_module
@@ -24,7 +25,7 @@ import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Optional, Sequence
 
 _STATE: Any = None
 _TICKS = None
@@ -71,8 +72,9 @@ def _call(work: Callable[[Any, Any], Any], item: Any) -> tuple[Any, int]:
     return work(_STATE, item), os.getpid()
 
 
-def pool_map(setup: Callable[..., Any], args: tuple, work: Callable[[Any, Any], Any], items: Sequence[Any],
-             workers: int, on_tick: Callable[[], None]) -> Iterator[tuple[Any, Any, int]]:
+def pool_map(setup: Callable[..., Any], args: tuple, work: Callable[[Any, Any], Any], items: Iterable[Any],
+             workers: int, on_tick: Callable[[], None],
+             in_flight: Optional[int] = None) -> Iterator[tuple[Any, Any, int]]:
     """Yield ``(item, work(state, item), process id)`` for every item, as each finishes, computed
     on ``workers`` spawned processes.
 
@@ -81,18 +83,26 @@ def pool_map(setup: Callable[..., Any], args: tuple, work: Callable[[Any, Any], 
     ``on_tick`` is called in this process once per :func:`tick` made in any
     worker. On an error or Ctrl-C the workers are stopped; every result already
     yielded stays with the caller.
+
+    At most ``in_flight`` items (default four a worker) are handed out at a time, in their order, the next
+    as each finishes: waiting on every item of a long run at once costs this process a core of its own
+    (``python -m overhang_framework.bench.pool`` measures it).
     """
+    in_flight = max(1, in_flight if in_flight is not None else 4 * workers)
     context = mp.get_context("spawn")
     ticks = context.Queue()
     executor = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init,
                                    initargs=(setup, tuple(args), ticks))
     pending: dict[Future, Any] = {}
+    todo = iter(items)
     try:
-        for item in items:
+        for item in itertools.islice(todo, in_flight):
             pending[executor.submit(_call, work, item)] = item
         while pending:
             finished, _ = wait(list(pending), timeout=0.1, return_when=FIRST_COMPLETED)
             _drain(ticks, on_tick)
+            for item in itertools.islice(todo, len(finished)):
+                pending[executor.submit(_call, work, item)] = item
             for future in finished:
                 item = pending.pop(future)
                 result, pid = future.result()

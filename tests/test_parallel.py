@@ -76,3 +76,26 @@ def test_workers_end_when_their_parent_is_killed_outright(tmp_path, pool):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+@pytest.mark.parametrize("in_flight", [1, 3])
+def test_pool_map_hands_out_a_few_items_at_a_time_and_returns_every_one(in_flight):
+    from overhang_framework.bench.pool import _setup, _work
+    from overhang_framework.parallel import pool_map
+
+    pulled = []
+
+    def items():
+        for i in range(40):
+            pulled.append(i)
+            yield i
+
+    seen, pulled_at_first = {}, None
+    for item, result, _ in pool_map(_setup, (0.0,), _work, items(), 2, lambda: None, in_flight=in_flight):
+        if pulled_at_first is None:
+            pulled_at_first = len(pulled)
+        seen[item] = result
+    assert sorted(seen) == list(range(40))
+    assert all(seen[i] == i for i in seen)  # no work: each item comes back as it went
+    # every item taken from the iterator at once would leave 40 pulled at the first result
+    assert pulled_at_first <= 2 * in_flight
