@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -249,6 +250,54 @@ def measured_table(result: Measured | Sequence[Measured]) -> str:
             rows.append(row)
     header = ["condition", "measure", "simulated", "paper", "distance (paper SEMs)"]
     return markdown_table(header + (["each run's distance"] if several else []), rows)
+
+
+#: How the figure of :func:`measured_figure` names each measure.
+METRIC_LABELS = {"reward_per_trial": "reward per trial", "stable_pct": "stable (%)", "avg_overhang": "average overhang",
+                 "decision_time": "decision time (s)", "gamma": "Γ"}
+
+
+def measured_figure(results: Sequence[Measured], labels: Sequence[str], path: Path):
+    """Draw the measures of ``results`` (one :func:`measured` a run) beside the paper's and write the PNG ``path``
+    atomically: a row of panels per condition, a panel per measure; in each, the paper's mean with a band of one
+    of its SEMs, and each run's mean with its SEM, left to right in the order of the runs (named by ``labels``).
+    Returns the figure (closed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from overhang_framework.results import atomic_output
+
+    conditions: list[str] = []
+    for one in results:
+        conditions += [c for c in one if c not in conditions]
+    fig, axes = plt.subplots(len(conditions), len(METRICS), figsize=(2.6 * len(METRICS), 2.6 * len(conditions)),
+                             squeeze=False)
+    for row, condition in zip(axes, conditions):
+        runs = [(label, one[condition]) for label, one in zip(labels, results) if condition in one]
+        if len(runs) > 1:  # name the runs of a row by what differs between them
+            shared = os.path.commonprefix([label for label, _ in runs])
+            cut = max(shared.rfind("-"), shared.rfind("_"), shared.rfind("/")) + 1
+            runs = [(label[cut:] or label, one) for label, one in runs]
+        for ax, metric in zip(row, METRICS):
+            paper = TARGETS.get(condition, {}).get(metric)
+            if paper:
+                ax.axhspan(paper[0] - paper[1], paper[0] + paper[1], color="0.85", label="paper ± SEM")
+                ax.axhline(paper[0], color="0.3", linewidth=1)
+            x = np.arange(len(runs))
+            ax.errorbar(x, [m[metric][0] for _, m in runs], yerr=[m[metric][1] for _, m in runs], fmt="o",
+                        color="tab:blue", label="simulated ± SEM")
+            ax.set_xticks(x, [label for label, _ in runs], rotation=20, ha="right", fontsize=8)
+            ax.set_xlim(-0.6, len(runs) - 0.4)
+            ax.set_title(f"{METRIC_LABELS[metric]}\n{condition.replace('_', '-')}", fontsize=9)
+            ax.grid(axis="y", alpha=0.3)
+    axes[0][0].legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+    return fig
 
 
 def run_log(run_dir: Path) -> tuple[pd.DataFrame, Optional[int]]:
@@ -551,6 +600,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     m.add_argument("--save", type=Path, default=None, metavar="CSV",
                    help="write the per-participant measures of the one run given (small enough to keep; "
                         "measure reads it back as a run)")
+    m.add_argument("--figure", type=Path, default=None, metavar="PNG",
+                   help="also draw the measures beside the paper's, each run's mean with its SEM")
     args = parser.parse_args(argv)
     try:
         if args.command == "measure":
@@ -578,6 +629,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     print(f"{args.save}: {len(people)} participants", file=sys.stderr)
                 results.append(measured_people(people))
             print(measured_table(results))
+            if args.figure is not None:
+                names = [r.stem if r.is_file() else r.name for r in args.run_dirs]
+                measured_figure(results, names, args.figure)
+                print(f"written: {args.figure}", file=sys.stderr)
             return 0
         if args.command == "library":
             from overhang_framework.results import atomic_output
