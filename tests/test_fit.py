@@ -667,3 +667,26 @@ def test_the_fit_takes_its_model_space_from_conf_space_and_the_explanations_spac
     with pytest.raises(SystemExit) as stop:
         main(["log.jsonl", "--out", "out", "space=nope"])
     assert stop.value.code == 2 and "unknown space 'nope'; available: default, explanations" in capsys.readouterr().err
+
+
+def test_recovery_counts_a_parameter_only_where_its_generator_draws_it():
+    from overhang_framework.fit.recovery import summarise
+
+    rng = np.random.default_rng(3)
+    fixed = pd.DataFrame({"generator": "none", "true_sigma": 0.02, "fitted_sigma": 0.02,
+                          "true_beta": rng.uniform(2, 20, 30), "true_lapse": rng.uniform(0, 0.1, 30)})
+    drawn_sigma = rng.uniform(0.05, 0.12, 30)
+    noisy = pd.DataFrame({"generator": "noise", "true_sigma": drawn_sigma,
+                          "fitted_sigma": rng.permutation(drawn_sigma),  # fitted unrelated to the truth
+                          "true_beta": rng.uniform(2, 20, 30), "true_lapse": rng.uniform(0, 0.1, 30)})
+    table = pd.concat([fixed, noisy], ignore_index=True)
+    table["fitted_beta"], table["fitted_lapse"] = table["true_beta"], table["true_lapse"]
+    table["true_model"] = table["winner"] = "m"
+    table["true_family"] = table["winner_family"] = "f"
+    table["true_depth"] = table["fitted_depth"] = 2
+    summary = summarise(table, ["m"])
+    # the 30 fixed and trivially "recovered" sigmas would lift r far above what the noisy generator shows
+    assert summary["sigma"]["n"] == 30 and summary["sigma"]["generators"] == ["noise"]
+    assert summary["sigma"]["r"] == pytest.approx(np.corrcoef(noisy["true_sigma"], noisy["fitted_sigma"])[0, 1])
+    assert summary["sigma"]["r"] < 0.5 and not summary["targets"]["sigma_r"]["met"]
+    assert summary["beta"]["n"] == 60 and summary["beta"]["generators"] == ["noise", "none"]

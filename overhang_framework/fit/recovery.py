@@ -270,11 +270,23 @@ def correlation(x: Sequence[float], y: Sequence[float]) -> dict:
     return out
 
 
+def drawn(table: pd.DataFrame, column: str) -> pd.Series:
+    """Whether each participant's generator draws ``column`` (its participants' true values differ): a generator
+    that holds a parameter fixed, and a model that fits it fixed, would count as recovered what was never
+    estimated."""
+    if column not in table:
+        return pd.Series(False, index=table.index)
+    varies = table.groupby("generator")[column].transform(lambda values: values.nunique(dropna=True) > 1)
+    return varies.astype(bool) & table[column].notna()
+
+
 def summarise(table: pd.DataFrame, models: Sequence[str], bms_of: Optional[dict] = None) -> dict:
-    """The headline figures of a recovery table (``bms_of``: :func:`bms_by_generator`'s, when computed)."""
+    """The headline figures of a recovery table (``bms_of``: :func:`bms_by_generator`'s, when computed). Each
+    parameter's recovery counts the participants whose generator draws it (:func:`drawn`)."""
     family_ok = table["winner_family"] == table["true_family"]
     depth_ok = table["fitted_depth"] == table["true_depth"]
-    has_sigma = table["true_sigma"].notna() & table["fitted_sigma"].notna()
+    has_sigma = drawn(table, "true_sigma") & table["fitted_sigma"].notna()
+    has_beta, has_lapse = drawn(table, "true_beta"), drawn(table, "true_lapse")
     summary = {
         "participants": int(len(table)),
         "depth_recovered": float(depth_ok.mean()) if len(table) else float("nan"),
@@ -284,16 +296,19 @@ def summarise(table: pd.DataFrame, models: Sequence[str], bms_of: Optional[dict]
                              "family": float((t["winner_family"] == t["true_family"]).mean())}
                          for g, t in table.groupby("generator")},
         "sigma": correlation(table.loc[has_sigma, "true_sigma"], table.loc[has_sigma, "fitted_sigma"]),
-        "beta": correlation(table["true_beta"], table["fitted_beta"]),
-        "lapse": correlation(table["true_lapse"], table["fitted_lapse"]),
+        "beta": correlation(table.loc[has_beta, "true_beta"], table.loc[has_beta, "fitted_beta"]),
+        "lapse": correlation(table.loc[has_lapse, "true_lapse"], table.loc[has_lapse, "fitted_lapse"]),
         "models": list(models),
     }
+    for name, mask in (("sigma", has_sigma), ("beta", has_beta), ("lapse", has_lapse)):
+        summary[name]["generators"] = sorted(map(str, table.loc[mask, "generator"].unique()))
     for axis in AXES:
-        both = table[f"true_{axis}"].notna() & table[f"fitted_{axis}"].notna() if f"true_{axis}" in table else []
+        both = drawn(table, f"true_{axis}") & table[f"fitted_{axis}"].notna() if f"true_{axis}" in table else []
         if len(table) and f"true_{axis}" in table and both.any():
             summary[axis] = correlation(table.loc[both, f"true_{axis}"], table.loc[both, f"fitted_{axis}"])
             summary[axis]["median_bias"] = float(np.median(table.loc[both, f"fitted_{axis}"]
                                                            - table.loc[both, f"true_{axis}"]))
+            summary[axis]["generators"] = sorted(map(str, table.loc[both, "generator"].unique()))
     if bms_of is not None:
         summary["bms"] = bms_of
     summary["targets"] = {
@@ -365,16 +380,21 @@ def report(table: pd.DataFrame, summary: dict, out: Path) -> str:
                              [[g, v["participants"], f"{v['depth']:.0%}", f"{v['family']:.0%}"]
                               for g, v in summary["by_generator"].items()]), ""]
     lines += ["## Parameters under the generating model index", "",
-              markdown_table(["parameter", "n", "r", "r (log)", "median abs. error", "median fitted / true"],
+              "Each over the participants whose generator draws it.", "",
+              markdown_table(["parameter", "n", "r", "r (log)", "median abs. error", "median fitted / true",
+                              "generators"],
                              [[p, summary[p]["n"], _fmt(summary[p].get("r")), _fmt(summary[p].get("r_log")),
-                               _fmt(summary[p].get("median_abs_error"), 4), _fmt(summary[p].get("median_ratio"))]
+                               _fmt(summary[p].get("median_abs_error"), 4), _fmt(summary[p].get("median_ratio")),
+                               ", ".join(summary[p].get("generators", []))]
                               for p in ("sigma", "beta", "lapse")]), ""]
     axes = [a for a in AXES if a in summary]
     if axes:
         lines += ["## The new axes under the generating model index (on their grids)", "",
-                  markdown_table(["parameter", "n", "r", "median abs. error", "median bias (fitted - true)"],
+                  markdown_table(["parameter", "n", "r", "median abs. error", "median bias (fitted - true)",
+                                  "generators"],
                                  [[a, summary[a]["n"], _fmt(summary[a].get("r")),
-                                   _fmt(summary[a].get("median_abs_error"), 4), _fmt(summary[a].get("median_bias"), 4)]
+                                   _fmt(summary[a].get("median_abs_error"), 4), _fmt(summary[a].get("median_bias"), 4),
+                                   ", ".join(summary[a].get("generators", []))]
                                   for a in axes]), ""]
     if summary.get("bms"):
         lines += ["## Each generator's participants compared by random-effects BMS", "",
@@ -400,12 +420,13 @@ def _figure(table: pd.DataFrame, model_matrix: pd.DataFrame, depth_matrix: pd.Da
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
     from overhang_framework.behaviour.analysis import save_figure
 
     fig, axes = plt.subplots(2, 2, figsize=(10, 9))
     for ax, name, scale in ((axes[0, 0], "sigma", "log"), (axes[0, 1], "beta", "log")):
-        t = table[table[f"true_{name}"].notna() & table[f"fitted_{name}"].notna()]
+        t = table[drawn(table, f"true_{name}") & table[f"fitted_{name}"].notna()]
         x, y = t[f"true_{name}"].to_numpy(float), t[f"fitted_{name}"].to_numpy(float)
         for g, part in t.groupby("generator"):
             ax.scatter(part[f"true_{name}"], part[f"fitted_{name}"].clip(lower=1e-3), s=18, label=g, alpha=0.8)
@@ -414,6 +435,10 @@ def _figure(table: pd.DataFrame, model_matrix: pd.DataFrame, depth_matrix: pd.Da
             ax.plot([lo, hi], [lo, hi], color="grey", lw=1, ls="--")
             ax.set_xscale(scale)
             ax.set_yscale(scale)
+            for axis in (ax.xaxis, ax.yaxis):  # plain numbers at 1, 2 and 5 of each decade, no crowded minor labels
+                axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+                axis.set_major_formatter(FormatStrFormatter("%g"))
+                axis.set_minor_formatter(NullFormatter())
             ax.legend(fontsize=8)
         ax.set_xlabel(f"true {name}")
         ax.set_ylabel(f"fitted {name} (generating model index)")
