@@ -25,6 +25,7 @@ import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterable, Iterator, Mapping, Optional, Sequence
 
 _STATE: Any = None
@@ -85,8 +86,9 @@ def pool_map(setup: Callable[..., Any], args: tuple, work: Callable[[Any, Any], 
     yielded stays with the caller.
 
     At most ``in_flight`` items (default four a worker) are handed out at a time, in their order, the next
-    as each finishes: waiting on every item of a long run at once costs this process a core of its own
-    (``python -m overhang_framework.bench.pool`` measures it).
+    as each finishes and the caller asks for more: waiting on every item of a long run at once costs this
+    process a core of its own (``python -m overhang_framework.bench.pool`` measures it), and a caller that
+    takes long over each result leaves the workers idle once their few items are done.
     """
     in_flight = max(1, in_flight if in_flight is not None else 4 * workers)
     context = mp.get_context("spawn")
@@ -101,10 +103,13 @@ def pool_map(setup: Callable[..., Any], args: tuple, work: Callable[[Any, Any], 
         while pending:
             finished, _ = wait(list(pending), timeout=0.1, return_when=FIRST_COMPLETED)
             _drain(ticks, on_tick)
-            for item in itertools.islice(todo, len(finished)):
-                pending[executor.submit(_call, work, item)] = item
-            for future in finished:
-                item = pending.pop(future)
+            done = [(pending.pop(future), future) for future in finished]
+            try:
+                for item in itertools.islice(todo, len(done)):
+                    pending[executor.submit(_call, work, item)] = item
+            except BrokenProcessPool:
+                pass  # the results already finished are yielded first; a pending one then raises
+            for item, future in done:
                 result, pid = future.result()
                 yield item, result, pid
         _drain(ticks, on_tick)

@@ -690,3 +690,13 @@ def test_recovery_counts_a_parameter_only_where_its_generator_draws_it():
     assert summary["sigma"]["r"] == pytest.approx(np.corrcoef(noisy["true_sigma"], noisy["fitted_sigma"])[0, 1])
     assert summary["sigma"]["r"] < 0.5 and not summary["targets"]["sigma_r"]["met"]
     assert summary["beta"]["n"] == 60 and summary["beta"]["generators"] == ["noise", "none"]
+
+
+def test_recovery_counts_a_lone_participant_and_a_nameless_generators_fixed_parameter_as_such():
+    from overhang_framework.fit.recovery import drawn
+
+    table = pd.DataFrame({"generator": [None, None, "lone", "noise", "noise"],
+                          "true_sigma": [0.02, 0.02, 0.07, 0.05, 0.09]})
+    # a generator whose name reads back empty still holds sigma fixed; one participant cannot show it
+    assert drawn(table, "true_sigma").tolist() == [False, False, True, True, True]
+    assert not drawn(table, "true_hand").any()

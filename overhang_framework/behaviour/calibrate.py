@@ -257,6 +257,15 @@ METRIC_LABELS = {"reward_per_trial": "reward per trial", "stable_pct": "stable (
                  "decision_time": "decision time (s)", "gamma": "Γ"}
 
 
+def _short_labels(labels: Sequence[str]) -> list[str]:
+    """``labels`` without the part that they all begin with (cut at a ``-``, ``_`` or ``/``)."""
+    if len(labels) < 2:
+        return list(labels)
+    shared = os.path.commonprefix(list(labels))
+    cut = max(shared.rfind("-"), shared.rfind("_"), shared.rfind("/")) + 1
+    return [label[cut:] or label for label in labels]
+
+
 def measured_figure(results: Sequence[Measured], labels: Sequence[str], path: Path):
     """Draw the measures of ``results`` (one :func:`measured` a run) beside the paper's and write the PNG ``path``
     atomically: a row of panels per condition, a panel per measure; in each, the paper's mean with a band of one
@@ -272,14 +281,15 @@ def measured_figure(results: Sequence[Measured], labels: Sequence[str], path: Pa
     conditions: list[str] = []
     for one in results:
         conditions += [c for c in one if c not in conditions]
+    if not conditions:
+        raise ConfigError("no condition to draw: the runs given have no participants")
+    labels = _short_labels(labels)
     fig, axes = plt.subplots(len(conditions), len(METRICS), figsize=(2.6 * len(METRICS), 2.6 * len(conditions)),
                              squeeze=False)
     for row, condition in zip(axes, conditions):
         runs = [(label, one[condition]) for label, one in zip(labels, results) if condition in one]
         if len(runs) > 1:  # name the runs of a row by what differs between them
-            shared = os.path.commonprefix([label for label, _ in runs])
-            cut = max(shared.rfind("-"), shared.rfind("_"), shared.rfind("/")) + 1
-            runs = [(label[cut:] or label, one) for label, one in runs]
+            runs = list(zip(_short_labels([label for label, _ in runs]), [one for _, one in runs]))
         for ax, metric in zip(row, METRICS):
             paper = TARGETS.get(condition, {}).get(metric)
             if paper:
@@ -292,8 +302,9 @@ def measured_figure(results: Sequence[Measured], labels: Sequence[str], path: Pa
             ax.set_xlim(-0.6, len(runs) - 0.4)
             ax.set_title(f"{METRIC_LABELS[metric]}\n{condition.replace('_', '-')}", fontsize=9)
             ax.grid(axis="y", alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    handles, names = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="upper center", ncol=2, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
     with atomic_output(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
@@ -631,6 +642,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             print(measured_table(results))
             if args.figure is not None:
                 names = [r.stem if r.is_file() else r.name for r in args.run_dirs]
+                if len(set(names)) < len(names):  # runs of the same name in different places
+                    names = [str(r.with_suffix("")) if r.is_file() else str(r) for r in args.run_dirs]
                 measured_figure(results, names, args.figure)
                 print(f"written: {args.figure}", file=sys.stderr)
             return 0

@@ -276,8 +276,10 @@ def drawn(table: pd.DataFrame, column: str) -> pd.Series:
     estimated."""
     if column not in table:
         return pd.Series(False, index=table.index)
-    varies = table.groupby("generator")[column].transform(lambda values: values.nunique(dropna=True) > 1)
-    return varies.astype(bool) & table[column].notna()
+    groups = table.groupby("generator", dropna=False)[column]
+    # a generator of one participant cannot show that it holds a parameter fixed: it counts
+    varies = groups.transform(lambda values: values.nunique(dropna=True) > 1) | (groups.transform("size") == 1)
+    return varies.fillna(False).astype(bool) & table[column].notna()
 
 
 def summarise(table: pd.DataFrame, models: Sequence[str], bms_of: Optional[dict] = None) -> dict:
