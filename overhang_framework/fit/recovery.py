@@ -282,13 +282,20 @@ def drawn(table: pd.DataFrame, column: str) -> pd.Series:
     return varies.fillna(False).astype(bool) & table[column].notna()
 
 
+def _recovered(table: pd.DataFrame, name: str, mask: pd.Series) -> dict:
+    """:func:`correlation` of ``true_<name>`` and ``fitted_<name>`` over the rows of ``mask``, with the generators
+    of those rows."""
+    out = correlation(table.loc[mask, f"true_{name}"], table.loc[mask, f"fitted_{name}"])
+    out["generators"] = sorted(map(str, table.loc[mask, "generator"].unique()))
+    return out
+
+
 def summarise(table: pd.DataFrame, models: Sequence[str], bms_of: Optional[dict] = None) -> dict:
     """The headline figures of a recovery table (``bms_of``: :func:`bms_by_generator`'s, when computed). Each
     parameter's recovery counts the participants whose generator draws it (:func:`drawn`)."""
     family_ok = table["winner_family"] == table["true_family"]
     depth_ok = table["fitted_depth"] == table["true_depth"]
     has_sigma = drawn(table, "true_sigma") & table["fitted_sigma"].notna()
-    has_beta, has_lapse = drawn(table, "true_beta"), drawn(table, "true_lapse")
     summary = {
         "participants": int(len(table)),
         "depth_recovered": float(depth_ok.mean()) if len(table) else float("nan"),
@@ -297,20 +304,17 @@ def summarise(table: pd.DataFrame, models: Sequence[str], bms_of: Optional[dict]
         "by_generator": {g: {"participants": int(len(t)), "depth": float((t["fitted_depth"] == t["true_depth"]).mean()),
                              "family": float((t["winner_family"] == t["true_family"]).mean())}
                          for g, t in table.groupby("generator")},
-        "sigma": correlation(table.loc[has_sigma, "true_sigma"], table.loc[has_sigma, "fitted_sigma"]),
-        "beta": correlation(table.loc[has_beta, "true_beta"], table.loc[has_beta, "fitted_beta"]),
-        "lapse": correlation(table.loc[has_lapse, "true_lapse"], table.loc[has_lapse, "fitted_lapse"]),
+        "sigma": _recovered(table, "sigma", has_sigma),
+        "beta": _recovered(table, "beta", drawn(table, "true_beta")),
+        "lapse": _recovered(table, "lapse", drawn(table, "true_lapse")),
         "models": list(models),
     }
-    for name, mask in (("sigma", has_sigma), ("beta", has_beta), ("lapse", has_lapse)):
-        summary[name]["generators"] = sorted(map(str, table.loc[mask, "generator"].unique()))
     for axis in AXES:
         both = drawn(table, f"true_{axis}") & table[f"fitted_{axis}"].notna() if f"true_{axis}" in table else []
         if len(table) and f"true_{axis}" in table and both.any():
-            summary[axis] = correlation(table.loc[both, f"true_{axis}"], table.loc[both, f"fitted_{axis}"])
+            summary[axis] = _recovered(table, axis, both)
             summary[axis]["median_bias"] = float(np.median(table.loc[both, f"fitted_{axis}"]
                                                            - table.loc[both, f"true_{axis}"]))
-            summary[axis]["generators"] = sorted(map(str, table.loc[both, "generator"].unique()))
     if bms_of is not None:
         summary["bms"] = bms_of
     summary["targets"] = {
