@@ -260,13 +260,15 @@ def test_a_pilot_stopped_midway_leaves_its_files_and_says_what_it_left_on_the_se
     while time.time() < deadline and started < 2:
         time.sleep(0.5)
         if database.exists():
-            store = Store(f"sqlite:///{database}")
-            try:
+            store = None
+            try:  # the server may be creating the tables at this moment, and so may this store
+                store = Store(f"sqlite:///{database}")
                 started = sum(p.consented_at is not None for p in store.participants())
             except Exception:  # noqa: BLE001 - the tables may not be there yet
                 started = 0
             finally:
-                store.close()
+                if store is not None:
+                    store.close()
     assert started == 2, "the pilot's participants did not start"
     time.sleep(1.0)
     proc.send_signal(signal.SIGINT)

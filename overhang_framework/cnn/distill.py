@@ -260,6 +260,7 @@ def check(cfg) -> None:
 
 def distill(cfg) -> dict:
     """Make the data where missing and train the student; return the summary (best epoch's metrics)."""
+    check(cfg)  # before torch loads: a bad setting is refused at once
     import torch
     from omegaconf import OmegaConf
 
@@ -268,7 +269,6 @@ def distill(cfg) -> dict:
     from overhang_framework.progress import progress_bar
     from overhang_framework.render import make_renderer
 
-    check(cfg)
     torch.set_num_threads(int(cfg.threads))
     out = Path(cfg.out_dir)
     record = config_record(cfg)
