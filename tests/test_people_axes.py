@@ -521,9 +521,44 @@ def test_the_explanations_recovery_gives_each_generator_its_explanations_family_
     assert "risk" not in participants_config(cfg, "none", cfg.generators["none"], 0).cohort.parameters
 
 
+def test_the_risk_recovery_of_unsure_people_draws_risk_for_one_cohort_and_fits_it_at_the_known_depth():
+    from overhang_framework.config import compose_config
+    from overhang_framework.fit.recovery import check_config, participants_config
+
+    cfg = compose_config([], config_name="recovery_risk_unsure")
+    cfg.out = "/tmp/unused"
+    checked = check_config(cfg)
+    assert checked["families"] == {"neutral": "plain", "averse": "risk"}
+    assert [index.label for index in checked["space"]] == ["plain/D2", "risk/D2"]
+    for name in ("neutral", "averse"):
+        sim = participants_config(cfg, name, cfg.generators[name], 0)
+        assert dict(sim.cohort.parameters["sigma"]) == {"dist": "fixed", "value": 0.08} and sim.predictor.K == 10
+        assert ("risk" in sim.cohort.parameters) == (name == "averse")
+    assert all(spec.sigma == 0.08 and spec.K == 50 for spec in cfg.models.values())
+
+
+def test_a_recovery_report_leaves_out_a_parameter_no_generator_draws(tmp_path):
+    from overhang_framework.fit.recovery import report, summarise
+
+    rng = np.random.default_rng(0)
+    table = pd.DataFrame({"participant": [f"p{i}" for i in range(8)], "generator": ["a"] * 4 + ["b"] * 4,
+                          "true_sigma": 0.08, "fitted_sigma": 0.08, "true_beta": rng.uniform(2, 20, 8),
+                          "true_lapse": rng.uniform(0, 0.1, 8)})
+    table["fitted_beta"], table["fitted_lapse"] = table["true_beta"], table["true_lapse"]
+    table["true_model"] = table["winner"] = "plain/D2"
+    table["true_family"] = table["winner_family"] = "plain"
+    table["true_depth"] = table["fitted_depth"] = 2
+    summary = summarise(table, ["plain/D2"])
+    assert summary["sigma"]["n"] == 0  # both generators hold sigma at 0.08
+    text = report(table, summary, tmp_path)
+    rows = [line for line in text.splitlines() if line.startswith("| ")]
+    assert not any(line.startswith("| sigma |") for line in rows)
+    assert any(line.startswith("| beta | 8 |") for line in rows)
+
+
 @pytest.mark.parametrize("args, words", [
     (["--config-name", "nosuch"], "--config-name 'nosuch' is not a recovery config; allowed: recovery, "
-                                  "recovery_explanations"),
+                                  "recovery_explanations, recovery_risk_unsure"),
     (["--config-name", "recovery_explanations", "generators.risk.family=crystal"],
      "generators.risk.family: 'crystal' is not a fitted family; fitted families: hand, noise, percept, plain, risk"),
     (["--config-name", "recovery_explanations", "generators.risk.parameters=3"],

@@ -51,7 +51,7 @@ log = logging.getLogger("overhang_framework.fit.recovery")
 CONFIG_NAME = "recovery"
 #: The recovery configs ``--config-name`` may choose: the predictor families', and the explanations' of
 #: docs/people.md (``conf/recovery_explanations.yaml``).
-CONFIGS = (CONFIG_NAME, "recovery_explanations")
+CONFIGS = (CONFIG_NAME, "recovery_explanations", "recovery_risk_unsure")
 TOP = ("world", "value", "out", "seed", "generators", "participants", "tasks", "n_tasks", "parameters", "models",
        "depths", "states", "cache", "jobs", "progress")
 #: The condition every simulated participant does.
@@ -386,13 +386,13 @@ def report(table: pd.DataFrame, summary: dict, out: Path) -> str:
                              [[g, v["participants"], f"{v['depth']:.0%}", f"{v['family']:.0%}"]
                               for g, v in summary["by_generator"].items()]), ""]
     lines += ["## Parameters under the generating model index", "",
-              "Each over the participants whose generator draws it.", "",
+              "Each over the participants whose generator draws it (a parameter none draws is left out).", "",
               markdown_table(["parameter", "n", "r", "r (log)", "median abs. error", "median fitted / true",
                               "generators"],
                              [[p, summary[p]["n"], _fmt(summary[p].get("r")), _fmt(summary[p].get("r_log")),
                                _fmt(summary[p].get("median_abs_error"), 4), _fmt(summary[p].get("median_ratio")),
                                ", ".join(summary[p].get("generators", []))]
-                              for p in ("sigma", "beta", "lapse")]), ""]
+                              for p in ("sigma", "beta", "lapse") if summary[p]["n"]]), ""]
     axes = [a for a in AXES if a in summary]
     if axes:
         lines += ["## The new axes under the generating model index (on their grids)", "",
