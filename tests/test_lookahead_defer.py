@@ -24,7 +24,8 @@ def decide(world, state, depth, choice, defer, budget=None, seed=5):
     return d.action, d.choice_probability, d.spend.depth_completed, d.spend.predictor_calls
 
 
-@pytest.mark.parametrize("depth, choice", [(2, "argmax"), (2, "softmax"), pytest.param(3, "argmax", marks=pytest.mark.slow),
+@pytest.mark.parametrize("depth, choice", [(2, "argmax"), (2, "softmax"),
+                                           pytest.param(3, "argmax", marks=pytest.mark.slow),
                                            pytest.param(3, "softmax", marks=pytest.mark.slow)])
 def test_deferred_settling_chooses_as_settling_first_with_fewer_reference_runs(depth, choice):
     revealed = {True: 0, False: 0}

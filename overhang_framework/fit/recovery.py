@@ -49,8 +49,9 @@ from overhang_framework.results import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("overhang_framework.fit.recovery")
 CONFIG_NAME = "recovery"
-#: The recovery configs ``--config-name`` may choose: the predictor families', and the explanations' of
-#: docs/people.md (``conf/recovery_explanations.yaml``).
+#: The recovery configs ``--config-name`` may choose: the predictor families', the explanations' of
+#: docs/people.md (``conf/recovery_explanations.yaml``) and risk aversion's where predictions are unsure
+#: (``conf/recovery_risk_unsure.yaml``).
 CONFIGS = (CONFIG_NAME, "recovery_explanations", "recovery_risk_unsure")
 TOP = ("world", "value", "out", "seed", "generators", "participants", "tasks", "n_tasks", "parameters", "models",
        "depths", "states", "cache", "jobs", "progress")
