@@ -72,7 +72,9 @@ def _sorted(df: pd.DataFrame) -> pd.DataFrame:
 
 def predictions(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] = MEASURES,
                 draws: int = DRAWS, seed: int = 0) -> pd.DataFrame:
-    """One row per level and measure: participants, mean and its 95% bootstrap interval (NaN where no value)."""
+    """One row per level and measure: ``n``, the participants with a value (a fitted measure has none where the
+    best model lacks its axis: a risk-neutral family has no fitted risk), of the level's ``participants``; the
+    mean and its 95% bootstrap interval (NaN where no value)."""
     df = _sorted(df)
     rng = np.random.default_rng(seed)
     rows = []
@@ -81,16 +83,17 @@ def predictions(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Meas
             continue
         for level in levels:
             x = df.loc[df["condition"] == level, measure.column].to_numpy(dtype=float)
+            everyone = int(x.size)
             x = x[np.isfinite(x)]
             if x.size:
                 means = x[rng.integers(x.size, size=(draws, x.size))].mean(axis=1)
                 low, high = np.quantile(means, [0.025, 0.975])
             else:
                 low = high = math.nan
-            rows.append({"measure": measure.name, "level": level, "n": int(x.size),
+            rows.append({"measure": measure.name, "level": level, "n": int(x.size), "participants": everyone,
                          "mean": float(x.mean()) if x.size else math.nan, "ci_low": float(low),
                          "ci_high": float(high)})
-    return pd.DataFrame(rows, columns=["measure", "level", "n", "mean", "ci_low", "ci_high"])
+    return pd.DataFrame(rows, columns=["measure", "level", "n", "participants", "mean", "ci_low", "ci_high"])
 
 
 def _ranks(values: np.ndarray) -> np.ndarray:
@@ -208,6 +211,7 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
                  f"`{lv}` ({'no limit' if limits[lv] is None else f'{limits[lv]:g} s'}; {pool.get(lv, 0)} simulated)"
                  for lv in levels) + ".", "", "## Each level", "",
              "| measure | " + " | ".join(levels) + " |", "|---|" + "---|" * len(levels)]
+    partial = []
     for measure, at in pred.groupby("measure", sort=False):
         cells = []
         for level in levels:
@@ -216,11 +220,17 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
                 cells.append("")
                 continue
             r = row.iloc[0]
-            cells.append(f"{r['mean']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
+            some = "participants" in r and int(r["n"]) < int(r["participants"])
+            cells.append(f"{r['mean']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]"
+                         + (f" (n = {int(r['n'])} of {int(r['participants'])})" if some else ""))
+            if some and label.get(measure, measure) not in partial:
+                partial.append(label.get(measure, measure))
         if not any(cells):
             continue  # not measured
         lines.append(f"| {label.get(measure, measure)} | " + " | ".join(cells) + " |")
-    lines += ["", "(mean over the level's participants, 95% bootstrap interval)", "", "## Trends and sample sizes", ""]
+    lines += ["", "(mean over the level's participants, 95% bootstrap interval"
+              + (f"; n = k of N: {', '.join(partial)} over the k participants whose best model has the axis, "
+                 "its trend and power likewise" if partial else "") + ")", "", "## Trends and sample sizes", ""]
     for _, r in found.iterrows():
         what = label.get(r["measure"], r["measure"])
         n = sizes.get(r["measure"])

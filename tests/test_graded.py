@@ -115,3 +115,23 @@ def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
     assert (people.loc[people["condition"] == "time_limited", "true_risk"] == 0.9).all()
     text = (out / "study.md").read_text()
     assert text.startswith("# The graded-budget study") and "| fitted risk aversion |" in text
+
+
+def test_a_fitted_measure_that_only_some_best_models_have_says_over_how_many_it_is():
+    """A risk-neutral family has no fitted risk: the level's mean is over those whose best model has the axis,
+    and the report says how many of the level's participants that is."""
+    levels = graded.levels_of(LEVELS)
+    df = cohort(20, 0.03)
+    df["fitted_risk"] = np.where(df["condition"] == "unconstrained", np.nan, 0.5)
+    df.loc[df["participant"].isin(["limit_10s-000", "limit_10s-001"]), "fitted_risk"] = np.nan
+    df.loc[df["participant"] == "unconstrained-000", "fitted_risk"] = 0.0
+    pred = graded.predictions(df, levels)
+    risk = pred[pred["measure"] == "risk"].set_index("level")
+    assert risk["n"].to_dict() == {"limit_2_5s": 20, "time_limited": 20, "limit_10s": 18, "unconstrained": 1}
+    assert (risk["participants"] == 20).all() and (pred["participants"] == 20).all()
+    text = graded.report(pred, graded.trends(df, levels), pd.DataFrame(columns=["measure", "per_level", "power"]),
+                         levels, LEVELS, {lv: 20 for lv in levels})
+    row = next(line for line in text.splitlines() if line.startswith("| fitted risk aversion |"))
+    assert "(n = 18 of 20)" in row and "(n = 1 of 20)" in row and row.count("(n = ") == 2
+    assert "(n = " not in next(line for line in text.splitlines() if line.startswith("| average overhang |"))
+    assert "fitted risk aversion over the k participants whose best model has the axis" in text
