@@ -152,19 +152,23 @@ def test_an_empty_log_or_an_unwritable_out_is_one_line(tmp_path):
 
 
 def test_a_malformed_or_unusable_log_fails_with_one_line(tmp_path):
+    from commands import run_each
+
     bad = tmp_path / "bad.jsonl"
     bad.write_text('{"log_version": 1, "participant": "p"}\n')
-    proc = _cli(str(bad), "--out", str(tmp_path / "out"))
+    out = ["--out", str(tmp_path / "out")]
+    fit = [sys.executable, "-m", "overhang_framework.fit"]
+    malformed, missing, no_out, depth, predictor = run_each([
+        [*fit, str(bad), *out], [*fit, str(tmp_path / "missing.jsonl"), *out], [*fit, str(bad)],
+        [*fit, str(bad), *out, "depths=[1,9]"], [*fit, str(bad), *out, "+models.magic={predictor: crystal_ball}"]])
+    proc = malformed
     assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1, proc.stderr
     assert "bad.jsonl" in proc.stderr and "line 1" in proc.stderr
-    proc = _cli(str(tmp_path / "missing.jsonl"), "--out", str(tmp_path / "out"))
+    proc = missing
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "missing.jsonl" in proc.stderr, proc.stderr
-    proc = _cli(str(bad))
-    assert proc.returncode == 2 and "--out" in proc.stderr
-    proc = _cli(str(bad), "--out", str(tmp_path / "out"), "depths=[1,9]")
-    assert proc.returncode == 2 and "fit.depths: 9 is not a depth" in proc.stderr, proc.stderr
-    proc = _cli(str(bad), "--out", str(tmp_path / "out"), "+models.magic={predictor: crystal_ball}")
-    assert proc.returncode == 2 and "unknown predictor 'crystal_ball'" in proc.stderr, proc.stderr
+    assert no_out.returncode == 2 and "--out" in no_out.stderr
+    assert depth.returncode == 2 and "fit.depths: 9 is not a depth" in depth.stderr, depth.stderr
+    assert predictor.returncode == 2 and "unknown predictor 'crystal_ball'" in predictor.stderr, predictor.stderr
     assert not (tmp_path / "out").exists()
 
 
@@ -423,15 +427,18 @@ def test_recovery_of_a_small_cohort_whose_answer_is_known(tmp_path):
 
 
 def test_recovery_refuses_bad_settings_in_one_line_before_it_writes_anything(tmp_path):
+    from commands import run_each
+
     out = tmp_path / "rec"
-    for args, message in ((["generators.ipe.predictor=crystal"], "generators.ipe: unknown predictor 'crystal'"),
-                          (["+models.m={predictor: crystal}"], "unknown predictor 'crystal'"),
-                          (["participants=0"], "participants must be a whole number >= 1"),
-                          (["~models.cnn"], "generators.cnn uses the predictor 'cnn', which no fitted family uses"),
-                          (["states=nearest"], "states must be one of logged, grid"),
-                          ([], None)):
-        argv = [sys.executable, "-m", "overhang_framework.fit.recovery"] + (["--out", str(out)] if message else [])
-        proc = subprocess.run(argv + args, capture_output=True, text=True, timeout=300)
+    cases = ((["generators.ipe.predictor=crystal"], "generators.ipe: unknown predictor 'crystal'"),
+             (["+models.m={predictor: crystal}"], "unknown predictor 'crystal'"),
+             (["participants=0"], "participants must be a whole number >= 1"),
+             (["~models.cnn"], "generators.cnn uses the predictor 'cnn', which no fitted family uses"),
+             (["states=nearest"], "states must be one of logged, grid"),
+             ([], None))
+    argvs = [[sys.executable, "-m", "overhang_framework.fit.recovery"] + (["--out", str(out)] if message else [])
+             + args for args, message in cases]
+    for (args, message), proc in zip(cases, run_each(argvs)):
         assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1
         assert (message or "no results directory given") in proc.stderr, proc.stderr
     assert not out.exists()

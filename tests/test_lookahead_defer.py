@@ -88,7 +88,7 @@ def watched(world, depth, choice, defer):
 
 
 @pytest.mark.parametrize("depth, choice, n", [(2, "argmax", 4), pytest.param(2, "softmax", 4, marks=pytest.mark.slow),
-                                              (3, "argmax", 2),
+                                              pytest.param(3, "argmax", 2, marks=pytest.mark.slow),
                                               pytest.param(3, "softmax", 4, marks=pytest.mark.slow)])
 def test_on_the_tiered_world_the_same_choices_ties_and_scores_with_fewer_reference_runs(depth, choice, n):
     """The default physics, each decision from an empty verdict cache: argmax sees the same tied best actions

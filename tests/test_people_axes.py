@@ -419,6 +419,7 @@ def simulate_and_fit_an_axis(tmp_path, axis: str, values: tuple):
     return fit, truth, people
 
 
+@pytest.mark.slow  # 15 s idle; the fit's risk grid is computed in tests/test_fit.py's worker test by default
 def test_the_fit_recovers_each_participants_risk_on_a_grid(tmp_path):
     """Risk 0 or 0.7 (:func:`simulate_and_fit_an_axis`). Measured: 7 of 8 risks recovered (the miss, a
     risk-averse participant fitted as neutral, has a lapse of 0.09); the test asks for 6."""
@@ -429,7 +430,7 @@ def test_the_fit_recovers_each_participants_risk_on_a_grid(tmp_path):
     assert [len(m) for m in spec["models"]] == [2, 3] and spec["models"][1][2] == {"risk": 0.7, "risk_form": "power"}
 
 
-@pytest.mark.slow  # the risk grid above runs the same recovery by default
+@pytest.mark.slow
 def test_the_fit_recovers_the_hand_each_participant_plans_for_on_a_grid(tmp_path):
     """A steady (0) or an unsteady (0.15 m) hand planned for (:func:`simulate_and_fit_an_axis`; each model of the
     grid judges with ``predictor=hand`` around the student). Measured: 8 of 8 hands recovered (6 unsteady, 2
@@ -481,7 +482,7 @@ def test_the_fits_percepts_are_a_function_of_the_state_and_share_their_draws_acr
     assert percepts(state, 0.0) == [state] * 8
 
 
-@pytest.mark.slow  # the risk grid above runs the same recovery by default
+@pytest.mark.slow
 def test_the_fit_recovers_each_participants_perceptual_noise_on_a_grid(tmp_path):
     """The tower seen as it is or with an error of 0.1 m (:func:`simulate_and_fit_an_axis`; each decision's
     choice averaged over 8 percepts). Measured: 7 of 8 recovered (6 with the error, 2 without; the miss, one

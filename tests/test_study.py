@@ -138,8 +138,10 @@ def test_a_fit_of_one_family_leaves_the_family_finding_untested_and_says_so():
     assert "| not tested |" in row
 
 
-# the planted study (124 s on a busy machine) runs with the slow tests; the null study runs the same pipeline
-@pytest.mark.parametrize("study", [pytest.param("dual_transition", marks=pytest.mark.slow), "null"])
+# the planted study (124 s on a busy machine) and the null one (20 s idle) run with the slow tests; the default
+# suite has the study of runs simulated already below, and the fit and its check in tests/test_fit*.py
+@pytest.mark.parametrize("study", [pytest.param("dual_transition", marks=pytest.mark.slow),
+                                   pytest.param("null", marks=pytest.mark.slow)])
 def test_a_study_runs_end_to_end_at_a_small_size(tmp_path, study):
     out = tmp_path / study
     args = [sys.executable, "-m", "overhang_framework.study", study, "--out", str(out), "--scale", "0.05",
@@ -185,14 +187,16 @@ def test_a_study_of_participants_simulated_already_without_a_fit(tmp_path):
     """Each condition simulated on its own (as a paper-size run is, sitting by sitting), then taken as one study:
     the findings of the behaviour tested, those of the fit said to be untested, power a bootstrap; and what the
     study cannot take is refused in one line, before any work."""
-    runs = {}
+    from commands import run_each
+
+    runs, argvs = {}, []
     for condition, counts, seed in (("tl", "{time_limited: 3, unconstrained: 0}", 1),
                                     ("un", "{time_limited: 0, unconstrained: 3}", 0)):
         runs[condition] = tmp_path / f"sim_{condition}"
-        proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
-                               "predictor=ipe", "predictor.K=10", f"cohort.participants={counts}", "cohort.n_tasks=2",
-                               f"seed={seed}", "world.physics=static", "progress=false",
-                               f"hydra.run.dir={runs[condition]}"], capture_output=True, text=True, timeout=900)
+        argvs.append([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
+                      "predictor=ipe", "predictor.K=10", f"cohort.participants={counts}", "cohort.n_tasks=2",
+                      f"seed={seed}", "world.physics=static", "progress=false", f"hydra.run.dir={runs[condition]}"])
+    for proc in run_each(argvs, timeout=900):  # each condition simulated on its own, the two at once
         assert proc.returncode == 0, proc.stderr[-2000:]
     out = tmp_path / "study"
     base = [sys.executable, "-m", "overhang_framework.study", "null", "--out", str(out), "--no-progress"]
@@ -215,19 +219,20 @@ def test_a_study_of_participants_simulated_already_without_a_fit(tmp_path):
     before = (out / "findings.csv").read_bytes()
     again = subprocess.run(args, capture_output=True, text=True, timeout=900)
     assert again.returncode == 0 and (out / "findings.csv").read_bytes() == before  # the same study, the same answer
-    for extra, message in ((["--sim", str(runs["tl"]), "--sim", str(runs["tl"])], "is in"),
-                           (["--sim", str(runs["tl"])], "--sim: no unconstrained participants"),
-                           (["--sim", str(tmp_path / "nowhere")], "no finished simulation there"),
-                           (["--sim", str(runs["tl"]), "--sim", str(runs["un"]), "--scale", "0.5"],
-                            "--sim takes participants already simulated"),
-                           (["--sim", str(runs["tl"]), "--sim", str(runs["un"]), "--world", "world.physics=tiered"],
-                            "simulated under world.physics=static")):
-        proc = subprocess.run([*base, *extra, "--no-fit"] + ([] if "--world" in extra else
-                                                             ["--world", "world.physics=static"]),
-                              capture_output=True, text=True, timeout=300)
+    refusals = ((["--sim", str(runs["tl"]), "--sim", str(runs["tl"])], "is in"),
+                (["--sim", str(runs["tl"])], "--sim: no unconstrained participants"),
+                (["--sim", str(tmp_path / "nowhere")], "no finished simulation there"),
+                (["--sim", str(runs["tl"]), "--sim", str(runs["un"]), "--scale", "0.5"],
+                 "--sim takes participants already simulated"),
+                (["--sim", str(runs["tl"]), "--sim", str(runs["un"]), "--world", "world.physics=tiered"],
+                 "simulated under world.physics=static"))
+    argvs = [[*base, *extra, "--no-fit"] + ([] if "--world" in extra else ["--world", "world.physics=static"])
+             for extra, _ in refusals]
+    argvs.append([*base[:3], "paper_people", *base[4:], "--sim", str(runs["tl"]), "--sim", str(runs["un"]),
+                  "--no-fit", "--world", "world.physics=static"])
+    *procs, other = run_each(argvs)
+    for (_, message), proc in zip(refusals, procs):
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and message in proc.stderr, proc.stderr
-    other = subprocess.run([*base[:3], "paper_people", *base[4:], "--sim", str(runs["tl"]), "--sim", str(runs["un"]),
-                            "--no-fit", "--world", "world.physics=static"], capture_output=True, text=True, timeout=300)
     assert other.returncode == 2 and "a simulation of cohort 'null_effect', not this study's 'paper_people'" \
         in other.stderr, other.stderr
 
