@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import subprocess
 from concurrent.futures import ThreadPoolExecutor
-from typing import Sequence
+from typing import Mapping, Optional, Sequence
 
 
-def run_each(argvs: Sequence[Sequence[str]], timeout: float = 300, workers: int = 2) -> list:
-    """``subprocess.run`` of each argv (text, output captured), in the order given."""
+def run_each(argvs: Sequence[Sequence[str]], timeout: float = 300, workers: int = 2,
+             env: Optional[Mapping[str, str]] = None) -> list:
+    """``subprocess.run`` of each argv (text, output captured, in ``env`` when given), in the order given."""
     def one(argv):
-        return subprocess.run(list(argv), capture_output=True, text=True, timeout=timeout)
+        return subprocess.run(list(argv), capture_output=True, text=True, timeout=timeout,
+                              env=None if env is None else dict(env))
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(one, argvs))

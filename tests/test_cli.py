@@ -247,7 +247,7 @@ def test_a_typo_is_one_line_as_typed_from_the_repository_root():
 TOP_FIT = "cache, cv, depths, jobs, logs, models, out, pooled, progress, shard, shards, states, truth, value, world"
 
 
-@pytest.mark.parametrize("command, args, expected", [
+MISSPELT = [
     ("fit", ["LOG", "--out", "OUT", "modles.ipe.K=10"],
      f"error: unknown config key 'modles' (did you mean 'models'?); top-level keys: {TOP_FIT}"),
     ("fit", ["LOG", "--out", "OUT", "+modles.ipe.K=10"],
@@ -270,20 +270,37 @@ TOP_FIT = "cache, cv, depths, jobs, logs, models, out, pooled, progress, shard, 
      "error: unknown config key 'wrld' (did you mean 'world'?); top-level keys: "),
     ("bench.fit", ["--world", "wrld.physics=static"],
      "error: --world: unknown config key 'wrld' (did you mean 'world'?); top-level keys: "),
-])
-def test_every_command_names_a_misspelt_key_in_one_line_with_the_closest_one(tmp_path, command, args, expected):
+]
+
+
+@pytest.fixture(scope="module")
+def misspelt(tmp_path_factory):
+    """Each case of MISSPELT run once, two at a time, each in a directory of its own."""
+    from commands import run_each
+
+    base = tmp_path_factory.mktemp("misspelt")
+    towers = base / "towers.jsonl"
+    towers.write_text('{"blocks": [[1.2, 0.0, 0]]}\n')
+    argvs, outs = [], []
+    for k, (command, args, _) in enumerate(MISSPELT):
+        where = base / str(k)
+        paths = {"LOG": str(where / "log.jsonl"), "OUT": str(where / "out"), "TOWERS": str(towers)}
+        argvs.append([sys.executable, "-m", f"overhang_framework.{command}", *[paths.get(a, a) for a in args]])
+        outs.append(where / "out")
+    procs = run_each(argvs, env={**os.environ, "OVERHANG_ADMIN_TOKEN": "a-long-admin-token"})
+    return list(zip(procs, outs))
+
+
+@pytest.mark.parametrize("case", range(len(MISSPELT)), ids=[f"{c}-{k}" for k, (c, _, _) in enumerate(MISSPELT)])
+def test_every_command_names_a_misspelt_key_in_one_line_with_the_closest_one(misspelt, case):
     """The commands that take overrides answer a misspelt key as the main command does: one line, with
     "did you mean", never Hydra's own message (which advises appending the misspelt key with +)."""
-    towers = tmp_path / "towers.jsonl"
-    towers.write_text('{"blocks": [[1.2, 0.0, 0]]}\n')
-    paths = {"LOG": str(tmp_path / "log.jsonl"), "OUT": str(tmp_path / "out"), "TOWERS": str(towers)}
-    argv = [paths.get(a, a) for a in args]
-    proc = subprocess.run([sys.executable, "-m", f"overhang_framework.{command}", *argv], capture_output=True,
-                          text=True, timeout=300, env={**os.environ, "OVERHANG_ADMIN_TOKEN": "a-long-admin-token"})
+    expected = MISSPELT[case][2]
+    proc, out = misspelt[case]
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.startswith(expected) and proc.stderr.count("\n") == 1, proc.stderr
     assert "To append" not in proc.stderr and "Could not override" not in proc.stderr
-    assert not (tmp_path / "out").exists()
+    assert not out.exists()
 
 
 def test_help_is_the_projects_own_page(capsys):
