@@ -9,11 +9,12 @@ from typing import Mapping, Optional, Sequence
 
 
 def run_each(argvs: Sequence[Sequence[str]], timeout: float = 300, workers: int = 2,
-             env: Optional[Mapping[str, str]] = None) -> list:
-    """``subprocess.run`` of each argv (text, output captured, in ``env`` when given), in the order given."""
+             env: Optional[Mapping[str, str]] = None, cwd=None) -> list:
+    """``subprocess.run`` of each argv (text, output captured, in ``env`` and ``cwd`` when given), in the order
+    given."""
     def one(argv):
         return subprocess.run(list(argv), capture_output=True, text=True, timeout=timeout,
-                              env=None if env is None else dict(env))
+                              env=None if env is None else dict(env), cwd=cwd)
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(one, argvs))

@@ -147,14 +147,27 @@ def headline(tmp_path, *extra):
         cwd=ROOT, capture_output=True, text=True, timeout=1800)
 
 
-def test_the_headline_command_runs_on_a_short_task(tmp_path):
+@pytest.fixture(scope="module")
+def hybrid_runs(tmp_path_factory):
+    """Two short runs of the hybrid from the command line, at once: the headline command on a 4-block task, and
+    the default planner on another."""
+    from commands import run_each
+
+    base = tmp_path_factory.mktemp("hybrid_runs")
+    common = [sys.executable, "-m", "overhang_framework", "predictor=hybrid", "tasks=custom", "world.physics=static",
+              "progress=false"]
+    headline_run, default_run = run_each([
+        [*common, "planner=lookahead", "planner.depth=3", "tasks.sequences=[[1.8,1.2,0.6,0.6]]",
+         f"hydra.run.dir={base / 'headline'}"],
+        [*common, "tasks.sequences=[[1.2,0.6,1.8,0.6]]", f"hydra.run.dir={base / 'default'}"]], timeout=900, cwd=ROOT)
+    return {"headline": (headline_run, base / "headline"), "default": (default_run, base / "default")}
+
+
+def test_the_headline_command_runs_on_a_short_task(hybrid_runs):
     """The headline command on a 4-block task: its first depth-3 decision asks both predictors."""
-    out = subprocess.run(
-        [sys.executable, "-m", "overhang_framework", "predictor=hybrid", "planner=lookahead", "planner.depth=3",
-         "tasks=custom", "tasks.sequences=[[1.8,1.2,0.6,0.6]]", "world.physics=static", "progress=false",
-         f"hydra.run.dir={tmp_path}"], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    out, where = hybrid_runs["headline"]
     assert out.returncode == 0, out.stderr[-2000:]
-    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    metrics = json.loads((where / "metrics.json").read_text())
     assert metrics["complete"] and metrics["episodes_expected"] == 1
     assert metrics["config"]["predictor"] == "hybrid"
 
@@ -176,16 +189,10 @@ def test_the_headline_command_runs_on_one_task(tmp_path):
     assert metrics["complete"] and metrics["world_stats"]["physics"] == "tiered"
 
 
-def test_a_run_records_which_predictor_answered(tmp_path):
-    import json
-    import subprocess
-    import sys
-
-    proc = subprocess.run([sys.executable, "-m", "overhang_framework", "predictor=hybrid", "tasks=custom",
-                           "tasks.sequences=[[1.2,0.6,1.8,0.6]]", "world.physics=static", "progress=false",
-                           f"hydra.run.dir={tmp_path}"], capture_output=True, text=True)
+def test_a_run_records_which_predictor_answered(hybrid_runs):
+    proc, where = hybrid_runs["default"]
     assert proc.returncode == 0, proc.stderr
-    stats = json.loads((tmp_path / "metrics.json").read_text())["predictor_stats"]
+    stats = json.loads((where / "metrics.json").read_text())["predictor_stats"]
     # towers of 2 and 3 blocks go to the early predictor, the 4-block one to the late one
     assert (stats["early_calls"], stats["late_calls"]) == (2, 1)
 
