@@ -161,11 +161,11 @@ def test_a_malformed_or_unusable_log_fails_with_one_line(tmp_path):
     malformed, missing, no_out, depth, predictor = run_each([
         [*fit, str(bad), *out], [*fit, str(tmp_path / "missing.jsonl"), *out], [*fit, str(bad)],
         [*fit, str(bad), *out, "depths=[1,9]"], [*fit, str(bad), *out, "+models.magic={predictor: crystal_ball}"]])
-    proc = malformed
-    assert proc.returncode == 2 and proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1, proc.stderr
-    assert "bad.jsonl" in proc.stderr and "line 1" in proc.stderr
-    proc = missing
-    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "missing.jsonl" in proc.stderr, proc.stderr
+    assert malformed.returncode == 2 and malformed.stderr.startswith("error: ") \
+        and malformed.stderr.count("\n") == 1, malformed.stderr
+    assert "bad.jsonl" in malformed.stderr and "line 1" in malformed.stderr
+    assert missing.returncode == 2 and missing.stderr.count("\n") == 1 and "missing.jsonl" in missing.stderr, \
+        missing.stderr
     assert no_out.returncode == 2 and "--out" in no_out.stderr
     assert depth.returncode == 2 and "fit.depths: 9 is not a depth" in depth.stderr, depth.stderr
     assert predictor.returncode == 2 and "unknown predictor 'crystal_ball'" in predictor.stderr, predictor.stderr
