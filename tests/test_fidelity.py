@@ -101,12 +101,13 @@ def test_the_paper_levels_config_makes_every_model_choose_by_softmax():
 
     for model in fidelity.MODELS:
         cfg = compose_config(["experiment=table2_paper_levels", f"model={model}"], return_hydra_config=True)
-        assert cfg.planner.choice == "softmax" and cfg.planner.beta == 2.4
+        assert cfg.planner.choice == "softmax" and cfg.planner.beta == 2.2
         assert cfg.predictor.name == "hybrid" and cfg.tasks.name == "paper20" and cfg.repeats == 40
 
 
 def _levels(tmp_path, models):
-    """Run experiment=table2_paper_levels as the grid did (3 runs per task, seed 0) and read each model's level."""
+    """Run experiment=table2_paper_levels as it is configured (the paper's 40 runs per task, seed 0) and read
+    each model's level. Myopic takes under a minute on two cores, depth 2 about 5 minutes, depth 3 about 55."""
     import subprocess
     import sys
 
@@ -114,7 +115,7 @@ def _levels(tmp_path, models):
     for model in models:
         out = tmp_path / model
         proc = subprocess.run([sys.executable, "-m", "overhang_framework", "experiment=table2_paper_levels",
-                               f"model={model}", "repeats=3", "jobs=1", "seed=0", "progress=false",
+                               f"model={model}", "jobs=2", "seed=0", "progress=false",
                                f"hydra.sweep.dir={out}"], capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr[-2000:]
         levels[model] = fidelity.level(out)
@@ -125,7 +126,7 @@ def _levels(tmp_path, models):
 def test_the_paper_levels_config_puts_the_myopic_model_at_the_papers_level(tmp_path):
     (got,) = _levels(tmp_path, ["myopic"]).values()
     mean, sem = fidelity.PAPER["myopic"]
-    assert got["episodes"] == 60 and abs(got["reward"] - mean) <= sem, got
+    assert got["episodes"] == 800 and abs(got["reward"] - mean) <= sem, got
     assert got["stood"] < 0.6  # most myopic towers fall, as the paper's level implies
 
 
