@@ -25,15 +25,8 @@ DEFAULTS = [row for row in load_optima(DATA_FILE).values()
             if {k: row.get(k) for k in physics_id(DEFAULT)} == physics_id(DEFAULT) and row["task_id"] not in BENCHMARK]
 # the train split's 609 optima: every twentieth by task id in the default suite, all with the slow tests
 TRAINED = sorted((row for row in DEFAULTS if row["task_id"] in TRAIN), key=lambda row: row["task_id"])
-#: Paths the tiered physics calls standing whose last placement the reference topples: a heavy overhanging load
-#: high on a column of 0.6 blocks, inside its edge by less than the static model's margins and tilt cover
-#: (docs/benchmark.md, "Three train optima the reference would not grant").
-DISAGREE = {"w111232", "w111233", "w112331"}
 ROWS = [row for row in DEFAULTS if row["task_id"] not in TRAIN] + [
-    pytest.param(row, marks=[pytest.mark.slow, pytest.mark.xfail(
-        strict=True, reason="the tiered physics calls this path standing and the reference topples it")])
-    if row["task_id"] in DISAGREE else row if k % 20 == 0 else pytest.param(row, marks=pytest.mark.slow)
-    for k, row in enumerate(TRAINED)]
+    row if k % 20 == 0 else pytest.param(row, marks=pytest.mark.slow) for k, row in enumerate(TRAINED)]
 
 
 def test_the_example_task_has_an_optimum_under_the_default_physics():

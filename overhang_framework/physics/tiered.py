@@ -55,7 +55,7 @@ class TieredParams:
     """Settings of the two static stages of :class:`TieredBackend` (units: metres, radians)."""
 
     stable_margin: float = 0.005
-    stable_tilt: float = 0.02
+    stable_tilt: float = 0.04
     frictionless_stable: bool = True
     fall_margin: float = 0.0
     fall_tilt: float = 0.0
