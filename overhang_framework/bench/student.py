@@ -125,7 +125,7 @@ def decisions(tasks: str = "paper20", limit: Optional[int] = None, checkpoints: 
     of the first checkpoint's own episodes of ``tasks`` (see the module docstring). With ``tables``, also
     what a different choice costs by the first's own scores (``regret``: how far below its best root score
     the other's choice is), the total variation between the two versions' softmax choice probabilities at
-    inverse temperature ``beta`` (per metre; 2.4 is Table 2's), and the relative gap between the first's two
+    inverse temperature ``beta`` (per metre; 2.4, as docs/cnn.md measured it), and the relative gap between the first's two
     best root scores."""
     from overhang_framework.interfaces import Budget
     from overhang_framework.search import Expander, root_scores
