@@ -283,6 +283,46 @@ def test_optima_command_keeps_each_task_at_once_and_resumes(tmp_path):
     assert json.loads(out.read_text())["optima"] == optima
 
 
+def test_optima_carry_to_a_stricter_tiered_physics_only_where_the_stored_path_still_stands(tmp_path):
+    from overhang_framework.benchmark.optima import carry, carry_refusal
+    from overhang_framework.optimum import load_optima, optimum_key, physics_id, sequence_key
+    from overhang_framework.plugins import Registry
+
+    world = Registry().create("world", {"name": "overhang"})
+    ident = physics_id(world)
+    tids = ["w111112", "w111122"]
+    stored = {r["task_id"]: r for r in load_optima().values() if r["physics"] == "tiered" and r["task_id"] in tids
+              and r["params"] == ident["params"] and r["resolution"] == ident["resolution"]}
+    assert sorted(stored) == sorted(tids)
+    looser = {**ident["params"], "stable_tilt": ident["params"]["stable_tilt"] / 2}
+    old = {**ident, "params": looser}
+    assert carry_refusal({**old}, ident) is None
+    assert "stable_tilt" in carry_refusal(ident, {**old})  # to a looser stage: refused
+    assert "fall_margin" in carry_refusal({**old, "params": {**looser, "fall_margin": -0.01}}, ident)
+    assert "resolution" in carry_refusal({**old, "resolution": 0.05}, ident)
+    assert "only tiered" in carry_refusal({**old, "physics": "static"}, ident)
+    fallen = dict(stored["w111112"], **old, actions=[[3.5, a[1]] for a in stored["w111112"]["actions"]])
+    assert carry(fallen, world) is None  # a path that falls is not carried
+    out = tmp_path / "optima.json"
+    out.write_text(json.dumps({"optima": {sequence_key(r["sequence"], old): {**r, **old} for r in stored.values()}}))
+    words = [sys.executable, "-m", "overhang_framework.benchmark.optima", f"ids=[{','.join(tids)}]", f"out={out}",
+             "verdicts=null", "progress=false", "carry=true", f"hydra.run.dir={tmp_path / 'r'}"]
+    proc = subprocess.run(words, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "0 solved now, 2 carried from a physics that grants more" in proc.stdout
+    from overhang_framework.benchmark.splits import task
+
+    rows = load_optima(out)
+    for tid in tids:
+        row = rows[optimum_key(task(tid), world)]
+        assert (row["optimum"], row["actions"], row["params"]) == (stored[tid]["optimum"], stored[tid]["actions"],
+                                                                     ident["params"])
+        assert row["carried"]["params"] == looser and row["reference"] == stored[tid]["reference"]
+    refused = subprocess.run([*words[:-1], "world.physics=static", f"hydra.run.dir={tmp_path / 's'}"], cwd=ROOT,
+                             capture_output=True, text=True, timeout=600)
+    assert refused.returncode != 0 and "carry=true carries optima to a stricter tiered physics" in refused.stderr
+
+
 def test_optimum_parts_of_several_jobs_merge_into_one_file(tmp_path):
     from overhang_framework.benchmark.optima import keep_part, merge, parts_dir
 

@@ -322,3 +322,102 @@ def test_the_leaderboard_refuses_a_run_of_task_ids_and_an_unknown_split(tmp_path
     assert proc.returncode == 2 and not board.exists()
     assert "played a list of task ids (ids=[...]), not a split; the leaderboard ranks whole splits" in proc.stderr
     assert leaderboard.main(["show", "--split", "tset", "--file", str(board)]) == 2
+
+
+def _board_row(agent: str, split: str, command: str) -> dict:
+    from overhang_framework.benchmark import leaderboard
+
+    row = {c: "" for c in leaderboard.COLUMNS}
+    return {**row, "agent": agent, "split": split, "score": 0.5, "ci_low": 0.4, "ci_high": 0.6, "stood": 1.0,
+            "reward": 1.0, "n_tasks": 10, "seeds": 1, "command": command, "date": "2000-01-01"}
+
+
+def test_rerun_runs_each_row_again_timed_keeps_going_past_a_failure_and_continues_where_it_stopped(tmp_path):
+    from overhang_framework.benchmark import leaderboard
+
+    board = tmp_path / "board.csv"
+    random_row = "python -m overhang_framework.benchmark split=cross agent=random seeds=1 figure=false"
+    leaderboard.add([_board_row("random", "cross", random_row),
+                     _board_row("myopic + nonesuch", "cross", "python -m overhang_framework.benchmark split=cross "
+                                "predictor=nonesuch")], board)
+    out = tmp_path / "rerun"
+
+    def rerun(*words):
+        return subprocess.run([sys.executable, "-m", "overhang_framework.benchmark.leaderboard", "rerun", "--out",
+                               str(out), "--file", str(board), "--jobs", "1", *words], cwd=ROOT, capture_output=True,
+                              text=True, timeout=600)
+
+    plan = rerun("--dry-run")
+    assert plan.returncode == 0 and plan.stdout.count("to run") == 2 and not (out / "timing.json").exists()
+    first = rerun("--add")
+    assert first.returncode == 1, first.stderr
+    assert "myopic + nonesuch (cross): failed (exit 2): " in first.stdout and "nonesuch" in first.stdout.split(
+        "failed (exit 2): ")[1].splitlines()[0]
+    assert "error: 1 rows failed: myopic + nonesuch (cross)" in first.stderr
+    run_dir = out / "cross" / "random"
+    summary = json.loads((run_dir / "summary.json").read_text())
+    rows = leaderboard.load(board).set_index("agent")
+    assert float(rows.loc["random", "score"]) == pytest.approx(summary["score"], abs=1e-6)
+    assert rows.loc["random", "date"] != "2000-01-01" and rows.loc["myopic + nonesuch", "date"] == "2000-01-01"
+    assert float(rows.loc["random", "wall_seconds"]) > 0 and int(rows.loc["random", "jobs"]) == 1
+    assert re.search(r"\| random \| cross \| .* \| \d+\.\d min \(1\) \|$", leaderboard.markdown(rows.reset_index()),
+                     re.M)
+    timing = json.loads((out / "timing.json").read_text())["segments"]
+    assert sorted((s["agent"], s["returncode"], s["episodes_before"], s["episodes_after"]) for s in timing) == [
+        ("myopic + nonesuch", 2, 0, 0), ("random", 0, 0, 10)]
+    assert all(s["wall"] > 0 and s["jobs"] == 1 for s in timing)
+    second = rerun()  # the finished row is skipped, the failed one tried again
+    assert second.returncode == 1 and "random (cross): done before, skipped" in second.stdout
+    assert sorted(s["agent"] for s in json.loads((out / "timing.json").read_text())["segments"]) == [
+        "myopic + nonesuch", "myopic + nonesuch", "random"]
+    report = rerun("--report").stdout
+    assert re.search(r"\| random \| cross \| done \| 1 \| 0:00:\d\d \| 10 \|", report), report
+    assert "| myopic + nonesuch | cross | failed | 2 |" in report and "1 of 2 rows done" in report
+    assert rerun("--agent", "nobody", "--dry-run").stderr.startswith("error: no leaderboard row of agent 'nobody'")
+
+
+def test_a_stopped_rerun_counts_its_sitting_and_the_next_one_continues_from_the_kept_episodes(tmp_path):
+    from overhang_framework.benchmark import leaderboard
+
+    program = tmp_path / "slow.py"
+    program.write_text(SLOW)
+    board = tmp_path / "board.csv"
+    command = (f"python -m overhang_framework.benchmark split=cross agent=command 'agent.command=[{sys.executable},"
+               f"{program}]' seeds=1 world.physics=static figure=false")
+    leaderboard.add([_board_row("command: slow.py", "cross", command)], board)
+    out = tmp_path / "rerun"
+    argv = [sys.executable, "-m", "overhang_framework.benchmark.leaderboard", "rerun", "--out", str(out), "--file",
+            str(board), "--jobs", "1"]
+    proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    episodes = out / "cross" / "command-slow-py" / "episodes.jsonl"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (episodes.exists() and episodes.read_text().count("\n") >= 2):
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted: every finished episode is kept" in err, err
+    kept = len(episodes.read_text().splitlines())
+    [segment] = json.loads((out / "timing.json").read_text())["segments"]
+    assert 2 <= kept < 10 and segment["episodes_after"] == kept and segment["returncode"] == 130
+    assert segment["wall"] > 0
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    segments = json.loads((out / "timing.json").read_text())["segments"]
+    assert [(s["episodes_before"], s["episodes_after"]) for s in segments] == [(0, kept), (kept, 10)]
+    assert "1 of 1 rows done" in done.stdout
+
+
+def test_every_leaderboard_row_can_run_again_from_a_clean_clone():
+    from overhang_framework.benchmark import leaderboard
+    from overhang_framework.benchmark.rerun import row_words
+    from overhang_framework.envs.policies import policy_path
+
+    board = leaderboard.load()
+    assert len(board) and set(board["split"]) <= set(leaderboard.SPLITS)
+    for _, row in board.iterrows():
+        words = dict(w.split("=", 1) for w in row_words(row["command"]))
+        if "planner.path" in words:
+            assert policy_path(words["planner.path"]).is_relative_to(ROOT), row["agent"]
+        if "agent.command" in words:
+            program = words["agent.command"].strip("[]").split(",")[-1]
+            assert (ROOT / program).is_file(), row["agent"]

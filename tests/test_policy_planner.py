@@ -159,3 +159,22 @@ def test_a_sampling_policy_is_reproducible_by_seed_and_long_tasks_are_refused(po
     with pytest.raises(ValueError, match="at most 6 blocks; this task has 7"):
         planner.plan(world.initial_state(Task("long", (1.8,) * 7)), predictor, None, Budget(),
                      np.random.default_rng(0))
+
+
+def test_a_shipped_policy_is_named_without_a_path_and_a_missing_name_lists_the_shipped_ones(tmp_path):
+    from overhang_framework.envs.policies import SHIPPED, policy_path, shipped_policies
+    from overhang_framework.errors import ConfigError
+
+    assert "ppo-train-3m" in shipped_policies()
+    assert policy_path("ppo-train-3m") == policy_path("ppo-train-3m.zip") == SHIPPED / "ppo-train-3m.zip"
+    own = tmp_path / "ppo-train-3m.zip"  # a file of the same name where it is named wins
+    own.write_bytes(b"x")
+    assert policy_path(own) == own
+    world = Registry().create("world", {"name": "overhang", "physics": "static"})
+    planner = Registry().create("planner", {"name": "policy", "path": "ppo-train-3m"}, world=world)
+    state = world.initial_state(Task("t", (1.2, 0.6, 1.8, 0.6, 1.2, 0.6, 1.8)))  # the cross split's seven blocks
+    decision = planner.plan(state, Registry().create("predictor", {"name": "veridical"}, world=world), None, Budget(),
+                            np.random.default_rng(0))
+    assert decision.action in set(world.legal_actions(state))
+    with pytest.raises(ConfigError, match="no policy file at nonesuch; .*name a shipped one: .*ppo-train-3m"):
+        Registry().create("planner", {"name": "policy", "path": "nonesuch"}, world=world)

@@ -8,6 +8,7 @@ framework's version and commit and the date the row was scored::
     python -m overhang_framework.benchmark.leaderboard add runs/bench/d2-ipe     # a finished run's row
     python -m overhang_framework.benchmark.leaderboard show                      # the table, in Markdown
     python -m overhang_framework.benchmark.leaderboard figure --out docs/figures/benchmark.png
+    python -m overhang_framework.benchmark.leaderboard rerun --out runs/leaderboard --add  # every row again, timed
 
 A row is replaced when a run of the same agent and split is added again (a run with a budget ladder and
 one without are different rows).
@@ -29,8 +30,8 @@ NO_CALLS = 0.5
 #: The splits the leaderboard ranks, in its order.
 SPLITS = ("test", "cross", "paper20", "train")
 COLUMNS = ("agent", "split", "score", "ci_low", "ci_high", "stood", "reward", "area", "n_tasks", "seeds",
-           "budget_kind", "calls_per_decision", "seconds_per_decision", "curve", "physics", "command", "config",
-           "version", "commit", "date")
+           "budget_kind", "calls_per_decision", "seconds_per_decision", "wall_seconds", "jobs", "curve", "physics",
+           "command", "config", "version", "commit", "date")
 
 
 def command_of(run_dir: Path) -> str:
@@ -44,8 +45,9 @@ def command_of(run_dir: Path) -> str:
     return " ".join(["python -m overhang_framework.benchmark", *quoted])
 
 
-def row_of(run_dir: Path, agent: Optional[str] = None) -> dict:
-    """The leaderboard row of the finished run in ``run_dir``."""
+def row_of(run_dir: Path, agent: Optional[str] = None, wall: Optional[float] = None, jobs: Optional[int] = None) -> dict:
+    """The leaderboard row of the finished run in ``run_dir``; ``wall`` (seconds, every sitting of the run added up)
+    and ``jobs`` (episodes played at once) when known, as ``rerun`` knows them."""
     import overhang_framework
 
     path = run_dir / "summary.json"
@@ -62,6 +64,7 @@ def row_of(run_dir: Path, agent: Optional[str] = None) -> dict:
             "ci_high": s["ci_high"], "stood": s["stood"], "reward": s["reward"], "area": s.get("area"),
             "n_tasks": s["n_scored"], "seeds": s["seeds"], "budget_kind": s.get("budget_kind"),
             "calls_per_decision": s.get("calls_per_decision"), "seconds_per_decision": s.get("seconds_per_decision"),
+            "wall_seconds": None if wall is None else round(float(wall), 1), "jobs": jobs,
             "curve": json.dumps(s["curve"]) if s.get("curve") else "", "physics": s.get("physics"),
             "command": command_of(run_dir), "config": json.dumps(s.get("config", {}), sort_keys=True), "version": overhang_framework.__version__, "commit": commit(),
             "date": _dt.date.today().isoformat()}
@@ -104,21 +107,26 @@ def add(rows: Sequence[dict], path: Path | str | None = None) -> None:
 
 def markdown(board, split: Optional[str] = None) -> str:
     """The leaderboard as a Markdown table (one split, or all)."""
-    lines = ["| agent | split | score [95% CI] | stood | reward | area | calls / decision | s / decision |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| agent | split | score [95% CI] | stood | reward | area | calls / decision | s / decision | wall (jobs) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for _, r in board.iterrows():
         if split and r["split"] != split:
             continue
         area = f"{float(r['area']):.3f}" if str(r["area"]) not in ("", "nan", "None") else ""
         calls = f"{float(r['calls_per_decision']):.1f}" if str(r["calls_per_decision"]) not in ("", "nan", "None") else ""
         secs = f"{float(r['seconds_per_decision']):.3f}" if str(r["seconds_per_decision"]) not in ("", "nan", "None") else ""
+        wall = ""
+        if str(r.get("wall_seconds", "")) not in ("", "nan", "None"):
+            minutes = float(r["wall_seconds"]) / 60
+            wall = f"{minutes:.1f} min" + (f" ({int(float(r['jobs']))})" if str(r.get("jobs", "")) not in ("", "nan", "None")
+                                          else "")
         agent = r["agent"]
         if r["curve"]:
             budgets = [b for b, _ in json.loads(r["curve"])]
             agent += f" (ladder {budgets[0]:g}-{budgets[-1]:g} {r['budget_kind']}; score at the top rung)"
         lines.append(f"| {agent} | {r['split']} | {float(r['score']):.3f} [{float(r['ci_low']):.3f}, "
                      f"{float(r['ci_high']):.3f}] | {100 * float(r['stood']):.0f}% | {float(r['reward']):.3f} | {area} | "
-                     f"{calls} | {secs} |")
+                     f"{calls} | {secs} | {wall} |")
     return "\n".join(lines)
 
 
@@ -169,7 +177,7 @@ def figure(board, out: Path, split: str = "test") -> None:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.benchmark.leaderboard",
-                                 description="Add finished benchmark runs to the leaderboard, show it, draw it.")
+                                 description="Add finished benchmark runs to the leaderboard, show it, draw it, run it again.")
     sub = ap.add_subparsers(dest="what", required=True)
     a = sub.add_parser("add", help="add the rows of finished runs")
     a.add_argument("runs", nargs="+", help="run directories (each with summary.json)")
@@ -180,7 +188,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     f = sub.add_parser("figure", help="draw score against compute for one split")
     f.add_argument("--out", required=True)
     f.add_argument("--split", default="test")
-    for p in (a, s, f):
+    r = sub.add_parser("rerun", help="run every row's command again, timed, in resumable sittings")
+    r.add_argument("--out", required=True, help="a directory for the rows' runs and their timing.json")
+    r.add_argument("--split", default=None, help="only this split's rows")
+    r.add_argument("--agent", action="append", default=[], help="only this agent's rows (repeatable)")
+    r.add_argument("--jobs", type=int, default=None, help="episodes played at once in each row (default: the cores)")
+    r.add_argument("--verdicts", default=None, help="the reference's verdict cache (default OUT/verdicts.sqlite, "
+                   "so the table is timed from a cold start)")
+    r.add_argument("--add", action="store_true", help="put each finished row into the leaderboard")
+    r.add_argument("--dry-run", action="store_true", help="print the commands and what is done, run nothing")
+    r.add_argument("--report", action="store_true", help="print the rows' wall times so far, run nothing")
+    for p in (a, s, f, r):
         p.add_argument("--file", default=str(DATA_FILE), help=f"the leaderboard (default {DATA_FILE})")
     args = ap.parse_args(argv)
     try:
@@ -205,6 +223,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             for _, r in board.iterrows():
                 if not args.split or r["split"] == args.split:
                     print(f"- {r['agent']} ({r['split']}): `{r['command']}`")
+    elif args.what == "rerun":
+        from overhang_framework.benchmark.rerun import rerun
+
+        try:
+            return rerun(Path(args.file), Path(args.out), args.split, args.agent, args.jobs, args.verdicts, args.add,
+                         args.dry_run, args.report)
+        except ValueError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"interrupted: every finished episode is kept under {args.out}; run the same command again to "
+                  "continue", file=sys.stderr)
+            return 130
     else:
         figure(load(args.file), Path(args.out), args.split)
         print(f"wrote {args.out}")

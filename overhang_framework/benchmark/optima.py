@@ -14,6 +14,12 @@ It is resumable and spreads over any launcher:
     python -m overhang_framework.benchmark.optima split=test jobs=2
     python -m overhang_framework.benchmark.optima -m split=test shard=0,1,2,3 shards=4 hydra/launcher=slurm
 
+With ``carry=true``, a task whose optimum the file holds under a tiered physics that grants at least what
+the world's grants (the world's "stands for sure" stage only stricter: ``stable_tilt`` and ``stable_margin``
+no smaller, ``frictionless_stable`` kept on, every other parameter the same) is not searched again if its
+stored path still stands, placement by placement, under the world: the world calls a subset of those
+towers standing, so an optimum still reached is still the optimum. Only the paths that fall are searched.
+
 Each worker keeps one world for all its tasks, so the verdicts of towers that several tasks build are
 decided once, and every worker and job shares the reference's verdicts in one SQLite file
 (``verdicts=``). A solved task is written at once to ``<optima file>.parts/`` and merged into the optima
@@ -117,15 +123,79 @@ def replay(row: dict, world_cfg: dict) -> dict:
             "overhang": float(reference.overhang(state.geometry)) if whole else 0.0}
 
 
-def solve(tid: str, world_cfg: dict, verdicts: Optional[str], do_replay: bool) -> tuple[str, dict]:
-    """Worker: the optimum row of task ``tid`` and its key in the optima file."""
+#: The tiered physics' "stands for sure" parameters, and the direction in which each makes the stage stricter.
+STRICTER = {"stable_tilt": "up", "stable_margin": "up", "frictionless_stable": "on"}
+
+
+def carry_refusal(stored: dict, ident: dict) -> Optional[str]:
+    """Why the optimum row ``stored`` cannot be carried to the physics ``ident`` (``physics_id`` of a world), or
+    None when ``ident``'s physics grants a subset of what ``stored``'s granted: both tiered, the same resolution, the
+    "stands for sure" stage only stricter, every other parameter the same."""
+    if stored.get("physics") != "tiered" or ident["physics"] != "tiered":
+        return f"only tiered optima carry to a tiered physics ({stored.get('physics')} -> {ident['physics']})"
+    if stored.get("resolution") != ident["resolution"]:
+        return f"the resolution differs ({stored.get('resolution')} -> {ident['resolution']})"
+    old, new = stored.get("params") or {}, ident["params"]
+    for name in sorted(set(old) | set(new)):
+        a, b = old.get(name), new.get(name)
+        if a == b:
+            continue
+        way = STRICTER.get(name)
+        if way == "up" and a is not None and b is not None and b > a:
+            continue
+        if way == "on" and b is True and a is False:
+            continue
+        return (f"{name} {a!r} -> {b!r} is not known to grant fewer towers (only {', '.join(STRICTER)} may change, "
+                "and only to a stricter stage)")
+    return None
+
+
+def carry(stored: dict, world) -> Optional[dict]:
+    """``stored``'s row for the physics of ``world`` if its path stands under ``world`` placement by placement and
+    reaches the stored optimum; None if not."""
+    from overhang_framework.geometry import Action
+    from overhang_framework.interfaces import Task
+    from overhang_framework.optimum import physics_id
+
+    started = time.perf_counter()
+    state = world.initial_state(Task(stored["task_id"], tuple(stored["sequence"])))
+    for x, layer in stored["actions"]:
+        action = Action(float(x), int(layer))
+        if world.illegal_reason(state, action) is not None:
+            return None
+        state = world.successor(state, action)
+        if not world.is_stable(state.geometry):
+            return None
+    if abs(float(world.overhang(state.geometry)) - float(stored["optimum"])) > 1e-9:
+        return None
+    return {**stored, **physics_id(world), "carried": {"params": stored["params"],
+                                                       "seconds": time.perf_counter() - started}}
+
+
+def carry_sources(tid: str, world, known: dict) -> list[dict]:
+    """The stored rows of task ``tid``'s sequence that may be carried to ``world``'s physics."""
+    from overhang_framework.benchmark.splits import sequence_of
+    from overhang_framework.optimum import physics_id
+
+    ident = physics_id(world)
+    sequence = [round(w, 6) for w in sequence_of(tid)]
+    return [r for r in known.values() if [round(w, 6) for w in r.get("sequence", [])] == sequence
+            and carry_refusal(r, ident) is None]
+
+
+def solve(tid: str, world_cfg: dict, verdicts: Optional[str], do_replay: bool,
+          sources: Sequence[dict] = ()) -> tuple[str, dict]:
+    """Worker: the optimum row of task ``tid`` and its key in the optima file (carried from one of ``sources`` if
+    its path stands under the world, searched otherwise)."""
     from overhang_framework.benchmark.splits import task
     from overhang_framework.optimum import optimum_key, task_optimum
 
     world = _world(world_cfg, verdicts)
     t = task(tid)
-    row = task_optimum(t, world, path=None)
-    if do_replay:
+    row = next((r for r in (carry(stored, world) for stored in sources) if r is not None), None)
+    if row is None:
+        row = task_optimum(t, world, path=None)
+    if do_replay and not row.get("reference"):  # a carried path keeps its replay: the reference is the same
         started = time.perf_counter()
         row["reference"] = replay(row, world_cfg)
         row["reference"]["seconds"] = time.perf_counter() - started
@@ -190,13 +260,16 @@ def check_config(cfg: DictConfig) -> None:
             raise ConfigError(f"{key} must be a whole number >= {low}, got {value!r}")
     if cfg.shard >= cfg.shards:
         raise ConfigError(f"shard must be below shards ({cfg.shards}), got {cfg.shard}")
-    for key in ("replay", "progress"):
+    for key in ("replay", "progress", "carry"):
         if not isinstance(cfg.get(key), bool):
             raise ConfigError(f"{key} must be true or false, got {cfg.get(key)!r}")
     config_ids(cfg)
     from overhang_framework.plugins import Registry
 
-    Registry().create("world", world_config(cfg))
+    world = Registry().create("world", world_config(cfg))
+    if cfg.carry and getattr(world, "physics_name", None) != "tiered":
+        raise ConfigError(f"carry=true carries optima to a stricter tiered physics; world.physics is "
+                          f"{getattr(world, 'physics_name', None)}")
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict:
@@ -217,7 +290,9 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     known = {**load_optima(out), **read_parts(out)}
     keys = {tid: optimum_key(task(tid), world) for tid in mine}
     todo = [tid for tid in mine if keys[tid] not in known]
-    log.info("%d tasks, %d with an optimum already, %d to solve in %s", len(mine), len(mine) - len(todo), len(todo), out)
+    sources = {tid: carry_sources(tid, world, known) if cfg.carry else [] for tid in todo}
+    log.info("%d tasks, %d with an optimum already, %d to solve in %s (%d with a stored optimum to carry)", len(mine),
+             len(mine) - len(todo), len(todo), out, sum(bool(v) for v in sources.values()))
     bar = progress_bar(total=len(mine), initial=len(mine) - len(todo), desc="optima", unit="task",
                        disable=not cfg.progress)
     started = time.perf_counter()
@@ -227,18 +302,19 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
         keep_part(out, key, row)
         merge(out)  # the optima file holds every finished task at once
         rows[key] = row
-        bar.set_postfix_str(f"{row['task_id']} {row['optimum']:.1f} in {row['seconds']:.0f} s")
+        how = f"carried in {row['carried']['seconds']:.1f} s" if row.get("carried") else f"in {row['seconds']:.0f} s"
+        bar.set_postfix_str(f"{row['task_id']} {row['optimum']:.1f} {how}")
         bar.update(1)
-        log.info("%s optimum %.3f in %.1f s, reference %s", row["task_id"], row["optimum"], row["seconds"],
+        log.info("%s optimum %.3f %s, reference %s", row["task_id"], row["optimum"], how,
                  row.get("reference", {}).get("stood"))
 
     try:
         if cfg.jobs == 1 or len(todo) <= 1:
             for tid in todo:
-                done(*solve(tid, world_cfg, verdicts, cfg.replay))
+                done(*solve(tid, world_cfg, verdicts, cfg.replay, sources[tid]))
         else:
             with ProcessPoolExecutor(max_workers=cfg.jobs) as pool:
-                futures = [pool.submit(solve, tid, world_cfg, verdicts, cfg.replay) for tid in todo]
+                futures = [pool.submit(solve, tid, world_cfg, verdicts, cfg.replay, sources[tid]) for tid in todo]
                 for future in as_completed(futures):
                     done(*future.result())
     finally:
@@ -248,8 +324,10 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     table = [optima[keys[tid]] | {"benchmark_id": tid} for tid in mine]
     write_table(out_dir / "optima.csv", table)
     falls = [r["benchmark_id"] for r in table if r.get("reference") and not r["reference"]["stood"]]
-    return {"tasks": len(mine), "solved": len(rows), "seconds": time.perf_counter() - started,
-            "search_seconds": sum(r["seconds"] for r in rows.values()), "file": str(out), "falls": falls,
+    searched = [r for r in rows.values() if not r.get("carried")]
+    return {"tasks": len(mine), "solved": len(searched), "carried": len(rows) - len(searched),
+            "seconds": time.perf_counter() - started,
+            "search_seconds": sum(r["seconds"] for r in searched), "file": str(out), "falls": falls,
             "table": str(out_dir / "optima.csv")}
 
 
@@ -275,7 +353,8 @@ def app(cfg: DictConfig) -> Optional[dict]:
                          f"{optima_file(cfg)}; run the same command to solve the rest", log)
     if summary is None:
         return None
-    print(f"{summary['tasks']} tasks: {summary['solved']} solved now in {summary['seconds']:.0f} s "
+    carried = f", {summary['carried']} carried from a physics that grants more" if summary["carried"] else ""
+    print(f"{summary['tasks']} tasks: {summary['solved']} solved now{carried} in {summary['seconds']:.0f} s "
           f"({summary['search_seconds']:.0f} s of search), the rest already in {summary['file']}; table: {summary['table']}")
     if summary["falls"]:
         print(f"error: under the reference the optimal paths of {', '.join(summary['falls'])} fall", file=sys.stderr)

@@ -4,6 +4,10 @@ A policy is a Stable-Baselines3 model (the ``[rl]`` extra). :func:`save_policy`
 stores, inside the model's own zip file, the algorithm and the environment's
 :class:`~overhang_framework.envs.spaces.TowerSpaces`, so the ``policy`` planner
 shows the policy the same observation and reads its action the same way.
+
+The policies the project ships (the benchmark's PPO row) are in
+``overhang_framework/data/policies`` and are named without a path:
+``planner.path=ppo-train-3m``.
 """
 
 from __future__ import annotations
@@ -21,8 +25,28 @@ KEY = "overhang_framework"
 INSTALL = "pip install 'overhang-framework[rl]'"
 
 
+#: The policies the project ships, named by their file's stem.
+SHIPPED = Path(__file__).resolve().parent.parent / "data" / "policies"
+
+
 class PolicyFileError(ValueError):
     """A policy file that cannot be read, with the reason in one line."""
+
+
+def shipped_policies() -> list[str]:
+    return sorted(p.stem for p in SHIPPED.glob("*.zip"))
+
+
+def policy_path(path: str | os.PathLike) -> Path:
+    """The file of ``path``: a file as named, or a shipped policy named by its stem (``ppo-train-3m``)."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if path.parent == Path(".") and (SHIPPED / f"{path.stem}.zip").is_file() and path.suffix in ("", ".zip"):
+        return SHIPPED / f"{path.stem}.zip"
+    shipped = shipped_policies()
+    raise PolicyFileError(f"no policy file at {path}; train one with python -m overhang_framework.envs.ppo"
+                          + (f", or name a shipped one: {', '.join(shipped)}" if shipped else ""))
 
 
 def stable_baselines3():
@@ -64,9 +88,7 @@ def save_policy(model: Any, path: str | os.PathLike, env: Any, **extra: Any) -> 
 
 def policy_info(path: str | os.PathLike) -> dict:
     """What :func:`save_policy` kept with the policy at ``path``."""
-    path = Path(path)
-    if not path.is_file():
-        raise PolicyFileError(f"no policy file at {path}; train one with python -m overhang_framework.envs.ppo")
+    path = policy_path(path)
     try:
         with zipfile.ZipFile(path) as z:
             data = json.loads(z.read("data"))
@@ -97,5 +119,5 @@ def load_policy(path: str | os.PathLike) -> tuple[Any, TowerSpaces, dict]:
         spaces = TowerSpaces(**info["spaces"])
     except (TypeError, ValueError) as err:
         raise PolicyFileError(f"{path}: the stored observation is not readable ({err})") from None
-    model = getattr(sb3, info["algorithm"]).load(str(path), device="cpu")
+    model = getattr(sb3, info["algorithm"]).load(str(policy_path(path)), device="cpu")
     return model, spaces, info
