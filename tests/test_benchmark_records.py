@@ -290,24 +290,30 @@ for line in sys.stdin:
 '''
 
 
-def test_ctrl_c_says_how_many_episodes_are_kept(tmp_path):
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_ctrl_c_stops_the_run_at_once_and_says_how_many_episodes_are_kept(tmp_path, jobs):
     from test_benchmark import STATIC
 
     program = tmp_path / "slow.py"
     program.write_text(SLOW)
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "overhang_framework.benchmark", *STATIC, "agent=command",
-                             f"agent.command=[{sys.executable},{program}]", FIVE, "seeds=2",
+                             f"agent.command=[{sys.executable},{program}]", FIVE, "seeds=8", f"jobs={jobs}",
                              f"hydra.run.dir={out}"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     episodes = out / "episodes.jsonl"
     deadline = time.time() + 120
     while time.time() < deadline and not (episodes.exists() and episodes.read_text().count("\n") >= 2):
         time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
+    stopped = time.time()
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
+    # the 40 episodes take about 40 s of the agent's time; a stopped run does not play the rest first
+    assert proc.returncode == 130 and time.time() - stopped < 10, err
     kept = len(episodes.read_text().splitlines())
-    assert f"interrupted: {kept} of 10 episodes are kept in {episodes}" in err, err
+    assert kept < 20 and f"interrupted: {kept} of 40 episodes are kept in {episodes}" in err, err
+    time.sleep(2)  # a worker ends with its parent within a second
+    left = subprocess.run(["pgrep", "-f", str(program)], capture_output=True, text=True).stdout.split()
+    assert not left, "the agent's programs outlived the run"
 
 
 # ------------------------------------------------------------------------------------------------ leaderboard
@@ -374,6 +380,8 @@ def test_rerun_runs_each_row_again_timed_keeps_going_past_a_failure_and_continue
     assert re.search(r"\| random \| cross \| done \| 1 \| 0:00:\d\d \| 10 \|", report), report
     assert "| myopic + nonesuch | cross | failed | 2 |" in report and "1 of 2 rows done" in report
     assert rerun("--agent", "nobody", "--dry-run").stderr.startswith("error: no leaderboard row of agent 'nobody'")
+    untimed = rerun("--untimed", "--dry-run").stdout  # the random row carries its wall time now
+    assert "myopic + nonesuch" in untimed and "random" not in untimed
 
 
 def test_a_stopped_rerun_counts_its_sitting_and_the_next_one_continues_from_the_kept_episodes(tmp_path):
@@ -400,6 +408,8 @@ def test_a_stopped_rerun_counts_its_sitting_and_the_next_one_continues_from_the_
     [segment] = json.loads((out / "timing.json").read_text())["segments"]
     assert 2 <= kept < 10 and segment["episodes_after"] == kept and segment["returncode"] == 130
     assert segment["wall"] > 0
+    report = subprocess.run([*argv, "--report"], cwd=ROOT, capture_output=True, text=True, timeout=120).stdout
+    assert "| command: slow.py | cross | stopped | 1 |" in report and "0 of 1 rows done" in report, report
     done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     segments = json.loads((out / "timing.json").read_text())["segments"]

@@ -196,6 +196,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     r.add_argument("--verdicts", default=None, help="the reference's verdict cache (default OUT/verdicts.sqlite, "
                    "so the table is timed from a cold start)")
     r.add_argument("--add", action="store_true", help="put each finished row into the leaderboard")
+    r.add_argument("--untimed", action="store_true", help="only the rows without a wall time (a table re-run in part "
+                   "elsewhere, its directory gone, goes on with the rest)")
     r.add_argument("--dry-run", action="store_true", help="print the commands and what is done, run nothing")
     r.add_argument("--report", action="store_true", help="print the rows' wall times so far, run nothing")
     for p in (a, s, f, r):
@@ -228,7 +230,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
         try:
             return rerun(Path(args.file), Path(args.out), args.split, args.agent, args.jobs, args.verdicts, args.add,
-                         args.dry_run, args.report)
+                         args.dry_run, args.report, args.untimed)
         except ValueError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2

@@ -202,6 +202,17 @@ def solve(tid: str, world_cfg: dict, verdicts: Optional[str], do_replay: bool,
     return optimum_key(t, world), row
 
 
+def _worker_setup(world_cfg: dict, verdicts: Optional[str], do_replay: bool) -> tuple:
+    return world_cfg, verdicts, do_replay
+
+
+def _worker_solve(state: tuple, job: tuple) -> tuple[str, dict]:
+    """Worker of :func:`~overhang_framework.parallel.pool_map`: :func:`solve` of ``(task id, carry sources)``."""
+    world_cfg, verdicts, do_replay = state
+    tid, sources = job
+    return solve(tid, world_cfg, verdicts, do_replay, sources)
+
+
 @contextlib.contextmanager
 def locked(path: Path) -> Iterator[None]:
     """An exclusive lock on ``<path>.lock`` (every job merging into one optima file takes it)."""
@@ -274,8 +285,6 @@ def check_config(cfg: DictConfig) -> None:
 
 def run(cfg: DictConfig, out_dir: Path) -> dict:
     """Solve this job's share of the tasks that the optima file does not hold yet."""
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
     from overhang_framework.benchmark.splits import task
     from overhang_framework.optimum import load_optima, optimum_key
     from overhang_framework.progress import progress_bar
@@ -313,10 +322,11 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
             for tid in todo:
                 done(*solve(tid, world_cfg, verdicts, cfg.replay, sources[tid]))
         else:
-            with ProcessPoolExecutor(max_workers=cfg.jobs) as pool:
-                futures = [pool.submit(solve, tid, world_cfg, verdicts, cfg.replay, sources[tid]) for tid in todo]
-                for future in as_completed(futures):
-                    done(*future.result())
+            from overhang_framework.parallel import pool_map
+
+            for _, result, _ in pool_map(_worker_setup, (world_cfg, verdicts, cfg.replay), _worker_solve,
+                                         [(tid, sources[tid]) for tid in todo], cfg.jobs, on_tick=lambda: None):
+                done(*result)
     finally:
         bar.close()
         merge(out)

@@ -52,13 +52,21 @@ def row_words(command: str) -> list[str]:
     return [w for w in words[3:] if not w.startswith(SET_HERE)]
 
 
-def plan(board, out: Path, split: Optional[str] = None, agents: Sequence[str] = ()) -> list[dict]:
-    """The rows to run, in the leaderboard's order: agent, split, directory and overrides of each."""
+def timed(row) -> bool:
+    """Whether a leaderboard row carries its wall time (a rerun put it there)."""
+    return str(row.get("wall_seconds", "")) not in ("", "nan", "None")
+
+
+def plan(board, out: Path, split: Optional[str] = None, agents: Sequence[str] = (), untimed: bool = False) -> list[dict]:
+    """The rows to run, in the leaderboard's order: agent, split, directory and overrides of each (with
+    ``untimed``, only the rows without a wall time)."""
     rows = []
     for _, r in board.iterrows():
         if split and r["split"] != split:
             continue
         if agents and r["agent"] not in agents:
+            continue
+        if untimed and timed(r):
             continue
         rows.append({"agent": r["agent"], "split": r["split"], "ladder": bool(r["curve"]),
                      "dir": str(out / slug(r["agent"], r["split"], bool(r["curve"]))), "words": row_words(r["command"])})
@@ -115,7 +123,8 @@ def run_row(row: dict, out: Path, timing: dict, jobs: int, verdicts: str) -> dic
     with open(log_path, "a") as log:
         log.write(f"\n$ {shlex.join(argv)}\n")
         log.flush()
-        proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT)
+        # a session of its own: a Ctrl-C reaches the row through this process, which stops it cleanly
+        proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         try:
             while True:
                 try:
@@ -131,7 +140,8 @@ def run_row(row: dict, out: Path, timing: dict, jobs: int, verdicts: str) -> dic
             try:
                 proc.wait(timeout=60)
             except subprocess.TimeoutExpired:
-                proc.kill()
+                os.killpg(proc.pid, signal.SIGKILL)  # the row's workers and programs too
+                proc.wait()
             raise
         finally:
             segment["wall"] = round(time.perf_counter() - start, 1)
@@ -165,10 +175,12 @@ def report(rows: Sequence[dict], timing: dict) -> str:
         if summary.exists():
             s = json.loads(summary.read_text())
             state, secs = "done", ("" if s.get("seconds_per_decision") is None else f"{s['seconds_per_decision']:.3f}")
-        elif segs and segs[-1]["returncode"] not in (None, 0) and segs[-1]["returncode"] >= 0:
-            state = "failed"
+        elif not segs:
+            state = "to run"
+        elif segs[-1]["returncode"] in (None, 130) or segs[-1]["returncode"] < 0:
+            state = "stopped"  # interrupted or killed: the same command continues it
         else:
-            state = "started" if segs else "to run"
+            state = "failed"
         load = f"{max(s['load_max'] for s in segs):.1f}" if segs else ""
         agent = row["agent"] + (" (ladder)" if row["ladder"] else "")
         lines.append(f"| {agent} | {row['split']} | {state} | {len(segs)} | {_clock(wall)} | {_episodes(row)} | {secs} | "
@@ -184,12 +196,13 @@ def _clock(seconds: float) -> str:
 
 
 def rerun(board_file: Path, out: Path, split: Optional[str] = None, agents: Sequence[str] = (), jobs: Optional[int] = None,
-          verdicts: Optional[str] = None, add: bool = False, dry_run: bool = False, show_report: bool = False) -> int:
+          verdicts: Optional[str] = None, add: bool = False, dry_run: bool = False, show_report: bool = False,
+          untimed: bool = False) -> int:
     """The ``rerun`` subcommand: 0 when every chosen row is done, 1 when one failed."""
     from overhang_framework.benchmark import leaderboard
 
     board = leaderboard.load(board_file)
-    rows = plan(board, out, split, agents)
+    rows = plan(board, out, split, agents, untimed)
     if not rows:
         raise ValueError(f"no leaderboard rows to run in {board_file}" + (f" on split {split}" if split else ""))
     jobs = jobs or os.cpu_count() or 1

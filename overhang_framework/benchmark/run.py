@@ -259,6 +259,15 @@ def play_one(cfg_data: dict, workdir: str, tid: str, seed: int, budget: Optional
     return play(agent, world, task(tid), seed, budget)
 
 
+def _worker_setup(cfg_data: dict, workdir: str) -> tuple[dict, str]:
+    return cfg_data, workdir
+
+
+def _worker_play(state: tuple[dict, str], episode: tuple) -> dict:
+    """Worker of :func:`~overhang_framework.parallel.pool_map`: one episode ``(task id, seed, budget)``."""
+    return play_one(*state, *episode)
+
+
 def close_agents() -> None:
     for world, agent in _AGENTS.values():
         agent.close()
@@ -325,8 +334,6 @@ def write_results(out_dir: Path, cfg_data: dict, records: Sequence[dict], world,
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict:
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
     from overhang_framework.progress import progress_bar
     from overhang_framework.results import atomic_write_json
 
@@ -367,11 +374,12 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
             if cfg.jobs == 1 or len(todo) <= 1:
                 for tid, seed, budget in todo:
                     keep_record(play_one(cfg_data, str(out_dir), tid, seed, budget))
-            else:
-                with ProcessPoolExecutor(max_workers=cfg.jobs) as pool:
-                    futures = [pool.submit(play_one, cfg_data, str(out_dir), *e) for e in todo]
-                    for future in as_completed(futures):
-                        keep_record(future.result())
+            else:  # a Ctrl-C stops the workers at once; the episodes they were playing are played again next time
+                from overhang_framework.parallel import pool_map
+
+                for _, record, _ in pool_map(_worker_setup, (cfg_data, str(out_dir)), _worker_play, todo, cfg.jobs,
+                                             on_tick=lambda: None):
+                    keep_record(record)
         finally:
             bar.close()
             close_agents()
