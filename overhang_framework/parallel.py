@@ -63,6 +63,11 @@ def _init(setup: Callable[..., Any], args: tuple, ticks) -> None:
     _STATE = setup(*args)
 
 
+def given(*args: Any) -> tuple:
+    """A :func:`pool_map` setup for work that needs nothing built per worker: its arguments are the state."""
+    return args
+
+
 def tick() -> None:
     """In a worker of :func:`pool_map`: report one unit of progress to the parent (a no-op elsewhere)."""
     if _TICKS is not None:

@@ -172,12 +172,10 @@ def carry(stored: dict, world) -> Optional[dict]:
                                                        "seconds": time.perf_counter() - started}}
 
 
-def carry_sources(tid: str, world, known: dict) -> list[dict]:
-    """The stored rows of task ``tid``'s sequence that may be carried to ``world``'s physics."""
+def carry_sources(tid: str, ident: dict, known: dict) -> list[dict]:
+    """The stored rows of task ``tid``'s sequence that may be carried to the physics ``ident`` (``physics_id``)."""
     from overhang_framework.benchmark.splits import sequence_of
-    from overhang_framework.optimum import physics_id
 
-    ident = physics_id(world)
     sequence = [round(w, 6) for w in sequence_of(tid)]
     return [r for r in known.values() if [round(w, 6) for w in r.get("sequence", [])] == sequence
             and carry_refusal(r, ident) is None]
@@ -200,10 +198,6 @@ def solve(tid: str, world_cfg: dict, verdicts: Optional[str], do_replay: bool,
         row["reference"] = replay(row, world_cfg)
         row["reference"]["seconds"] = time.perf_counter() - started
     return optimum_key(t, world), row
-
-
-def _worker_setup(world_cfg: dict, verdicts: Optional[str], do_replay: bool) -> tuple:
-    return world_cfg, verdicts, do_replay
 
 
 def _worker_solve(state: tuple, job: tuple) -> tuple[str, dict]:
@@ -286,7 +280,7 @@ def check_config(cfg: DictConfig) -> None:
 def run(cfg: DictConfig, out_dir: Path) -> dict:
     """Solve this job's share of the tasks that the optima file does not hold yet."""
     from overhang_framework.benchmark.splits import task
-    from overhang_framework.optimum import load_optima, optimum_key
+    from overhang_framework.optimum import load_optima, optimum_key, physics_id
     from overhang_framework.progress import progress_bar
 
     check_config(cfg)
@@ -299,7 +293,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
     known = {**load_optima(out), **read_parts(out)}
     keys = {tid: optimum_key(task(tid), world) for tid in mine}
     todo = [tid for tid in mine if keys[tid] not in known]
-    sources = {tid: carry_sources(tid, world, known) if cfg.carry else [] for tid in todo}
+    ident = physics_id(world)
+    sources = {tid: carry_sources(tid, ident, known) if cfg.carry else [] for tid in todo}
     log.info("%d tasks, %d with an optimum already, %d to solve in %s (%d with a stored optimum to carry)", len(mine),
              len(mine) - len(todo), len(todo), out, sum(bool(v) for v in sources.values()))
     bar = progress_bar(total=len(mine), initial=len(mine) - len(todo), desc="optima", unit="task",
@@ -322,9 +317,9 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
             for tid in todo:
                 done(*solve(tid, world_cfg, verdicts, cfg.replay, sources[tid]))
         else:
-            from overhang_framework.parallel import pool_map
+            from overhang_framework.parallel import given, pool_map
 
-            for _, result, _ in pool_map(_worker_setup, (world_cfg, verdicts, cfg.replay), _worker_solve,
+            for _, result, _ in pool_map(given, (world_cfg, verdicts, cfg.replay), _worker_solve,
                                          [(tid, sources[tid]) for tid in todo], cfg.jobs, on_tick=lambda: None):
                 done(*result)
     finally:

@@ -259,10 +259,6 @@ def play_one(cfg_data: dict, workdir: str, tid: str, seed: int, budget: Optional
     return play(agent, world, task(tid), seed, budget)
 
 
-def _worker_setup(cfg_data: dict, workdir: str) -> tuple[dict, str]:
-    return cfg_data, workdir
-
-
 def _worker_play(state: tuple[dict, str], episode: tuple) -> dict:
     """Worker of :func:`~overhang_framework.parallel.pool_map`: one episode ``(task id, seed, budget)``."""
     return play_one(*state, *episode)
@@ -375,9 +371,9 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
                 for tid, seed, budget in todo:
                     keep_record(play_one(cfg_data, str(out_dir), tid, seed, budget))
             else:  # a Ctrl-C stops the workers at once; the episodes they were playing are played again next time
-                from overhang_framework.parallel import pool_map
+                from overhang_framework.parallel import given, pool_map
 
-                for _, record, _ in pool_map(_worker_setup, (cfg_data, str(out_dir)), _worker_play, todo, cfg.jobs,
+                for _, record, _ in pool_map(given, (cfg_data, str(out_dir)), _worker_play, todo, cfg.jobs,
                                              on_tick=lambda: None):
                     keep_record(record)
         finally:
