@@ -366,6 +366,8 @@ def test_rerun_runs_each_row_again_timed_keeps_going_past_a_failure_and_continue
     assert float(rows.loc["random", "score"]) == pytest.approx(summary["score"], abs=1e-6)
     assert rows.loc["random", "date"] != "2000-01-01" and rows.loc["myopic + nonesuch", "date"] == "2000-01-01"
     assert float(rows.loc["random", "wall_seconds"]) > 0 and int(rows.loc["random", "jobs"]) == 1
+    # the row's command is the one it ran, less this machine's verdict cache
+    assert rows.loc["random", "command"] == random_row + " jobs=1"
     assert re.search(r"\| random \| cross \| .* \| \d+\.\d min \(1\) \|$", leaderboard.markdown(rows.reset_index()),
                      re.M)
     timing = json.loads((out / "timing.json").read_text())["segments"]
@@ -384,7 +386,10 @@ def test_rerun_runs_each_row_again_timed_keeps_going_past_a_failure_and_continue
     assert "myopic + nonesuch" in untimed and "random" not in untimed
 
 
-def test_a_stopped_rerun_counts_its_sitting_and_the_next_one_continues_from_the_kept_episodes(tmp_path):
+@pytest.mark.parametrize("background", [False, True], ids=["foreground", "background"])
+def test_a_stopped_rerun_counts_its_sitting_and_the_next_one_continues_from_the_kept_episodes(tmp_path, background):
+    """Also started as a shell starts a background job, with SIGINT ignored: the row is still stopped by its
+    SIGINT (exit 130), not killed after the minute the rerun gives it."""
     from overhang_framework.benchmark import leaderboard
 
     program = tmp_path / "slow.py"
@@ -396,7 +401,9 @@ def test_a_stopped_rerun_counts_its_sitting_and_the_next_one_continues_from_the_
     out = tmp_path / "rerun"
     argv = [sys.executable, "-m", "overhang_framework.benchmark.leaderboard", "rerun", "--out", str(out), "--file",
             str(board), "--jobs", "1"]
-    proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if background else None
+    proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=ignore)
     episodes = out / "cross" / "command-slow-py" / "episodes.jsonl"
     deadline = time.time() + 120
     while time.time() < deadline and not (episodes.exists() and episodes.read_text().count("\n") >= 2):

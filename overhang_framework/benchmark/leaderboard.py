@@ -35,12 +35,13 @@ COLUMNS = ("agent", "split", "score", "ci_low", "ci_high", "stood", "reward", "a
 
 
 def command_of(run_dir: Path) -> str:
-    """The command that made ``run_dir`` (its Hydra overrides, less the run directory)."""
+    """The command that made ``run_dir``: its Hydra overrides, less the run directory, the progress bar and the
+    verdict cache's path (where a machine keeps its verdicts changes no score)."""
     import yaml
 
     path = run_dir / ".hydra" / "overrides.yaml"
     words = yaml.safe_load(path.read_text()) if path.exists() else []
-    words = [w for w in words if not w.startswith(("hydra.run.dir=", "progress="))]
+    words = [w for w in words if not w.startswith(("hydra.run.dir=", "progress=", "verdicts="))]
     quoted = [f"'{w}'" if any(c in w for c in "[]{},") else w for w in words]
     return " ".join(["python -m overhang_framework.benchmark", *quoted])
 

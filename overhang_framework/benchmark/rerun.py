@@ -222,10 +222,17 @@ def rerun(board_file: Path, out: Path, split: Optional[str] = None, agents: Sequ
     out.mkdir(parents=True, exist_ok=True)
     failed = []
     previous = signal.signal(signal.SIGTERM, _stop)
+    # A shell starts a background job with SIGINT ignored, and a row would inherit that and could not be
+    # stopped cleanly; a handler of this process's own is the default again in each row's process.
+    ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    if ignored:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         _run_rows(rows, out, timing, jobs, verdicts, board_file, add, failed)
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
     print(report(rows, timing))
     if failed:
         print(f"error: {len(failed)} rows failed: {', '.join(r['agent'] + ' (' + r['split'] + ')' for r in failed)}; "
