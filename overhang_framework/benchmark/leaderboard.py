@@ -168,9 +168,14 @@ def figure(board, out: Path, split: str = "test") -> None:
     _people(axes[0], raw=False)
     axes[0].axhline(1.0, color="grey", lw=0.8)
     axes[0].set_ylim(0, 1.05)
-    axes[0].legend(fontsize=6, loc="lower right", ncol=2)
     axes[1].legend(fontsize=6, loc="lower right")
-    fig.tight_layout()
+    # the agents' legend below both panels: inside one, a table of 30 rows hides half its points
+    handles, labels = axes[0].get_legend_handles_labels()
+    ncol = 4
+    below = 0.15 + 0.13 * -(-len(labels) // ncol)  # inches: a line of 6-point text and its spacing each
+    fig.set_figheight(5 + below)
+    fig.legend(handles, labels, fontsize=6, loc="lower center", ncol=ncol, frameon=False)
+    fig.tight_layout(rect=(0, below / (5 + below), 1, 1))
     with atomic_output(out) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
