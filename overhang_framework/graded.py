@@ -5,7 +5,8 @@ The paper asks how prediction and planning co-adapt "under graded resource const
 assigns each participant one of several time limits per placement (between subjects); its levels are
 ordered by the time they leave, the unlimited one last. From a participant table (one row per
 participant: ``condition``, Table 1's ``avg_overhang`` and ``stable_pct``, ``gamma``, the best model's
-``fitted_depth`` and, where the fit has the axis, ``fitted_risk``; :func:`overhang_framework.study.participant_table`)
+``fitted_depth`` and, where the fit has the axis, ``fitted_risk`` of one model fitted to every participant;
+:func:`overhang_framework.study.participant_table`)
 this module gives:
 
 * **predictions**: each level's mean of each measure, with a 95% percentile bootstrap interval over the
@@ -72,8 +73,8 @@ def _sorted(df: pd.DataFrame) -> pd.DataFrame:
 
 def predictions(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] = MEASURES,
                 draws: int = DRAWS, seed: int = 0) -> pd.DataFrame:
-    """One row per level and measure: ``n``, the participants with a value (a fitted measure has none where the
-    best model lacks its axis: a risk-neutral family has no fitted risk), of the level's ``participants``; the
+    """One row per level and measure: ``n``, the participants with a value (a fitted depth has none where the
+    models tied for a participant's best differ in depth), of the level's ``participants``; the
     mean and its 95% bootstrap interval (NaN where no value)."""
     df = _sorted(df)
     rng = np.random.default_rng(seed)

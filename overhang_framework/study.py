@@ -177,6 +177,7 @@ def participant_table(out: Path, fitted: bool = True) -> pd.DataFrame:
                      "cnn_vs_veridical": float((at["ll_cnn"] - at["ll_veridical"]).mean()), "cnn_lead": lead})
     prediction = pd.DataFrame(rows, columns=["participant", "ipe_vs_veridical", "cnn_vs_veridical", "cnn_lead"])
     from overhang_framework.fit.compare import per_participant, winners
+    from overhang_framework.fit.equivalence import one_model, with_neutral
 
     if not fitted:
         best = pd.DataFrame(columns=["participant", "best_model", "best_family", "fitted_depth", "fitted_switch"])
@@ -187,10 +188,15 @@ def participant_table(out: Path, fitted: bool = True) -> pd.DataFrame:
             df = df.merge(part, on="participant", how="left")
         return df.sort_values("participant").reset_index(drop=True)
     fits = pd.read_csv(out / "fit" / "fits.csv")
-    keep = ["participant", "model", "family", "depth", "switch", *(["risk"] if "risk" in fits.columns else [])]
-    best = winners(fits)[keep].rename(
-        columns={"model": "best_model", "family": "best_family", "depth": "fitted_depth", "switch": "fitted_switch",
-                 "risk": "fitted_risk"})
+    best = winners(fits)[["participant", "model", "family", "depth", "switch"]].rename(
+        columns={"model": "best_model", "family": "best_family", "depth": "fitted_depth", "switch": "fitted_switch"})
+    # the risk of one model fitted to every participant (its grid includes risk-neutral), never the winners' own
+    risked = one_model(with_neutral(fits), "risk") if "risk" in fits.columns else None
+    if risked is not None:
+        rows = per_participant(with_neutral(fits))
+        rows = rows[rows["model"].astype(str) == risked]
+        best = best.merge(rows[["participant", "risk"]].rename(columns={"risk": "fitted_risk"}), on="participant",
+                          how="left")
     people = per_participant(fits)
     evidence = {}
     for family, at in people.groupby("family"):

@@ -341,16 +341,17 @@ def test_comparison_opens_with_what_was_found_on_fits_whose_answer_is_known(tmp_
                         "x/D2, is 30.0 higher). Each participant's best model: x/D2 for 6, x/myopic for 6.")
     assert found[1].startswith("- **Random-effects BMS** finds that the models are not equally frequent (Bayesian "
                                "omnibus risk 0.0") and "but none stands out" in found[1]
-    assert found[2] == ("- **Conditions** (a against b, each participant's best model): Depth is higher under b than "
+    assert found[2] == ("- **Conditions** (a against b; the depth of each participant's best model, the other "
+                        "parameters of one model fitted to every participant): Depth is higher under b than "
                         "under a (2 against 1, p = .002). Beta (p = 1.000) and lapse (p = 1.000) do not differ at "
-                        "p < .05. Too few participants to compare sigma (n = 0 and 0).")
+                        "p < .05.")
     assert len(found) == 3                              # no truth given: nothing about simulated participants
     # the Conditions table: one cell per header cell, none of them empty
     table = _table(_section(text, "Conditions"))
     assert table[0] == ["parameter", "a", "b", "p"]
     assert all(len(r) == 4 and all(r) for r in table), table
     assert table[1] == ["depth of the best model", "1.000 (n = 6)", "2.000 (n = 6)", ".002"]
-    assert table[3][3] == "too few"
+    assert [r[0] for r in table[1:]] == ["depth of the best model", "beta of x/myopic", "lapse of x/myopic"]
     # one model far ahead for everyone: the BMS separates the models
     ahead = rows({c: {"x/myopic": 100.0, "x/D2": 160.0, "y/myopic": 170.0, "y/D2": 180.0} for c in "ab"})
     text = comparison(ahead, tmp_path)

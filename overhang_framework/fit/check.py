@@ -200,7 +200,11 @@ def fitted_models(spec: Mapping[str, Any], fits: pd.DataFrame, model: Optional[s
 
     people = per_participant(fits)
     if model is None:
-        rows = winners(fits)
+        # a participant's best models predict the same on their data: the first of a tied set stands for it
+        best = winners(fits)
+        first = {str(r.participant): r.members[0] for r in best.itertuples(index=False)}
+        rows = people[[first.get(str(p)) == str(m) for p, m in zip(people["participant"], people["model"])]]
+        rows = rows.reset_index(drop=True)
     else:
         labels = sorted(set(people["model"]))
         if model not in labels:

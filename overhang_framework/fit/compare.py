@@ -1,8 +1,15 @@
 """Model comparison of a fit: what was found in sentences, then winners, summed BIC, random-effects BMS,
-parameters between conditions, and for simulated participants their true models beside the fitted ones."""
+parameters between conditions, and for simulated participants their true models beside the fitted ones.
+
+Models that predict the same are one model (:mod:`overhang_framework.fit.equivalence`): a participant's best
+model is every model tied with the lowest BIC, models tied for every participant are merged before BIC is
+summed and the BMS is run, and a parameter compared between conditions is that of one model fitted to every
+participant. ``python -m overhang_framework.fit.compare DIR`` writes the comparison again from ``DIR/fits.csv``.
+"""
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
@@ -13,6 +20,8 @@ import pandas as pd
 from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is, permutation_p, save_figure
 from overhang_framework.errors import ConfigError
 from overhang_framework.fit.bms import BMSResult, bms
+from overhang_framework.fit.equivalence import (JOIN, TOLERANCE, best_sets, label, merge_equivalent, one_model,
+                                                with_neutral)
 from overhang_framework.fit.run import POOLED
 from overhang_framework.fit.scores import Model
 from overhang_framework.results import atomic_write_text
@@ -37,9 +46,10 @@ def per_participant(fits: pd.DataFrame) -> pd.DataFrame:
 
 
 def winners(fits: pd.DataFrame) -> pd.DataFrame:
-    """Each participant's best model by BIC (its row of fits.csv)."""
-    df = per_participant(fits)
-    return df.loc[df.groupby("participant")["bic"].idxmin()].reset_index(drop=True)
+    """Each participant's best models by BIC, one row per participant: every model tied with the lowest BIC,
+    reported as one (:func:`overhang_framework.fit.equivalence.best_sets`; ``members`` lists them, ``ties``
+    counts them), with a model without an axis at its neutral value."""
+    return best_sets(with_neutral(fits))
 
 
 @dataclass
@@ -138,6 +148,7 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     The markdown opens with what was found, in sentences; ``truth`` (:func:`read_truth`) adds the simulated
     participants' true models and parameters beside the fitted ones.
     """
+    fits, groups = merge_equivalent(with_neutral(fits))
     df = per_participant(fits)
     models = sorted(df["model"].unique())
     pids = sorted(df["participant"].unique())
@@ -149,7 +160,9 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
         return text
     bic = df.pivot_table(index="participant", columns="model", values="bic").reindex(index=pids, columns=models)
     win = winners(fits)
-    counts = win["model"].value_counts().reindex(models, fill_value=0)
+    sole = win.loc[win["ties"] == 1, "model"].value_counts().reindex(models, fill_value=0)
+    shared = pd.Series({m: int(sum(m in members for members in win.loc[win["ties"] > 1, "members"]))
+                        for m in models}, dtype=int)
     summed = bic.sum()
     rows = []
     result = bms(-bic.to_numpy() / 2, seed=seed) if len(models) > 1 else None
@@ -162,7 +175,7 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
         held_counts = held["model"].value_counts().reindex(models, fill_value=0)
     for j, m in enumerate(models):
         row = {"model": m, "summed_bic": float(summed[m]), "delta_summed_bic": float(summed[m] - summed.min()),
-               "participants_best": int(counts[m])}
+               "participants_best": int(sole[m]), "participants_tied_best": int(shared[m])}
         if result is not None:
             row.update(frequency=float(result.frequencies[j]), ep=float(result.ep[j]), pxp=float(result.pxp[j]))
         if held is not None:
@@ -171,20 +184,22 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     table = pd.DataFrame(rows)
     atomic_write_text(out / "comparison.csv", table.to_csv(index=False))
     conditions = sorted(c for c in win["condition"].unique() if c != "mixed")
-    differences = _differences(win, conditions, seed) if len(conditions) == 2 else None
+    differences = _differences(win, fits, conditions, seed) if len(conditions) == 2 else None
     truth = _matched(truth, win)
-    lines += findings(table, result, len(pids), win, conditions, differences, truth)
+    lines += findings(table, result, len(pids), win, conditions, differences, truth, groups)
     if held is not None:
         lines.append(heldout_sentence(table, win, held, int(df["folds"].dropna().iloc[0])))
     lines += ["", "## Models", "",
               f"{len(pids)} participants, {len(models)} models; each participant's best model by BIC, the BIC "
               "summed over participants, and random-effects Bayesian model selection on log evidence -BIC/2 "
               "(Stephan et al. 2009; protected exceedance probabilities, Rigoux et al. 2014).", ""]
-    header = ["model", "Σ BIC", "Δ Σ BIC", "best for"] + (["frequency", "EP", "PXP"] if result is not None else [])
+    header = ["model", "Σ BIC", "Δ Σ BIC", "best for", "tied best for"] \
+        + (["frequency", "EP", "PXP"] if result is not None else [])
     header += ["Σ held-out LL", "best for (held-out)"] if held is not None else []
     body = []
     for r in rows:
-        cells = [r["model"], f"{r['summed_bic']:.1f}", f"{r['delta_summed_bic']:.1f}", r["participants_best"]]
+        cells = [r["model"], f"{r['summed_bic']:.1f}", f"{r['delta_summed_bic']:.1f}", r["participants_best"],
+                 r["participants_tied_best"]]
         if result is not None:
             cells += [f"{r['frequency']:.3f}", f"{r['ep']:.3f}", f"{r['pxp']:.3f}"]
         if held is not None:
@@ -195,17 +210,20 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
         lines += ["", "Bayesian omnibus risk (the probability that all models are equally frequent): "
                       f"{result.bor:.3f}. The BMS is said to separate the models when it is below {SEPARATED_BOR:g} and one protected "
                       f"exceedance probability is above {SEPARATED_PXP:g}."]
+    lines += ["", f"Best for: the participants whose only best model it is; tied best for: those for whom it is one "
+                  f"of several models of equal likelihood (log-likelihoods within {TOLERANCE:g}, as many "
+                  "parameters), which predict the same on their data and are reported as one."]
     lines += ["", "## Conditions", ""] + _conditions_table(conditions, differences)
     if truth is not None:
         lines += ["", "## Simulated participants: true and fitted", ""] + _truth_table(truth, win)
     pooled = fits[fits["participant"].astype(str).str.startswith(POOLED)]
     risked = "risk" in fits.columns and fits["risk"].notna().any()
     if len(pooled):
-        best = pooled.loc[pooled.groupby("participant")["bic"].idxmin()]
+        best = best_sets(pooled, pooled=True)
         lines += ["", "## Each condition pooled", "",
                   markdown_table(["condition", "best model", "sigma", "switch"] + (["risk"] if risked else [])
                                  + ["beta", "lapse", "BIC"],
-                                 [[r.condition, r.model, "" if pd.isna(r.sigma) else f"{r.sigma:g}",
+                                 [[r.condition, r.model, _blank(r.sigma),
                                    "" if pd.isna(getattr(r, "switch", None)) else f"{int(r.switch)}"]
                                   + ([_blank(getattr(r, "risk", None))] if risked else [])
                                   + [f"{r.beta:.2f}", f"{r.lapse:.3f}", f"{r.bic:.1f}"] for r in best.itertuples()])]
@@ -226,7 +244,14 @@ def heldout_winners(fits: pd.DataFrame) -> Optional[pd.DataFrame]:
         return None
     complete = df.groupby("participant")["heldout_loglik"].transform(lambda s: bool(s.notna().all()))
     df = df[complete.astype(bool)]
-    return df.loc[df.groupby("participant")["heldout_loglik"].idxmax()].reset_index(drop=True)
+    rows = []
+    for _, at in df.groupby("participant", sort=True):
+        top = at["heldout_loglik"].max()
+        tied = at[at["heldout_loglik"] >= top - TOLERANCE]
+        row = at.loc[at["heldout_loglik"].idxmax()].copy()
+        row["model"] = label(tied["model"])
+        rows.append(row)
+    return pd.DataFrame(rows).reset_index(drop=True)
 
 
 def heldout_sentence(table: pd.DataFrame, win: pd.DataFrame, held: pd.DataFrame, folds: int) -> str:
@@ -253,15 +278,20 @@ def heldout_sentence(table: pd.DataFrame, win: pd.DataFrame, held: pd.DataFrame,
 
 
 def findings(table: pd.DataFrame, result: Optional[BMSResult], n: int, win: pd.DataFrame, conditions: list[str],
-             differences: Optional[list[Difference]], truth: Optional[pd.DataFrame]) -> list[str]:
-    """What the comparison found, one bullet per finding: the winners, the BMS, the conditions, the truth."""
+             differences: Optional[list[Difference]], truth: Optional[pd.DataFrame],
+             groups: Sequence[Sequence[str]] = ()) -> list[str]:
+    """What the comparison found, one bullet per finding: models that predict the same, the winners, the BMS,
+    the conditions, the truth."""
     out = []
+    same = _same_sentence(win, groups)
+    if same:
+        out.append(f"- **Models that predict the same:** {same}")
     if len(table) == 1:
         out.append(f"- One model was fitted ({table['model'].iloc[0]}), so there is no comparison between models.")
     else:
         ordered = table.sort_values(["summed_bic", "model"]).reset_index(drop=True)
         best, second = ordered.iloc[0], ordered.iloc[1]
-        counts = ", ".join(f"{m} for {c}" for m, c in _count_order(table))
+        counts = ", ".join(f"{m} for {c}" for m, c in _count_order(win))
         out.append(f"- **Summed BIC:** {best['model']} fits best over the {n} participants (Σ BIC "
                    f"{best['summed_bic']:.1f}; the next, {second['model']}, is {second['delta_summed_bic']:.1f} "
                    f"higher). Each participant's best model: {counts}.")
@@ -287,16 +317,37 @@ def findings(table: pd.DataFrame, result: Optional[BMSResult], n: int, win: pd.D
         out.append(f"- **Conditions:** parameters are compared between two conditions; this fit has "
                    f"{len(conditions)}.")
     else:
-        out.append(f"- **Conditions** ({conditions[0]} against {conditions[1]}, each participant's best model): "
+        out.append(f"- **Conditions** ({conditions[0]} against {conditions[1]}; the depth of each participant's best "
+                   f"model, the other parameters of one model fitted to every participant): "
                    f"{_difference_sentence(differences, conditions)}")
     if truth is not None:
         out.append(f"- **Simulated participants** ({TRUTH}): {_truth_sentence(truth, win)}")
     return out
 
 
-def _count_order(table: pd.DataFrame) -> list[tuple[str, int]]:
-    ordered = table.sort_values(["participants_best", "model"], ascending=[False, True])
-    return [(r.model, int(r.participants_best)) for r in ordered.itertuples() if r.participants_best > 0]
+def _count_order(win: pd.DataFrame) -> list[tuple[str, int]]:
+    """Each best model (a tied set as one) and its number of participants, the most frequent first."""
+    counts = win["model"].astype(str).value_counts()
+    return sorted(((str(m), int(c)) for m, c in counts.items()), key=lambda mc: (-mc[1], mc[0]))
+
+
+def _same_sentence(win: pd.DataFrame, groups: Sequence[Sequence[str]]) -> str:
+    """Which models the comparison found to predict the same, for every participant or for some, in a sentence
+    or two; empty when none do."""
+    parts = []
+    if groups:
+        merged = _join([label(g) for g in groups])
+        parts.append(f"{merged} {'have' if len(groups) == 1 else 'each have'} equal likelihoods for every participant "
+                     f"(within {TOLERANCE:g} of log-likelihood, as many parameters): the data cannot tell them apart, "
+                     f"so they are one model here.")
+    tied = win[win["ties"] > 1]
+    if len(tied):
+        sets = tied["model"].astype(str).value_counts()
+        shown = _join([f"{m} for {c}" for m, c in sorted(sets.items(), key=lambda mc: (-mc[1], mc[0]))])
+        parts.append(f"For {len(tied)} of {len(win)} participants the lowest BIC is shared by models that predict the "
+                     f"same on their data ({shown}); each such set is reported as one best model, never one of "
+                     "its members by name.")
+    return " ".join(parts)
 
 
 def _difference_sentence(differences: list[Difference], conditions: list[str]) -> str:
@@ -329,18 +380,35 @@ def _join(items: Sequence[str]) -> str:
     return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
-def _differences(win: pd.DataFrame, conditions: list[str], seed: int) -> list[Difference]:
+#: The parameters compared between conditions, each of one model fitted to every participant.
+COMPARED = ("beta", "sigma", "switch", "risk", "hand", "percept", "lapse")
+
+
+def _differences(win: pd.DataFrame, fits: pd.DataFrame, conditions: list[str], seed: int) -> list[Difference]:
+    """The depth of each participant's best model (a tied set's, where its members share it), and each parameter
+    of :data:`COMPARED` of one model fitted to every participant
+    (:func:`overhang_framework.fit.equivalence.one_model`), between the two conditions."""
     a, b = conditions
     out = []
-    for name, label in (("depth", "depth of the best model"), ("beta", "beta of the best model"),
-                        ("sigma", "sigma of the best model (IPE winners)"),
-                        ("switch", "switch point of the best model (hybrid winners)"), ("lapse", "lapse of the best model")):
-        if name not in win.columns:  # fits written before the column existed
-            continue
-        xa = win[win["condition"] == a][name].dropna().to_numpy(dtype=float)
-        xb = win[win["condition"] == b][name].dropna().to_numpy(dtype=float)
+
+    def compare(name: str, text: str, rows: pd.DataFrame) -> None:
+        xa = rows[rows["condition"] == a][name].dropna().to_numpy(dtype=float)
+        xb = rows[rows["condition"] == b][name].dropna().to_numpy(dtype=float)
         p = permutation_p(xa, xb, N_RESAMPLES, seed) if len(xa) >= 2 and len(xb) >= 2 else float("nan")
-        out.append(Difference(name, label, xa, xb, p))
+        out.append(Difference(name, text, xa, xb, p))
+
+    compare("depth", "depth of the best model", win)
+    people = per_participant(fits)
+    for name in COMPARED:
+        if name not in people.columns:  # fits written before the column existed, or a fit without the axis
+            continue
+        model = one_model(fits, name)
+        if model is None:
+            continue
+        rows = people[people["model"].astype(str) == model]
+        if name in ("risk", "hand", "percept") and not (people[name] != 0).any():
+            continue  # every model has the axis at its neutral value for every participant
+        compare(name, f"{name} of {model}", rows)
     return out
 
 
@@ -353,7 +421,11 @@ def _conditions_table(conditions: list[str], differences: Optional[list[Differen
         cells = [f"{x.mean():.3f} (n = {len(x)})" if len(x) else "–" for x in (d.a, d.b)]
         rows.append([d.label, *cells, fmt_p(d.p) if d.compared else "too few"])
     return [markdown_table(["parameter", a, b, "p"], rows), "",
-            f"p: permutation test of the difference of means (participants as units, {N_RESAMPLES} resamples)."]
+            f"p: permutation test of the difference of means (participants as units, {N_RESAMPLES} resamples). "
+            "The depth is each participant's best model's (none where the models tied for best differ in depth); "
+            "every other parameter is that of one model fitted to every participant, of lowest summed BIC among "
+            "those that fit it on a grid, never the winners' own (which are selected). A model without an axis "
+            "(risk, hand, percept) has it at its neutral value, 0; an axis that is 0 for every fit is left out."]
 
 
 def _matched(truth: Optional[pd.DataFrame], win: pd.DataFrame) -> Optional[pd.DataFrame]:
@@ -377,8 +449,12 @@ def _truth_sentence(truth: pd.DataFrame, win: pd.DataFrame) -> str:
     text = f"the generating model is {models}" + (f" (all {n} participants)." if len(kinds) == 1 else ".")
     known = truth[truth["true_family"].notna()]
     if len(known):
-        hits = sum(best.loc[r.participant, "family"] == r.true_family for r in known.itertuples())
-        text += f" The generating family is the best model's for {hits} of {len(known)}."
+        hits = sum(r.true_family in best.loc[r.participant, "member_families"] for r in known.itertuples())
+        text += f" The generating family is the best model's for {hits} of {len(known)}"
+        tied = sum(best.loc[r.participant, "ties"] > 1 and r.true_family in best.loc[r.participant, "member_families"]
+                   for r in known.itertuples())
+        text += (f" ({tied} of them through a set of models that predict the same, the generating family among "
+                 "them)." if tied else ".")
     fitted_depth = [float(best.loc[p, "depth"]) for p in truth["participant"]]
     planned = truth["true_depth"].to_numpy(dtype=float)
     if truth["depth_reached"].notna().any():
@@ -441,8 +517,8 @@ def _figure(table: pd.DataFrame, win: pd.DataFrame, has_bms: bool, out: Path) ->
     ax.set_yticks(y, table["model"])
     ax.invert_yaxis()
     ax.set_xlabel("Σ BIC − best Σ BIC (lower is better)")
-    for i, n in enumerate(table["participants_best"]):
-        ax.text(0, i, f" best for {n}", va="center", fontsize=8)
+    for i, (n, m) in enumerate(zip(table["participants_best"], table["participants_tied_best"])):
+        ax.text(0, i, f" best for {n}" + (f" (+{m} tied)" if m else ""), va="center", fontsize=8)
     if has_bms:
         ax = axes[0][1]
         ax.barh(y, table["pxp"], color="#d0452f")
@@ -452,3 +528,65 @@ def _figure(table: pd.DataFrame, win: pd.DataFrame, has_bms: bool, out: Path) ->
         ax.set_xlabel("protected exceedance probability")
     fig.tight_layout()
     save_figure(fig, out / "comparison.png")
+
+
+def families_of(spec: Mapping) -> dict[str, str]:
+    """Each fitted family of a ``fit.json`` and its predictor's name (a hand's: the predictor it wraps)."""
+    from overhang_framework.fit.scores import without_hand
+
+    out = {}
+    for label_, config, *_ in spec.get("models") or []:
+        family = str(label_).split("/")[0]
+        out.setdefault(family, str(without_hand(dict(config)).get("name")))
+    return out
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """``python -m overhang_framework.fit.compare DIR [--truth CSV ...] [--log LOG ...]``: the comparison of
+    ``DIR/fits.csv`` written again into ``DIR`` (comparison.md, .csv, .png)."""
+    import argparse
+    import json
+
+    from overhang_framework.behaviour.log import read_log
+
+    parser = argparse.ArgumentParser(prog="python -m overhang_framework.fit.compare",
+                                     description="Write a fit's comparison again from its fits.csv (models that "
+                                                 "predict the same as one, parameters of one model).")
+    parser.add_argument("dir", type=Path, help="a fit's directory (fits.csv and fit.json)")
+    parser.add_argument("--truth", type=Path, action="append", default=None,
+                        help="participants.csv of simulated participants (default: the one beside each log of "
+                             "fit.json, if there)")
+    parser.add_argument("--log", type=Path, action="append", default=None,
+                        help="the behaviour logs, for the depth each participant's searches reached (default: "
+                             "fit.json's, if there)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the BMS and permutation tests (default 0)")
+    args = parser.parse_args(argv)
+    try:
+        fits_path = args.dir / "fits.csv"
+        try:
+            fits = pd.read_csv(fits_path)
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"{fits_path}: cannot read a fit's rows ({getattr(err, 'strerror', None) or err}); "
+                              "give the directory a fit wrote") from None
+        missing = [c for c in ("participant", "model", "family", "loglik", "k", "bic") if c not in fits.columns]
+        if missing:
+            raise ConfigError(f"{fits_path} is not a fit's fits.csv: no column {missing[0]!r}")
+        spec = {}
+        if (args.dir / "fit.json").is_file():
+            spec = json.loads((args.dir / "fit.json").read_text())
+        logs = args.log if args.log is not None else [Path(p) for p in spec.get("logs") or [] if Path(p).is_file()]
+        truth_paths = args.truth if args.truth is not None else [Path(p).parent / TRUTH for p in logs
+                                                                 if (Path(p).parent / TRUTH).is_file()]
+        records = read_log([str(p) for p in logs]) if logs else None
+        truth = read_truth(truth_paths, families_of(spec), records) if truth_paths else None
+    except (ConfigError, OSError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    comparison(fits, args.dir, seed=args.seed, truth=truth)
+    print(f"wrote {args.dir / 'comparison.md'}" + (f" (truth: {len(truth)} simulated participants)"
+                                                   if truth is not None else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -152,11 +152,11 @@ class ModelFit:
     n: int
     unmapped: int
     switch: Optional[int] = None
-    #: The planner's risk aversion of the best grid point (None: the model space has no risk grid).
+    #: The planner's risk aversion of the best grid point (0, risk-neutral, for a model without a risk grid).
     risk: Optional[float] = None
-    #: The motor noise the best grid point plans for (None: the model space has no hand grid).
+    #: The motor noise the best grid point plans for (0, none, for a model without a hand grid).
     hand: Optional[float] = None
-    #: The perceptual noise of the best grid point (None: the model space has no percept grid).
+    #: The perceptual noise of the best grid point (0, none, for a model without a percept grid).
     percept: Optional[float] = None
     #: Held-out log-likelihood summed over the folds of a cross-validation (None: not cross-validated).
     heldout: Optional[float] = None
@@ -255,10 +255,6 @@ def fit_index(participant: str, condition: str, variants: Sequence[Any], mapped:
     grids = [len({getattr(t.model, name) for t in variants}) > 1
              for name in ("sigma", "switch", "risk", "hand", "percept")]
     heldout = _heldout(every, mapped.trials, folds, seed) if folds >= 2 else None
-    risked = any(t.model.risk for t in variants)
-    handed = any(t.model.hand for t in variants)
-    perceived = any(t.model.percept for t in variants)
     return ModelFit(participant, condition, model.label, model.family, model.depth, model.sigma, best.beta,
                     best.lapse, best.loglik, 2 + sum(grids), len(mapped.states), mapped.unmapped, model.switch,
-                    model.risk if risked else None, model.hand if handed else None, model.percept if perceived else None,
-                    heldout, folds if folds >= 2 else None)
+                    model.risk, model.hand, model.percept, heldout, folds if folds >= 2 else None)
