@@ -32,16 +32,16 @@ X_DECIMALS = 6
 
 
 class HandPredictor(Predictor):
-    """``inner`` (a registered predictor's name, built with ``inner_params``) averaged over motor noise of
-    standard deviation ``sd`` metres with ``nodes`` Gauss-Hermite nodes."""
+    """``inner`` (a registered predictor's name, built with ``inner_params``, or a predictor object used as it
+    is) averaged over motor noise of standard deviation ``sd`` metres with ``nodes`` Gauss-Hermite nodes."""
 
-    def __init__(self, world: World, inner: str = "hybrid", inner_params: Optional[Mapping[str, Any]] = None,
+    def __init__(self, world: World, inner: Any = "hybrid", inner_params: Optional[Mapping[str, Any]] = None,
                  sd: float = 0.02, nodes: int = 3):
         from overhang_framework.plugins import Registry
 
         registry = Registry()
         names = [n for n in registry.names("predictor") if n != "hand"]
-        if inner not in names:
+        if not isinstance(inner, (str, Predictor)) or (isinstance(inner, str) and inner not in names):
             raise ValueError(f"unknown inner predictor {inner!r}; allowed: {', '.join(names)}")
         if inner_params is not None and not isinstance(inner_params, Mapping):
             raise ValueError(f"inner_params must be a mapping of parameter names to values, got {inner_params!r}")
@@ -51,7 +51,8 @@ class HandPredictor(Predictor):
             raise ValueError(f"nodes must be a whole number >= 1, got {nodes!r}")
         self.world = world
         self.sd = float(sd)
-        self.inner = registry.create("predictor", {"name": inner, **dict(inner_params or {})}, world=world)
+        self.inner = inner if isinstance(inner, Predictor) else \
+            registry.create("predictor", {"name": inner, **dict(inner_params or {})}, world=world)
         z, w = np.polynomial.hermite_e.hermegauss(nodes)
         self.offsets = np.round(self.sd * z, X_DECIMALS) if self.sd > 0 else np.zeros(1)
         self.weights = w / w.sum() if self.sd > 0 else np.ones(1)
