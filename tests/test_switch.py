@@ -60,12 +60,17 @@ def test_the_switch_point_is_left_out_of_the_draws_but_not_out_of_the_tables_key
     assert a.draw_seed(CONTEXT) == b.draw_seed(CONTEXT)
     assert a.key(CONTEXT) != b.key(CONTEXT)
     # the hybrid's key says its draws leave the switch out, so tables keyed before that are not reused;
-    # a model without a switch keeps the key it had
-    from overhang_framework.fit.scores import ENGINE_KEYS, _digest, _strip
+    # a model without a switch has no such mark in its key
+    from overhang_framework.fit.scores import (ENGINE_KEYS, _digest, _strip, code_identity, content_identity,
+                                               physics_identity)
 
     def before(model):
-        return _digest({"predictor": _strip(dict(model.predictor), ENGINE_KEYS), "depth": model.depth,
-                        "context": _strip(CONTEXT, ENGINE_KEYS)})
+        data = {"predictor": _strip(dict(model.predictor), ENGINE_KEYS), "depth": model.depth,
+                "context": _strip(CONTEXT, ENGINE_KEYS), "code": code_identity(model.predictor),
+                "physics": physics_identity(CONTEXT)}
+        if content_identity(model.predictor):
+            data["content"] = content_identity(model.predictor)
+        return _digest(data)
 
     ipe = Model(model_space({"ipe": {"predictor": "ipe"}}, [2])[0].variants[0].predictor, 2)
     assert ipe.key(CONTEXT) == before(ipe) and a.key(CONTEXT) != before(a)

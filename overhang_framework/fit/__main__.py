@@ -8,7 +8,8 @@ every participant of the behaviour logs, and to each condition pooled, and write
 sentences; winners, summed BIC, random-effects BMS, parameters between conditions;
 for simulated participants their true models and parameters beside the fitted ones,
 from the ``participants.csv`` next to the log or ``--truth CSV``) and ``fit.json``
-(what was fitted). ``cv=K`` also fits each model on K - 1 of K folds of each participant's trials
+(what was fitted: each log's path and the SHA-256 of its bytes, the models, the world).
+``cv=K`` also fits each model on K - 1 of K folds of each participant's trials
 and scores the fold left out: ``fits.csv`` gets the held-out log-likelihood, and ``comparison.md``
 sets the winners by it beside those by BIC. Hydra overrides choose the model space (``depths=[1,2,3]``,
 ``models.ipe.sigma=[0.02,0.04]``, ``models.hybrid.switch=4``, ``~models.cnn``); ``-m shard=0,1,2,3 shards=4``
@@ -148,16 +149,19 @@ def run(cfg: DictConfig) -> dict:
     from overhang_framework.fit.compare import comparison, read_truth
     from overhang_framework.fit.fitting import log_placements
     from overhang_framework.fit.run import (FitJournal, Predictors, aggregate, check_directory, fit_units,
-                                            journal_path, shard_units, units_of, write_part)
+                                            journal_path, log_hashes, logs_digest, shard_units, units_of,
+                                            write_part)
     from overhang_framework.fit.scores import ENGINE_KEYS, ScoreCache, _strip
     from overhang_framework.progress import progress_bar
 
+    # hashed before they are read: a log that changes in between is recorded as it was, and refused next time
+    hashes = log_hashes(_plain(cfg.logs) or [])
     checked = check_config(cfg)
     out = Path(cfg.out)
     world, value, space = checked["world"], checked["value"], checked["space"]
     context = {"world": _plain(cfg.world), "value": _plain(cfg.value)}
     # the models as their tables are keyed: settings of how they are computed (ENGINE_KEYS) left out
-    description = {"logs": checked["logs"],
+    description = {"logs": checked["logs"], "log_sha256": hashes,
                    "models": [model_entry(m, _strip(dict(m.predictor), ENGINE_KEYS)) for i in space for m in i.variants],
                    "context": context, "pooled": cfg.pooled, "shards": checked["shards"],
                    "states": cfg.states, "cv": cfg.cv}
@@ -167,7 +171,7 @@ def run(cfg: DictConfig) -> dict:
     mine = shards[checked["shard"]]
     cache = ScoreCache(cfg.cache)
     build = Predictors(checked["registry"], world)
-    journal = FitJournal(journal_path(out, checked["shard"], checked["shards"]))
+    journal = FitJournal(journal_path(out, checked["shard"], checked["shards"]), logs_digest(hashes))
 
     bar = progress_bar(total=len(mine) * len(space), desc="fits", unit="fit", disable=not cfg.progress,
                        miniters=1, mininterval=0.5, dynamic_ncols=True)

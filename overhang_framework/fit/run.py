@@ -11,6 +11,10 @@ While a job runs, each finished fit is appended to its journal,
 ``DIR/parts/shard-<shard>-of-<shards>.fits.jsonl``: a job stopped part-way (a
 Slurm time limit, a kill) and run again takes those fits from it and fits only
 the rest. The journal goes once the part is written.
+
+Logs are known by their content, not only by their paths: ``fit.json`` records each log's SHA-256
+(:func:`log_hashes`), and a journal's fits carry the digest of all of them (:func:`logs_digest`), so a log
+simulated again at the same path is never given the fits of the old one (:func:`check_directory`).
 """
 
 from __future__ import annotations
@@ -87,16 +91,37 @@ class JobResult:
     resumed: int = 0
 
 
+def log_hashes(paths: Sequence[str | Path]) -> list[Optional[str]]:
+    """The SHA-256 of each log's bytes, in the order of ``paths`` (None for a file that cannot be read, which
+    reading the logs then reports)."""
+    from overhang_framework.fit.scores import file_sha256
+
+    return [file_sha256(p) for p in paths]
+
+
+def logs_digest(hashes: Sequence[Optional[str]]) -> str:
+    """One digest of the logs' contents (their :func:`log_hashes`, in order): what a journal's fits are of."""
+    return hashlib.sha256(json.dumps(list(hashes)).encode()).hexdigest()
+
+
 class FitJournal:
     """The fits a job has finished, one JSON line each, appended as they finish: a job run again after a stop
-    takes them from here instead of fitting them again. A line cut short by a kill is ignored."""
+    takes them from here instead of fitting them again. A line cut short by a kill is ignored.
 
-    def __init__(self, path: Path):
+    Each line carries ``logs``, the digest of the contents of the logs it was fitted to (:func:`logs_digest`), and
+    a fit is taken only by a journal of the same digest: its entries are keyed by model, unit and the logs'
+    content, so a log simulated again at the same path is fitted again, whatever the journal holds."""
+
+    #: The field of a line that holds the digest of the logs' contents.
+    LOGS = "logs"
+
+    def __init__(self, path: Path, logs: str = ""):
         self.path = Path(path)
+        self.logs = str(logs)
         self.done: dict[tuple[str, str], ModelFit] = {}
         self._cut = False  # the file ends inside a line: the next line starts on a new one
         if self.path.exists():
-            names = {f.name for f in dataclasses.fields(ModelFit)}
+            names = {f.name for f in dataclasses.fields(ModelFit)} | {self.LOGS}
             text = self.path.read_text()
             self._cut = bool(text) and not text.endswith("\n")
             for line in text.splitlines():
@@ -104,7 +129,7 @@ class FitJournal:
                     data = json.loads(line)
                 except ValueError:
                     continue  # the last line of a job killed while writing it
-                if isinstance(data, dict) and set(data) == names:
+                if isinstance(data, dict) and set(data) == names and data.pop(self.LOGS) == self.logs:
                     fit = ModelFit(**data)
                     self.done[(fit.label, fit.participant)] = fit
 
@@ -114,7 +139,7 @@ class FitJournal:
     def add(self, fit: ModelFit) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.path, "a") as f:
-            f.write(("\n" if self._cut else "") + json.dumps(dataclasses.asdict(fit)) + "\n")
+            f.write(("\n" if self._cut else "") + json.dumps({**dataclasses.asdict(fit), self.LOGS: self.logs}) + "\n")
             f.flush()
             os.fsync(f.fileno())
         self._cut = False
@@ -468,7 +493,15 @@ def _locked(path: Path) -> Iterator[None]:
 
 
 def check_directory(out: Path, description: Mapping[str, Any]) -> None:
-    """Refuse a results directory that holds fits of another log or model space; record this one's."""
+    """Refuse a results directory that holds fits of another log or model space; record this one's.
+
+    ``description`` holds the logs' paths (``logs``) and the SHA-256 of each one's bytes (``log_sha256``, in the
+    same order). A log whose content changed at the same path (simulated again) is refused, with a one-line
+    error naming it, rather than fitted again in place: the directory's ``fits.csv``, its comparison and the
+    other jobs' parts are fits of the log as it was, and a job can replace only its own part, so fitting again
+    in place would mix fits of two versions of the data, or delete results nobody asked to delete. A directory
+    whose ``fit.json`` records no hashes (written before they were kept) cannot tell its logs' contents and is
+    refused the same way."""
     path = out / FIT_JSON
     with _locked(out / ".fit.lock"):
         if path.exists():
@@ -481,8 +514,17 @@ def check_directory(out: Path, description: Mapping[str, Any]) -> None:
             previous.setdefault("cv", 0)  # and no cross-validation
             if previous != description:
                 keys = sorted(k for k in set(previous) | set(description) if previous.get(k) != description.get(k))
-                raise OverhangError(f"{out} holds fits of another {' and '.join(keys)}; use another --out, "
-                                    f"or remove {path} and {out / PARTS} to start again")
+                again = f"use another --out, or remove {path} and {out / PARTS} to start again"
+                if keys == ["log_sha256"] and "log_sha256" not in previous:
+                    raise OverhangError(f"{out} holds fits of logs whose contents {path} does not record (a fit made "
+                                        f"before log hashes were kept), so they may be of other data; {again}")
+                if keys == ["log_sha256"]:
+                    changed = [p for p, a, b in zip(description.get("logs") or [], previous["log_sha256"] or [],
+                                                    description["log_sha256"]) if a != b]
+                    named = changed[0] if len(changed) == 1 else f"{len(changed)} logs ({', '.join(changed)})"
+                    raise OverhangError(f"{out} holds fits of {named} as it was before it changed (its SHA-256 "
+                                        f"differs from the one {path} records); {again}")
+                raise OverhangError(f"{out} holds fits of another {' and '.join(keys)}; {again}")
         else:
             atomic_write_json(path, dict(description))
 

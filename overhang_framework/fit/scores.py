@@ -24,6 +24,15 @@ the same task share, are searched once. Across processes and runs, the tables
 themselves are kept in a :class:`ScoreCache` (an SQLite file) keyed by the
 model's key and the state's canonical key.
 
+**What a key holds.** A model's key (:meth:`Model.key`) is made of what its numbers depend on, by content
+rather than by name: the model's settings and the world's and value's; the version of the code that
+computes a table (:data:`SCORES_VERSION`, the framework's version and the version of each installed
+distribution whose plugin registers a predictor of the model); the identity of the physics every
+backend of the world or of a simulating predictor runs (:func:`physics_identity`, every parameter with
+its default); and the content of the files a predictor loads (the CNN's checkpoint by the SHA-256 of
+its bytes, :func:`content_identity`). A table computed by other code, on other physics or with other
+weights under the same name is not found.
+
 **Shared tables.** The hybrids of a switch-point grid give the same table in a state for most switch
 points, and where every tower goes to a deterministic late part, the late part's model's table:
 :func:`share_tables` lets each such table be computed once, and kept in the cache under every model's key.
@@ -63,6 +72,11 @@ SHARED_DRAW_KEYS = ("switch",)
 #: Settings that choose how the same numbers are computed (the IPE's scene path, the static LP stage):
 #: a table's key and draw seed leave them out, so either way gives and finds the same tables.
 ENGINE_KEYS = ("scenes", "lp_nnls", "compiled", "nnls", "lazy", "settle_batch")
+
+
+#: The version of how a table is computed (this module, the searches and planners it calls): raised when a
+#: change gives a table other numbers, so that the tables kept before are not reused.
+SCORES_VERSION = 1
 
 
 def _digest(data: Any) -> str:
@@ -157,16 +171,22 @@ class Model:
         return f"{self.family}/{self.planner}"
 
     def key(self, context: Mapping[str, Any]) -> str:
-        """The key of this model's tables: every setting that changes a score (``context``: world and value); not
-        the percept, which changes the states a table is asked in, not the table."""
+        """The key of this model's tables: every setting that changes a score (``context``: world and value), the
+        version of the code that computes them (:func:`code_identity`), the identity of the physics they run on
+        (:func:`physics_identity`) and the content of the files the predictor loads (:func:`content_identity`);
+        not the percept, which changes the states a table is asked in, not the table."""
         data = {"predictor": _strip(dict(self.predictor), ENGINE_KEYS), "depth": self.depth,
-                "context": _strip(dict(context), ENGINE_KEYS)}
-        if self.risk:  # a risk-neutral model's key is what it was before risk existed
+                "context": _strip(dict(context), ENGINE_KEYS), "code": code_identity(self.predictor),
+                "physics": physics_identity(context)}
+        content = content_identity(self.predictor)
+        if content:
+            data["content"] = content
+        if self.risk:
             data["risk"] = [self.risk, self.risk_form]
         shared = [k for k in SHARED_DRAW_KEYS if k in self.predictor]
-        if shared:  # these tables' draws leave those settings out (tables keyed before that are not reused)
+        if shared:  # these tables' draws leave those settings out
             data["draws_without"] = shared
-        if _stage_switch(self.predictor):  # its draws are its early part's (tables keyed before are not reused)
+        if _stage_switch(self.predictor):  # its draws are its early part's
             data["draws_of"] = "early"
         return _digest(data)
 
@@ -185,6 +205,149 @@ class Model:
         digest = _digest({"predictor": _strip_noise(dict(self.draw_settings())),
                           "context": _strip(dict(context), ENGINE_KEYS)})
         return int(digest[:16], 16)
+
+
+_REGISTRY: list = []
+
+
+def _entry(name: Any):
+    """The registry's entry of predictor ``name``, or None when no plugin registers it."""
+    from overhang_framework.plugins import Registry
+
+    if not isinstance(name, str):
+        return None
+    for fresh in (False, True):  # a plugin registered since the registry was read is found on a second look
+        if fresh or not _REGISTRY:
+            _REGISTRY[:] = [Registry()]
+        entry = _REGISTRY[0].entries["predictor"].get(name)
+        if entry is not None:
+            return entry
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def _defaults(factory: Any) -> dict:
+    import inspect
+
+    try:
+        parameters = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):
+        return {}
+    return {p.name: p.default for p in parameters if p.default is not inspect.Parameter.empty}
+
+
+def predictor_parts(config: Mapping[str, Any], _depth: int = 0) -> list[tuple[str, dict]]:
+    """The name and settings of the predictor ``config`` describes and of every predictor inside it: a setting
+    ``X`` that names a predictor beside a mapping ``X_params`` of its settings (the hybrid's ``early`` and
+    ``late``, the hand's ``inner``), from the factory's defaults where ``config`` leaves it out."""
+    name = config.get("name")
+    params = {str(k): v for k, v in config.items() if k != "name"}
+    parts = [(str(name), params)]
+    entry = _entry(name)
+    if entry is None or _depth > 8:
+        return parts
+    try:
+        defaults = _defaults(entry.factory)
+    except TypeError:  # a factory that cannot be a cache's key
+        defaults = _defaults.__wrapped__(entry.factory)
+    for key in sorted(set(params) | set(defaults)):
+        holder = f"{key}_params"
+        if key.endswith("_params") or (holder not in params and holder not in defaults):
+            continue
+        part = params.get(key, defaults.get(key))
+        inner = params.get(holder, defaults.get(holder)) or {}
+        if isinstance(part, str) and isinstance(inner, Mapping) and _entry(part) is not None:
+            parts += predictor_parts({**dict(inner), "name": part}, _depth + 1)
+    return parts
+
+
+@functools.lru_cache(maxsize=None)
+def _distribution(name: str) -> str:
+    """``project version`` of the installed distribution whose plugin registers predictor ``name``; '' for a
+    plugin registered by a running program (a test's), or a name no plugin registers."""
+    from overhang_framework.plugins import get_plugin_manager
+
+    entry = _entry(name)
+    if entry is None:
+        return ""
+    pm = get_plugin_manager()
+    plugin = pm.get_plugin(entry.plugin)
+    for registered, dist in pm.list_plugin_distinfo():
+        if registered is plugin:
+            return f"{dist.project_name} {dist.version}"
+    return ""
+
+
+def code_identity(predictor: Mapping[str, Any]) -> dict:
+    """The versions of the code that computes a table of a model with predictor config ``predictor``:
+    :data:`SCORES_VERSION`, the framework's version, and the installed distribution (project and version) of the
+    plugin that registers each predictor it names (:func:`predictor_parts`)."""
+    from overhang_framework.version import version
+
+    names = sorted({name for name, _ in predictor_parts(predictor)})
+    return {"scores": SCORES_VERSION, "framework": version(), "plugins": {n: _distribution(n) for n in names}}
+
+
+@functools.lru_cache(maxsize=64)
+def _physics(world: str) -> dict:
+    from overhang_framework.optimum import _ident
+    from overhang_framework.physics.factory import BACKENDS
+
+    config = json.loads(world)
+    resolution = config.get("resolution")
+    return {"physics": config.get("physics", "tiered"),
+            "backends": {name: _ident(name, dict(config.get(name) or {}), resolution)["params"]
+                         for name in BACKENDS}}
+
+
+def physics_identity(context: Mapping[str, Any]) -> dict:
+    """The physics a model's tables run on, from the world's config in ``context``: the world's physics and every
+    backend's parameters with their defaults (the identity :func:`overhang_framework.optimum.physics_id` gives
+    the benchmark's optima, less how a verdict is computed). The IPE simulates on one of these backends with
+    the world's parameters for it, overridden by its own ``backend_params`` (part of its config); the
+    tiered physics builds on the others."""
+    world = context.get("world") if isinstance(context, Mapping) else None
+    world = dict(world) if isinstance(world, Mapping) else {}
+    return _physics(json.dumps(_plain(world), sort_keys=True, default=str))
+
+
+_FILE_DIGESTS: dict[tuple, str] = {}
+
+
+def file_sha256(path: str | Path) -> Optional[str]:
+    """The SHA-256 of the bytes of the file at ``path`` (hex), computed once per file and remembered while its
+    size and change times stay the same; None when there is no such file."""
+    try:
+        path = Path(path).expanduser().resolve()
+        st = path.stat()
+    except OSError:
+        return None
+    mark = (str(path), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+    known = _FILE_DIGESTS.get(mark)
+    if known is None:
+        made = hashlib.sha256()
+        try:
+            with open(path, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    made.update(chunk)
+        except OSError:
+            return None
+        known = _FILE_DIGESTS[mark] = made.hexdigest()
+    return known
+
+
+def content_identity(predictor: Mapping[str, Any]) -> list:
+    """What the answers of predictor config ``predictor`` depend on beyond its settings, by each predictor it
+    names (:func:`predictor_parts`): what a factory's ``content_identity(settings)`` gives (the CNN: the
+    SHA-256 of its checkpoint's bytes), as ``[name, identity]`` pairs. Empty when no part loads a file."""
+    out = []
+    for name, params in predictor_parts(predictor):
+        entry = _entry(name)
+        identify = getattr(entry.factory, "content_identity", None) if entry is not None else None
+        found = identify(params) if callable(identify) else None
+        if found:
+            out.append([name, dict(found)])
+    return out
 
 
 def _stage_switch(config: Mapping[str, Any]) -> bool:

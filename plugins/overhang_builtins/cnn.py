@@ -74,6 +74,20 @@ class CNNPredictor(Predictor):
 
     deterministic = True
 
+    @staticmethod
+    def content_identity(params) -> dict:
+        """What the answers of a CNN of settings ``params`` depend on beyond them: the SHA-256 of the bytes of the
+        checkpoint file it loads (``checkpoint``, a shipped network's name or a path), so that score tables are
+        keyed by the weights, not by the checkpoint's name (:func:`overhang_framework.fit.scores.content_identity`)."""
+        from overhang_framework.cnn.model import resolve_checkpoint
+        from overhang_framework.fit.scores import file_sha256
+
+        try:
+            path = resolve_checkpoint(params.get("checkpoint", "default"))
+        except ValueError:
+            return {}
+        return {"checkpoint_sha256": file_sha256(path)}
+
     def __init__(self, world: World, checkpoint: str = "default", device: str = "auto",
                  threads: Optional[int] = 1, batch_size: int = 64, cache_size: int = 200_000,
                  mirror="auto", fused: bool = True, runtime: str = "onnxruntime", lazy="auto",
