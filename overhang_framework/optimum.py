@@ -33,12 +33,12 @@ import numpy as np
 
 from overhang_framework.interfaces import Budget, Predictor, State, Task, World
 from overhang_framework.results import atomic_write_json
+from overhang_framework.physics.factory import SOLVER_SETTINGS  # noqa: F401  (result keys leave these out)
+from overhang_framework.physics.factory import identity as _ident
 from overhang_framework.search import (Expander, binary_verdicts, lookahead_value, reach_bound,  # noqa: F401
                                       root_scores, score_step, settled_scores)
 
 DATA_FILE = Path(__file__).resolve().parent / "data" / "optima.json"
-#: Backend parameters that choose how verdicts are computed, not the verdicts: left out of result keys.
-SOLVER_SETTINGS = ("lp_nnls", "compiled", "nnls")
 
 
 
@@ -164,20 +164,6 @@ def physics_id(world: World) -> dict:
     physics = getattr(world, "physics_name", type(world).__name__)
     params = dict(getattr(world, "backend_params", {}).get(physics, {}))
     return _ident(physics, params, getattr(world, "resolution", None))
-
-
-def _ident(physics: str, params: dict, resolution) -> dict:
-    import dataclasses
-
-    from overhang_framework.physics.factory import backend_params
-
-    try:
-        params = dataclasses.asdict(backend_params(physics, **params))  # every parameter, defaults included
-    except (ValueError, TypeError):
-        pass
-    for name in SOLVER_SETTINGS:  # how a verdict is computed, not what it is
-        params.pop(name, None)
-    return {"physics": physics, "params": params, "resolution": resolution}
 
 
 def optimum_key(task: Task, world: World) -> str:

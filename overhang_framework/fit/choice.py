@@ -147,10 +147,12 @@ class BankChoice:
     """
 
     def __init__(self, world: World, value: Any, bank: VerdictBank, params: ChoiceParams, draws: int = DRAWS,
-                 seed: int = 0):
+                 seed: int = 0, trees: Optional[dict] = None):
         self.world, self.value, self.bank, self.params = world, value, bank, params
         self.draws, self.seed = int(draws), int(seed)
-        self._trees: dict[tuple, dict] = {}
+        #: the search trees by (state, horizon): shared by choices of one bank and hand that differ in K, risk or
+        #: softmax only (a tree holds the bank's answers, which those do not change)
+        self._trees: dict[tuple, dict] = {} if trees is None else trees
 
     # --- the simulator ----------------------------------------------------------------------------------
 
@@ -247,7 +249,15 @@ class BankChoice:
         return risk_weight(answers, p.risk, p.risk_form)
 
     def _root_probabilities(self, state: State, chunk: int, rng: np.random.Generator) -> np.ndarray:
-        """The sum over ``chunk`` draws of the softmax over ``state``'s root scores (no lapse)."""
+        """``(chunk, n)``: under each of ``chunk`` draws, the softmax over ``state``'s root scores (no lapse)."""
+        scores = self.score_samples(state, chunk, rng)
+        z = self.params.beta * (scores - scores.max(axis=1, keepdims=True))
+        e = np.exp(z)
+        return e / e.sum(axis=1, keepdims=True)
+
+    def score_samples(self, state: State, chunk: int, rng: np.random.Generator) -> np.ndarray:
+        """``(chunk, n)``: the planner's exact root scores of ``state``'s actions under each of ``chunk`` draws of
+        every node's ``K`` bank columns (no percept)."""
         p = self.params
         horizon = max(1, min(p.depth, len(state.remaining)))
         cache_key = (state_key(state), horizon)
@@ -271,9 +281,7 @@ class BankChoice:
             for i, child in enumerate(node.children):
                 tail = node.overhang[i] if child is None else self._values(nodes, child, horizon - 1, columns, memo)
                 scores[:, i] = w[:, i] * tail
-        z = p.beta * (scores - scores.max(axis=1, keepdims=True))
-        e = np.exp(z)
-        return e / e.sum(axis=1, keepdims=True)
+        return scores
 
     def _chunk(self, state: State) -> int:
         n = max(len(self.world.legal_actions(state)), 1)

@@ -475,11 +475,11 @@ def _truth_table(truth: pd.DataFrame, win: pd.DataFrame) -> list[str]:
     def num(x, digits=3) -> str:
         return "–" if x is None or (isinstance(x, float) and not np.isfinite(x)) or pd.isna(x) else f"{x:.{digits}g}"
 
-    # the risk's columns only where the truth or the fit has a risk
-    risked = truth["true_risk"].notna().any() or ("risk" in win.columns and win["risk"].notna().any())
-    # and the hand's and the percept's likewise
-    handed = truth["true_hand"].notna().any() or ("hand" in win.columns and win["hand"].notna().any())
-    seen = truth["true_percept"].notna().any() or ("percept" in win.columns and win["percept"].notna().any())
+    def shown(true: str, fitted: str) -> bool:
+        """An axis's columns only where the truth or a fit gives it a value other than its neutral 0."""
+        return bool((truth[true].fillna(0) != 0).any() or (fitted in win.columns and (win[fitted].fillna(0) != 0).any()))
+
+    risked, handed, seen = shown("true_risk", "risk"), shown("true_hand", "hand"), shown("true_percept", "percept")
     rows = []
     for r in truth.itertuples(index=False):
         fit = best.loc[r.participant]

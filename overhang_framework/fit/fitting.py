@@ -124,12 +124,19 @@ def fit_softmax(decisions: Decisions) -> SoftmaxFit:
     if len(decisions) == 0:
         return SoftmaxFit(float("nan"), float("nan"), 0.0)
 
+    gradient = getattr(decisions, "value_and_grad", None)
+
     def objective(theta):
         return -log_likelihood(decisions, float(theta[0]), float(theta[1]))
 
+    def with_gradient(theta):
+        value, grad = gradient(float(theta[0]), float(theta[1]))
+        return -value, -grad
+
     best = None
     for start in STARTS:
-        res = minimize(objective, np.array(start), method="L-BFGS-B", bounds=[BETA_BOUNDS, LAPSE_BOUNDS])
+        res = minimize(objective if gradient is None else with_gradient, np.array(start), method="L-BFGS-B",
+                       jac=gradient is not None, bounds=[BETA_BOUNDS, LAPSE_BOUNDS])
         if best is None or res.fun < best.fun:
             best = res
     return SoftmaxFit(float(best.x[0]), float(best.x[1]), -float(best.fun))

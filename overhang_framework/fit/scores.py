@@ -290,19 +290,18 @@ def code_identity(predictor: Mapping[str, Any]) -> dict:
 
 @functools.lru_cache(maxsize=64)
 def _physics(world: str) -> dict:
-    from overhang_framework.optimum import _ident
-    from overhang_framework.physics.factory import BACKENDS
+    from overhang_framework.physics.factory import BACKENDS, identity
 
     config = json.loads(world)
     resolution = config.get("resolution")
     return {"physics": config.get("physics", "tiered"),
-            "backends": {name: _ident(name, dict(config.get(name) or {}), resolution)["params"]
+            "backends": {name: identity(name, dict(config.get(name) or {}), resolution)["params"]
                          for name in BACKENDS}}
 
 
 def physics_identity(context: Mapping[str, Any]) -> dict:
     """The physics a model's tables run on, from the world's config in ``context``: the world's physics and every
-    backend's parameters with their defaults (the identity :func:`overhang_framework.optimum.physics_id` gives
+    backend's parameters with their defaults (the identity :func:`overhang_framework.physics.factory.identity` gives
     the benchmark's optima, less how a verdict is computed). The IPE simulates on one of these backends with
     the world's parameters for it, overridden by its own ``backend_params`` (part of its config); the
     tiered physics builds on the others."""

@@ -7,6 +7,22 @@ from typing import Optional
 from overhang_framework.physics.cache import CachedBackend, VerdictCache
 
 BACKENDS = ("pybullet", "static", "tiered")
+#: Backend settings that choose how a verdict is computed, not what it is (left out of a physics' identity).
+SOLVER_SETTINGS = ("lp_nnls", "compiled", "nnls")
+
+
+def identity(physics: str, params: dict, resolution) -> dict:
+    """What verdicts under ``physics`` with ``params`` at ``resolution`` depend on: the physics, every parameter
+    of its backend with the defaults filled in (less :data:`SOLVER_SETTINGS`), and the resolution."""
+    import dataclasses
+
+    try:
+        params = dataclasses.asdict(backend_params(physics, **params))  # every parameter, defaults included
+    except (ValueError, TypeError):
+        params = dict(params)
+    for name in SOLVER_SETTINGS:
+        params.pop(name, None)
+    return {"physics": physics, "params": params, "resolution": resolution}
 
 
 def backend_params(name: str, **params):

@@ -1,0 +1,229 @@
+"""Fitting with the participant's own prediction noise in the likelihood:
+``python -m overhang_framework.fit.marginal LOG --out DIR``.
+
+The fit's score tables score each decision state with one fixed draw of the IPE's simulations, while a
+simulated participant (and, the model says, a person) draws fresh simulations at every decision. Here the
+likelihood of a choice is the probability with which a participant of the model chooses it
+(:class:`overhang_framework.fit.choice.BankChoice`): the average, over ``draws`` Monte Carlo samples of the
+participant's noise, of the softmax over the planner's root scores, each node of the search drawing ``K`` of a
+bank of ``bank`` noise draws per node (the IPE's noise distribution as the fit sees it). ``K``, the number of
+mental simulations, is a parameter of the model, fitted on a grid beside ``sigma``, the depth and the risk.
+
+For each participant and each grid point, ``beta`` and the lapse are fitted by L-BFGS-B on the stored score
+samples; each model index (``ipe/D2``) keeps its best grid point. ``fits.csv`` has the fit's columns and ``K``;
+``comparison.md`` is the fit's comparison (:mod:`overhang_framework.fit.compare`). The samples of a state are
+drawn from a generator seeded by the state and the run's seed, the same for every model (common random numbers
+between models).
+
+This is the IPE family's likelihood on the world's grid, without a call budget (a budgeted participant's
+search completes depth 1 when the budget is below what depth 2 needs, so its depth-1 model is its own), and
+without a percept or a hand (docs/fitting.md, "The participant's own noise").
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import itertools
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import pandas as pd
+
+from overhang_framework.fit.choice import BANK_SIZE, BankChoice, ChoiceParams, VerdictBank
+from overhang_framework.interfaces import State
+
+#: Monte Carlo samples of a participant's noise per decision state.
+DRAWS = 500
+
+
+@dataclass
+class SampledDecisions:
+    """A participant's decisions under a model with its own noise: ``scores`` ``(n, draws, m)``, the root scores of
+    each decision under each sample (``-inf`` past each state's actions), the chosen indices and the states'
+    numbers of legal actions. ``P(a) = (1 - lapse) * mean_draws softmax_beta(scores)_a + lapse / size``."""
+
+    scores: np.ndarray
+    chosen: np.ndarray
+    sizes: np.ndarray
+
+    @classmethod
+    def of(cls, samples: Sequence[np.ndarray], chosen: Sequence[int]) -> "SampledDecisions":
+        n = len(samples)
+        draws = max((s.shape[0] for s in samples), default=1)
+        m = max((s.shape[1] for s in samples), default=1)
+        scores = np.full((n, draws, m), -np.inf)
+        for i, s in enumerate(samples):
+            scores[i, : s.shape[0], : s.shape[1]] = s
+        return cls(scores, np.asarray(chosen, dtype=int), np.array([s.shape[1] for s in samples], dtype=float))
+
+    def __len__(self) -> int:
+        return len(self.chosen)
+
+    def subset(self, rows: np.ndarray) -> "SampledDecisions":
+        return SampledDecisions(self.scores[rows], self.chosen[rows], self.sizes[rows])
+
+    def probabilities(self, beta: float, lapse: float) -> np.ndarray:
+        s = self.scores
+        top = s.max(axis=2, keepdims=True)
+        with np.errstate(invalid="ignore"):
+            z = np.where(np.isfinite(s), beta * (s - top), -np.inf)
+        w = np.exp(z)
+        picked = w[np.arange(len(self)), :, self.chosen] / w.sum(axis=2)
+        return (1 - lapse) * picked.mean(axis=1) + lapse / self.sizes
+
+    def log_likelihood(self, beta: float, lapse: float) -> float:
+        if len(self) == 0:
+            return 0.0
+        return float(np.log(np.maximum(self.probabilities(beta, lapse), 1e-300)).sum())
+
+    def _centred(self):
+        if getattr(self, "_cache", None) is None:
+            s = self.scores
+            inside = np.isfinite(s)
+            top = np.where(inside, s, -np.inf).max(axis=2, keepdims=True)
+            centred = np.where(inside, s - top, 0.0)
+            picked = centred[np.arange(len(self)), :, self.chosen]
+            self._cache = (centred, inside, picked)
+        return self._cache
+
+    def value_and_grad(self, beta: float, lapse: float) -> tuple[float, np.ndarray]:
+        """The log-likelihood and its gradient in ``(beta, lapse)`` (one pass over the samples)."""
+        centred, inside, picked = self._centred()
+        w = np.where(inside, np.exp(beta * centred), 0.0)
+        total = w.sum(axis=2)
+        soft = np.exp(beta * picked) / total  # (n, draws): the chosen action's softmax
+        mean_score = (w * centred).sum(axis=2) / total
+        q = soft.mean(axis=1)
+        dq = (soft * (picked - mean_score)).mean(axis=1)
+        p = np.maximum((1 - lapse) * q + lapse / self.sizes, 1e-300)
+        grad = np.array([float(((1 - lapse) * dq / p).sum()), float(((1 / self.sizes - q) / p).sum())])
+        return float(np.log(p).sum()), grad
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The model space: the IPE's sigmas, the numbers of simulations ``K``, the depths and the risks."""
+
+    sigmas: tuple = (0.02, 0.03, 0.05)
+    Ks: tuple = (1, 10, 50)
+    depths: tuple = (1, 2)
+    risks: tuple = (0.0,)
+    risk_form: str = "power"
+
+
+def _seed(state: State, seed: int) -> np.random.Generator:
+    from overhang_framework.search import state_key
+
+    digest = hashlib.blake2b(repr(state_key(state)).encode(), digest_size=8).digest()
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int.from_bytes(digest, "little"), 0x5A3]))
+
+
+def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int], grid: Grid, draws: int = DRAWS,
+                    bank_size: int = BANK_SIZE, seed: int = 0, banks: Optional[dict] = None) -> list[dict]:
+    """One row per model index (depth) of the IPE family: the best grid point's parameters and likelihood."""
+    from overhang_framework.fit.fitting import fit_softmax
+
+    banks = {} if banks is None else banks
+    rows = []
+    for depth in grid.depths:
+        best = None
+        for sigma in grid.sigmas:
+            bank = banks.setdefault(sigma, VerdictBank(world, sigma=float(sigma), size=bank_size, seed=seed))
+            trees: dict = {}
+            for K, risk in itertools.product(grid.Ks, grid.risks):
+                params = ChoiceParams(depth=int(depth), K=int(K), beta=1.0, risk=float(risk),
+                                      risk_form=grid.risk_form)
+                choice = BankChoice(world, value, bank, params, draws=draws, seed=seed, trees=trees)
+                samples = [choice.score_samples(s, draws, _seed(s, seed)) for s in states]
+                fit = fit_softmax(SampledDecisions.of(samples, chosen))
+                if best is None or fit.loglik > best[0].loglik + 1e-9:
+                    best = (fit, sigma, K, risk)
+        fit, sigma, K, risk = best
+        k = 2 + sum(len(set(g)) > 1 for g in (grid.sigmas, grid.Ks, grid.risks))
+        n = len(states)
+        rows.append({"model": f"ipe/{'myopic' if depth == 1 else f'D{depth}'}", "family": "ipe", "depth": int(depth),
+                     "sigma": float(sigma), "K": int(K), "risk": float(risk), "hand": 0.0, "percept": 0.0,
+                     "beta": fit.beta, "lapse": fit.lapse, "loglik": fit.loglik, "k": k, "n": n,
+                     "bic": k * math.log(n) - 2 * fit.loglik if n else math.nan, "aic": 2 * k - 2 * fit.loglik})
+    return rows
+
+
+def _numbers(text: str, kind=float) -> tuple:
+    try:
+        values = tuple(kind(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of numbers: {text!r}") from None
+    if not values:
+        raise argparse.ArgumentTypeError("an empty list")
+    return values
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from overhang_framework.behaviour.log import read_log, require_records
+    from overhang_framework.errors import OverhangError
+    from overhang_framework.fit.fitting import log_placements, map_placements
+    from overhang_framework.plugins import Registry
+    from overhang_framework.progress import progress_bar
+    from overhang_framework.results import atomic_write_text
+
+    parser = argparse.ArgumentParser(prog="python -m overhang_framework.fit.marginal",
+                                     description="Fit the IPE family with the participant's own prediction noise in "
+                                                 "the likelihood; K (mental simulations) fitted on a grid.")
+    parser.add_argument("logs", nargs="+", type=Path, help="behaviour logs (log.jsonl)")
+    parser.add_argument("--out", type=Path, required=True, help="where fits.csv and comparison.md go")
+    parser.add_argument("--sigma", type=_numbers, default=Grid.sigmas, help="IPE noise grid (default 0.02,0.03,0.05)")
+    parser.add_argument("--K", type=lambda t: _numbers(t, int), default=Grid.Ks, help="K grid (default 1,10,50)")
+    parser.add_argument("--depths", type=lambda t: _numbers(t, int), default=Grid.depths, help="depths (default 1,2)")
+    parser.add_argument("--risk", type=_numbers, default=Grid.risks, help="risk grid (default 0)")
+    parser.add_argument("--condition", action="append", default=None,
+                        help="fit only the participants of this condition (repeatable; default: all)")
+    parser.add_argument("--draws", type=int, default=DRAWS, help=f"noise samples per state (default {DRAWS})")
+    parser.add_argument("--bank", type=int, default=BANK_SIZE, help=f"noise draws per node (default {BANK_SIZE})")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--physics", default="static", help="the world's physics (default static)")
+    args = parser.parse_args(argv)
+    try:
+        if any(k < 1 for k in args.K) or any(d < 1 for d in args.depths) or args.draws < 1 or args.bank < 1:
+            raise OverhangError("K, depths, --draws and --bank must be whole numbers >= 1")
+        if any(not 0 <= r < 1 for r in args.risk) or any(s < 0 for s in args.sigma):
+            raise OverhangError("risks must be from 0 to below 1, sigmas >= 0")
+        df = require_records(read_log([str(p) for p in args.logs]), args.logs)
+        registry = Registry()
+        world = registry.create("world", {"name": "overhang", "physics": args.physics})
+        value = registry.create("value", {"name": "overhang"}, world=world)
+    except (OverhangError, OSError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    grid = Grid(tuple(args.sigma), tuple(args.K), tuple(args.depths), tuple(args.risk))
+    placements = log_placements(df)
+    people = sorted({p.participant for p in placements})
+    conditions = {p.participant: p.condition for p in placements}
+    if args.condition:
+        people = [p for p in people if conditions[p] in args.condition]
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows, started = [], time.perf_counter()
+    banks: dict = {}
+    for participant in progress_bar(people, desc="participants", unit="participant"):
+        mapped = map_placements(world, [p for p in placements if p.participant == participant])
+        for row in fit_participant(world, value, mapped.states, mapped.chosen, grid, args.draws, args.bank,
+                                   args.seed, banks):
+            rows.append({"participant": participant, "condition": conditions[participant], **row,
+                         "unmapped": mapped.unmapped})
+        atomic_write_text(args.out / "fits.csv", pd.DataFrame(rows).to_csv(index=False))
+    seconds = time.perf_counter() - started
+    from overhang_framework.fit.compare import comparison
+
+    comparison(pd.DataFrame(rows), args.out)
+    print(f"fitted {len(people)} participants x {len(grid.depths)} depths in {seconds:.0f} s; wrote "
+          f"{args.out / 'fits.csv'} and {args.out / 'comparison.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
