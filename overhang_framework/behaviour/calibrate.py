@@ -252,6 +252,26 @@ def measured_table(result: Measured | Sequence[Measured]) -> str:
     return markdown_table(header + (["each run's distance"] if several else []), rows)
 
 
+def measured_summary(results: Sequence[Measured]) -> dict:
+    """The figures of :func:`measured_table` as numbers: per condition and measure the mean of the runs' means
+    (``mean``), the number of runs, the paper's ``paper`` and ``sem``, the ``distance`` in the paper's SEMs and
+    ``distance_md`` (in bold within one SEM, as the docs show it)."""
+    out: dict = {}
+    for condition in dict.fromkeys(c for one in results for c in one):
+        have = [one[condition] for one in results if condition in one]
+        out[condition] = {}
+        for metric in METRICS:
+            mean = float(np.mean([row[metric][0] for row in have]))
+            paper = TARGETS.get(condition, {}).get(metric)
+            entry = {"mean": mean, "runs": len(have)}
+            if paper:
+                z = (mean - paper[0]) / paper[1]
+                entry.update(paper=paper[0], sem=paper[1], distance=z,
+                             distance_md=f"**{z:+.2f}**" if abs(z) <= 1 else f"{z:+.2f}")
+            out[condition][metric] = entry
+    return out
+
+
 #: How the figure of :func:`measured_figure` names each measure.
 METRIC_LABELS = {"reward_per_trial": "reward per trial", "stable_pct": "stable (%)", "avg_overhang": "average overhang",
                  "decision_time": "decision time (s)", "gamma": "Γ"}
@@ -613,6 +633,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         "measure reads it back as a run)")
     m.add_argument("--figure", type=Path, default=None, metavar="PNG",
                    help="also draw the measures beside the paper's, each run's mean with its SEM")
+    m.add_argument("--json", type=Path, default=None, metavar="FILE",
+                   help="also write the table's figures to a JSON file (per condition and measure: the mean of the "
+                        "runs' means, the paper's mean and SEM, the distance in its SEMs)")
     args = parser.parse_args(argv)
     try:
         if args.command == "measure":
@@ -640,6 +663,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     print(f"{args.save}: {len(people)} participants", file=sys.stderr)
                 results.append(measured_people(people))
             print(measured_table(results))
+            if args.json is not None:
+                from overhang_framework.results import atomic_write_json
+
+                atomic_write_json(args.json, measured_summary(results))
             if args.figure is not None:
                 names = [r.stem if r.is_file() else r.name for r in args.run_dirs]
                 if len(set(names)) < len(names):  # runs of the same name in different places

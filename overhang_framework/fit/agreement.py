@@ -12,8 +12,9 @@ Beside it the same choices are tested against the likelihood the fit's score tab
 participant's own noise entered it (one fixed draw of the noise per node,
 :func:`~overhang_framework.fit.choice.fixed_draw_prob`), with the test's power to reject that likelihood.
 
-Writes ``agreement.csv`` (one row per case, kept as each case ends: a stopped run continues where it stopped)
-and ``agreement.md`` (what was found, in sentences, and the table). ``--quick`` runs a small grid with fewer
+Writes ``agreement.csv`` (one row per case, kept as each case ends: a stopped run continues where it stopped),
+``cases/case-<n>.json`` (each case's counts and both likelihoods' probabilities, from which its row is
+recomputed) and ``agreement.md`` (what was found, in sentences, and the table). ``--quick`` runs a small grid with fewer
 choices (about a minute); ``--only N`` runs the cases whose number is given (repeatable).
 """
 
@@ -156,17 +157,28 @@ def build_state(world, name: str) -> State:
     return state
 
 
-def run_case(number: int, case: Case, world, value, bank: VerdictBank) -> dict:
-    """One case's row: the test against the likelihood, and against the fixed-draw likelihood of the fit's tables."""
+def run_case(number: int, case: Case, world, value, bank: VerdictBank, keep: Optional[Path] = None) -> dict:
+    """One case's row: the test against the likelihood, and against the fixed-draw likelihood of the fit's tables;
+    with ``keep``, the counts and both likelihoods' probabilities go to ``keep/case-<number>.json``."""
     state = build_state(world, case.state)
     model = BankChoice(world, value, bank, case.params, draws=case.draws, seed=PROB_SEED + number)
     result = agreement(model, state, case.choices, np.random.default_rng([SAMPLE_SEED, number]))
     old = fixed_draw_prob(model, state, seed=OLD_SEED + number)
     g_old, dof_old, p_old = g_test(result.counts, old)
+    if keep is not None:
+        from overhang_framework.results import atomic_write_json
+
+        atomic_write_json(keep / f"case-{number}.json", {
+            "case": number, "counts": result.counts.astype(int).tolist(), "probs": result.probs.tolist(),
+            "prob_error": model.prob_error(state).tolist(), "fixed_draw_probs": old.tolist()})
+    freq = result.counts / max(result.counts.sum(), 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gap = float(np.sum(np.where(freq > 0, freq * (np.log(result.probs) - np.log(old)), 0.0)))
     return {"case": number, "state": case.state, **{k: v for k, v in asdict(case.params).items() if k != "hand_nodes"},
             "actions": len(result.probs), "choices": case.choices, "draws": case.draws,
             "g": result.g, "dof": result.dof, "p": result.p, "mc_share": result.mc_share,
             "g_old": g_old, "dof_old": dof_old, "p_old": p_old, "power_old": g_power(result.probs, old, case.choices, ALPHA),
+            "loss_old": gap,
             "sample_seconds": result.sample_seconds, "prob_seconds": result.prob_seconds}
 
 
@@ -185,7 +197,9 @@ def report(rows: list[dict], total: int) -> str:
              f"(G-test per case, Holm's correction at {ALPHA:g}); the smallest p is {df['p'].min():.3g}.",
              f"- **The fixed-draw likelihood** (one draw of the noise per node, as the fit's score tables gave) is "
              f"rejected for {sum(old)} of them on the same choices; the test's power to reject it was "
-             f"{df['power_old'].min():.2f} to {df['power_old'].max():.2f} (median {df['power_old'].median():.2f}).",
+             f"{df['power_old'].min():.2f} to {df['power_old'].max():.2f} (median {df['power_old'].median():.2f}). "
+             f"It gives the simulated choices {_loss(df, 'median')} nats less log-likelihood per choice than the "
+             f"likelihood does (median over the cases; {_loss(df, 'min')} to {_loss(df, 'max')}).",
              f"- The likelihood's Monte Carlo variance is at most {df['mc_share'].max():.0%} of a count's sampling "
              "variance in any cell (so its error cannot make a G-test reject).", "",
              markdown_table(["case", "state", "depth", "K", "beta", "lapse", "risk", "hand", "percept", "actions",
@@ -217,6 +231,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="where agreement.csv and agreement.md go")
     parser.add_argument("--quick", action="store_true", help="a small grid with fewer choices (about a minute)")
     parser.add_argument("--only", type=int, action="append", default=None, help="run only this case (repeatable)")
+    parser.add_argument("--summary", type=Path, default=None,
+                        help="also write the findings' figures to this JSON file")
     args = parser.parse_args(argv)
     cases = QUICK if args.quick else CASES
     if args.only and any(not 0 <= k < len(cases) for k in args.only):
@@ -234,7 +250,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if number in done or (args.only and number not in args.only):
             continue
         started = time.perf_counter()
-        row = run_case(number, case, world, value, bank)
+        (args.out / "cases").mkdir(exist_ok=True)
+        row = run_case(number, case, world, value, bank, args.out / "cases")
         rows.append(row)
         atomic_write_text(path, pd.DataFrame(rows).sort_values("case").to_csv(index=False))
         print(f"case {number} ({case.state}, {case.params.label()}): p = {row['p']:.3g}, fixed-draw p = "
@@ -242,7 +259,31 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if rows:
         atomic_write_text(args.out / "agreement.md", report(rows, len(cases)))
         print(f"wrote {args.out / 'agreement.md'}")
+        if args.summary is not None:
+            from overhang_framework.results import atomic_write_json
+
+            atomic_write_json(args.summary, summary(rows, len(cases)))
     return 0
+
+
+def _loss(df, how: str) -> str:
+    if "loss_old" not in df.columns:
+        return "?"
+    return f"{float(getattr(df['loss_old'].astype(float), how)()):.3f}"
+
+
+def summary(rows: list[dict], total: int) -> dict:
+    """The findings' figures of :func:`report` as plain numbers."""
+    import pandas as pd
+
+    df = pd.DataFrame(rows).sort_values("case")
+    seconds = df["sample_seconds"] + df["prob_seconds"]
+    return {"cases": int(len(df)), "total": int(total), "rejected": int(sum(holm(list(df["p"]), ALPHA))),
+            "rejected_old": int(sum(holm(list(df["p_old"]), ALPHA))), "min_p": float(df["p"].min()),
+            "max_p_old": float(df["p_old"].max()), "power_old_min": float(df["power_old"].min()),
+            "power_old_median": float(df["power_old"].median()), "mc_share_max": float(df["mc_share"].max()),
+            "choices": int(df["choices"].sum()), "minutes": float(seconds.sum() / 60),
+            "loss_old_median": float(df["loss_old"].astype(float).median()) if "loss_old" in df.columns else None}
 
 
 if __name__ == "__main__":

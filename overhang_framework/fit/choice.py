@@ -403,15 +403,26 @@ def g_test(counts: np.ndarray, probs: np.ndarray, min_expected: float = 5.0) -> 
     expected = probs / probs.sum() * total
     if np.any((expected <= 0) & (counts > 0)):
         return math.inf, int(np.sum(expected > 0)), 0.0
-    small = expected < min_expected
-    obs = np.append(counts[~small], counts[small].sum()) if small.any() else counts
-    exp = np.append(expected[~small], expected[small].sum()) if small.any() else expected
-    keep = exp > 0
-    obs, exp = obs[keep], exp[keep]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g = 2.0 * float(np.sum(np.where(obs > 0, obs * np.log(obs / exp), 0.0)))
+    obs, exp = _pooled(counts, expected, expected < min_expected)
+    g = 2.0 * _relative_entropy(obs, exp)
     dof = max(int(len(obs)) - 1, 1)
     return g, dof, float(chi2.sf(g, dof))
+
+
+def _pooled(x: np.ndarray, reference: np.ndarray, small: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x`` and ``reference`` with the cells marked ``small`` summed into one, and the cells whose reference is
+    0 left out."""
+    if small.any():
+        x = np.append(x[~small], x[small].sum())
+        reference = np.append(reference[~small], reference[small].sum())
+    keep = reference > 0
+    return x[keep], reference[keep]
+
+
+def _relative_entropy(x: np.ndarray, reference: np.ndarray) -> float:
+    """``sum x log(x / reference)`` over the cells where ``x`` is positive."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return float(np.sum(np.where(x > 0, x * np.log(x / reference), 0.0)))
 
 
 def g_power(probs: np.ndarray, alternative: np.ndarray, n: int, alpha: float, min_expected: float = 5.0) -> float:
@@ -426,13 +437,8 @@ def g_power(probs: np.ndarray, alternative: np.ndarray, n: int, alpha: float, mi
     expected = alt * n
     if np.any((alt <= 0) & (probs * n >= 1)):
         return 1.0
-    small = expected < min_expected
-    p = np.append(probs[~small], probs[small].sum()) if small.any() else probs
-    q = np.append(alt[~small], alt[small].sum()) if small.any() else alt
-    keep = q > 0
-    p, q = p[keep], q[keep]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kl = float(np.sum(np.where(p > 0, p * np.log(p / q), 0.0)))
+    p, q = _pooled(probs, alt, expected < min_expected)
+    kl = _relative_entropy(p, q)
     dof = max(int(len(q)) - 1, 1)
     return float(ncx2.sf(chi2.isf(alpha, dof), dof, max(2 * n * kl, 1e-12)))
 

@@ -20,7 +20,7 @@ import pandas as pd
 from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is, permutation_p, save_figure
 from overhang_framework.errors import ConfigError
 from overhang_framework.fit.bms import BMSResult, bms
-from overhang_framework.fit.equivalence import (JOIN, TOLERANCE, best_sets, label, merge_equivalent, one_model,
+from overhang_framework.fit.equivalence import (TOLERANCE, best_sets, label, merge_equivalent, one_model,
                                                 with_neutral)
 from overhang_framework.fit.run import POOLED
 from overhang_framework.fit.scores import Model
@@ -530,6 +530,32 @@ def _figure(table: pd.DataFrame, win: pd.DataFrame, has_bms: bool, out: Path) ->
     save_figure(fig, out / "comparison.png")
 
 
+def summary(fits: pd.DataFrame, truth: Optional[pd.DataFrame] = None, seed: int = 0) -> dict:
+    """The comparison's findings as plain numbers: participants, models merged as one, each best model (a tied set
+    as one) and its count, the generating family's recoveries, and each parameter between two conditions."""
+    fits, groups = merge_equivalent(with_neutral(fits))
+    df = per_participant(fits)
+    win = winners(fits)
+    summed = df.groupby("model")["bic"].sum().sort_values()
+    out = {"participants": int(win["participant"].nunique()), "merged": [label(g) for g in groups],
+           "tied_participants": int((win["ties"] > 1).sum()), "best": dict(_count_order(win)),
+           "best_summed_bic": str(summed.index[0]) if len(summed) else None}
+    conditions = sorted(c for c in win["condition"].unique() if c != "mixed")
+    if len(conditions) == 2:
+        out["conditions"] = {d.name: {"model": d.label, conditions[0]: float(np.mean(d.a)) if len(d.a) else None,
+                                      conditions[1]: float(np.mean(d.b)) if len(d.b) else None, "p": float(d.p)}
+                             for d in _differences(win, fits, conditions, seed)}
+    truth = _matched(truth, win)
+    if truth is not None:
+        best = win.set_index(win["participant"].astype(str))
+        known = truth[truth["true_family"].notna()]
+        hit = [r.true_family in best.loc[r.participant, "member_families"] for r in known.itertuples()]
+        tied = [best.loc[r.participant, "ties"] > 1 for r in known.itertuples()]
+        out.update(known=int(len(known)), recovered=int(sum(hit)),
+                   recovered_through_ties=int(sum(h and t for h, t in zip(hit, tied))))
+    return out
+
+
 def families_of(spec: Mapping) -> dict[str, str]:
     """Each fitted family of a ``fit.json`` and its predictor's name (a hand's: the predictor it wraps)."""
     from overhang_framework.fit.scores import without_hand
@@ -560,6 +586,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         help="the behaviour logs, for the depth each participant's searches reached (default: "
                              "fit.json's, if there)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the BMS and permutation tests (default 0)")
+    parser.add_argument("--summary", type=Path, default=None, help="also write the findings' figures to this JSON file")
     args = parser.parse_args(argv)
     try:
         fits_path = args.dir / "fits.csv"
@@ -583,6 +610,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     comparison(fits, args.dir, seed=args.seed, truth=truth)
+    if args.summary is not None:
+        from overhang_framework.results import atomic_write_json
+
+        atomic_write_json(args.summary, summary(fits, truth, args.seed))
     print(f"wrote {args.dir / 'comparison.md'}" + (f" (truth: {len(truth)} simulated participants)"
                                                    if truth is not None else ""))
     return 0

@@ -36,21 +36,25 @@ import numpy as np
 import pandas as pd
 
 from overhang_framework.fit.choice import BANK_SIZE, BankChoice, ChoiceParams, VerdictBank
+from overhang_framework.fit.percept import PerceivedDecisions
 from overhang_framework.interfaces import State
 
 #: Monte Carlo samples of a participant's noise per decision state.
 DRAWS = 500
 
 
-@dataclass
-class SampledDecisions:
+class SampledDecisions(PerceivedDecisions):
     """A participant's decisions under a model with its own noise: ``scores`` ``(n, draws, m)``, the root scores of
-    each decision under each sample (``-inf`` past each state's actions), the chosen indices and the states'
-    numbers of legal actions. ``P(a) = (1 - lapse) * mean_draws softmax_beta(scores)_a + lapse / size``."""
+    each decision under each sample (``-inf`` past each state's actions), and the chosen indices; the likelihood
+    is that of a percept's (:class:`~overhang_framework.fit.percept.PerceivedDecisions`) whose draws all see the
+    real tower: ``P(a) = (1 - lapse) * mean_draws softmax_beta(scores)_a + lapse / size``."""
 
-    scores: np.ndarray
-    chosen: np.ndarray
-    sizes: np.ndarray
+    def __init__(self, scores: np.ndarray, chosen: np.ndarray, sizes: np.ndarray):
+        hit = np.zeros(scores.shape, dtype=bool)
+        hit[np.arange(len(chosen)), :, np.asarray(chosen, dtype=int)] = True
+        super().__init__(scores, hit, np.asarray(sizes, dtype=float))
+        self.chosen = np.asarray(chosen, dtype=int)
+        self._cache = None
 
     @classmethod
     def of(cls, samples: Sequence[np.ndarray], chosen: Sequence[int]) -> "SampledDecisions":
@@ -62,28 +66,11 @@ class SampledDecisions:
             scores[i, : s.shape[0], : s.shape[1]] = s
         return cls(scores, np.asarray(chosen, dtype=int), np.array([s.shape[1] for s in samples], dtype=float))
 
-    def __len__(self) -> int:
-        return len(self.chosen)
-
     def subset(self, rows: np.ndarray) -> "SampledDecisions":
         return SampledDecisions(self.scores[rows], self.chosen[rows], self.sizes[rows])
 
-    def probabilities(self, beta: float, lapse: float) -> np.ndarray:
-        s = self.scores
-        top = s.max(axis=2, keepdims=True)
-        with np.errstate(invalid="ignore"):
-            z = np.where(np.isfinite(s), beta * (s - top), -np.inf)
-        w = np.exp(z)
-        picked = w[np.arange(len(self)), :, self.chosen] / w.sum(axis=2)
-        return (1 - lapse) * picked.mean(axis=1) + lapse / self.sizes
-
-    def log_likelihood(self, beta: float, lapse: float) -> float:
-        if len(self) == 0:
-            return 0.0
-        return float(np.log(np.maximum(self.probabilities(beta, lapse), 1e-300)).sum())
-
     def _centred(self):
-        if getattr(self, "_cache", None) is None:
+        if self._cache is None:
             s = self.scores
             inside = np.isfinite(s)
             top = np.where(inside, s, -np.inf).max(axis=2, keepdims=True)
@@ -154,6 +141,35 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
     return rows
 
 
+def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
+    """How a fit recovers simulated participants (``truth``: participants.csv, with ``depth``, ``sigma`` and,
+    when drawn, ``risk``): the best model's depth, and at the true depth the fitted risk, sigma and K."""
+    from overhang_framework.fit.compare import per_participant
+    from overhang_framework.fit.equivalence import with_neutral
+
+    fits = per_participant(with_neutral(fits))
+    truth = truth.set_index(truth["id"].astype(str))
+    people = [p for p in truth.index if p in set(fits["participant"].astype(str))]
+    best = fits.loc[fits.groupby("participant")["bic"].idxmin()]
+    best = best.set_index(best["participant"].astype(str))
+    at = {p: fits[(fits["participant"].astype(str) == p) & (fits["depth"] == int(truth.loc[p, "depth"]))].iloc[0]
+          for p in people}
+    true_risk = {p: float(truth.loc[p, "risk"]) if "risk" in truth.columns and pd.notna(truth.loc[p, "risk"])
+                 else 0.0 for p in people}
+    averse = [float(at[p]["risk"]) for p in people if true_risk[p] > 0]
+    neutral = [float(at[p]["risk"]) for p in people if true_risk[p] == 0]
+    out = {"participants": len(people),
+           "depth": int(sum(int(best.loc[p, "depth"]) == int(truth.loc[p, "depth"]) for p in people)),
+           "risk": int(sum(math.isclose(float(at[p]["risk"]), true_risk[p], abs_tol=1e-9) for p in people)),
+           "risk_of_averse": float(np.mean(averse)) if averse else None,
+           "risk_of_neutral": float(np.mean(neutral)) if neutral else None,
+           "sigma_error": float(np.mean([abs(float(at[p]["sigma"]) - float(truth.loc[p, "sigma"])) for p in people]))}
+    if "K" in fits.columns:
+        out["K"] = [int(at[p]["K"]) for p in people]
+        out["K_counts"] = {f"K{k}": out["K"].count(k) for k in sorted(set(out["K"]))}
+    return out
+
+
 def _numbers(text: str, kind=float) -> tuple:
     try:
         values = tuple(kind(v) for v in text.split(",") if v.strip())
@@ -175,8 +191,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m overhang_framework.fit.marginal",
                                      description="Fit the IPE family with the participant's own prediction noise in "
                                                  "the likelihood; K (mental simulations) fitted on a grid.")
-    parser.add_argument("logs", nargs="+", type=Path, help="behaviour logs (log.jsonl)")
-    parser.add_argument("--out", type=Path, required=True, help="where fits.csv and comparison.md go")
+    parser.add_argument("logs", nargs="*", type=Path, help="behaviour logs (log.jsonl)")
+    parser.add_argument("--out", type=Path, default=None, help="where fits.csv and comparison.md go")
+    parser.add_argument("--recovery", type=Path, nargs=2, metavar=("FITS", "TRUTH"), default=None,
+                        help="print, as JSON, how the fits of FITS (a fits.csv) recover the simulated participants of "
+                             "TRUTH (their participants.csv), and fit nothing")
     parser.add_argument("--sigma", type=_numbers, default=Grid.sigmas, help="IPE noise grid (default 0.02,0.03,0.05)")
     parser.add_argument("--K", type=lambda t: _numbers(t, int), default=Grid.Ks, help="K grid (default 1,10,50)")
     parser.add_argument("--depths", type=lambda t: _numbers(t, int), default=Grid.depths, help="depths (default 1,2)")
@@ -188,6 +207,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--physics", default="static", help="the world's physics (default static)")
     args = parser.parse_args(argv)
+    if args.recovery is not None:
+        import json
+
+        try:
+            fits, truth = pd.read_csv(args.recovery[0]), pd.read_csv(args.recovery[1])
+        except (OSError, ValueError) as err:
+            print(f"error: --recovery: {getattr(err, 'strerror', None) or err}", file=sys.stderr)
+            return 2
+        print(json.dumps(recovery(fits, truth), sort_keys=True))
+        return 0
+    if not args.logs or args.out is None:
+        print("error: give the behaviour logs and --out DIR (or --recovery FITS TRUTH)", file=sys.stderr)
+        return 2
     try:
         if any(k < 1 for k in args.K) or any(d < 1 for d in args.depths) or args.draws < 1 or args.bank < 1:
             raise OverhangError("K, depths, --draws and --bank must be whole numbers >= 1")
