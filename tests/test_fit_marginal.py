@@ -56,3 +56,10 @@ def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
                           "--K", "0"], capture_output=True, text=True, cwd=REPO)
     assert bad.returncode == 2 and "K, depths, --draws and --bank must be whole numbers >= 1" in bad.stderr
+
+
+@pytest.mark.parametrize("module", ["overhang_framework.fit.marginal", "overhang_framework.fit.agreement",
+                                    "overhang_framework.fit.compare"])
+def test_each_new_fit_command_explains_itself(module):
+    proc = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0 and proc.stdout.startswith("usage: python -m " + module), proc.stderr

@@ -217,7 +217,7 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     if truth is not None:
         lines += ["", "## Simulated participants: true and fitted", ""] + _truth_table(truth, win)
     pooled = fits[fits["participant"].astype(str).str.startswith(POOLED)]
-    risked = "risk" in fits.columns and fits["risk"].notna().any()
+    risked = "risk" in fits.columns and bool((fits["risk"].fillna(0) != 0).any())
     if len(pooled):
         best = best_sets(pooled, pooled=True)
         lines += ["", "## Each condition pooled", "",
