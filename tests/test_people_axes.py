@@ -232,9 +232,35 @@ def test_a_shift_the_rules_forbid_counts_as_the_placement_itself(registry, world
     assert all(world.is_legal(state, a) for a in shifted)
 
 
+def test_equal_probability_nodes_average_a_step_to_within_half_a_node(registry, world):
+    """A tower that stands only while its new block is at most a little right of a spot: the hand's average over
+    15 equal-probability nodes is within 1/30 of the normal's exact mass on the standing side, where 3
+    Gauss-Hermite nodes are not."""
+    from scipy.stats import norm
+
+    state = State(tower([(1.2, 0.0, 0)]), (1.8, 0.6))
+    actions = [a for a in world.legal_actions(state) if a.layer == 1]
+    verdicts = {a.x: world.is_stable(world.step(state, a).geometry) for a in actions}
+    edge = max(x for x, ok in verdicts.items() if ok)  # the furthest right standing placement of the grid
+    fine = np.round(np.arange(edge, edge + 0.1, 0.001), 6)
+    last = max(x for x in fine if world.is_stable(world.step(state, Action(float(x), 1)).geometry))
+    sd, inside = 0.05, 0.01
+    near = [Action(round(float(last) - inside, 6), 1)]  # 1 cm inside the edge of stability, off the grid
+    assert all(world.is_legal(state, Action(round(float(last) + d, 6), 1)) for d in (-0.2, 0.2))
+    exact = norm.cdf(inside / sd)  # the chance that the hand lands where the tower still stands
+    hands = {rule: registry.create("predictor", {"name": "hand", "inner": "veridical", "sd": sd, "nodes": n,
+                                                 "rule": rule, "inner_params": {"backend": "static"}}, world=world)
+             for rule, n in (("equal-probability", 15), ("gauss-hermite", 3))}
+    got = {rule: float(h.predict(state, near, np.random.default_rng(0))[0]) for rule, h in hands.items()}
+    assert abs(got["equal-probability"] - exact) <= 1 / 30 + 1e-9, (got, exact)
+    assert abs(got["gauss-hermite"] - exact) > 0.15, (got, exact)
+    assert len(hands["equal-probability"].offsets) == 15 and np.allclose(hands["equal-probability"].weights, 1 / 15)
+
+
 @pytest.mark.parametrize("config, words", [
     ({"inner": "nope"}, "unknown inner predictor 'nope'"), ({"sd": -1}, "sd must be a number"),
-    ({"nodes": 0}, "nodes must be a whole number"), ({"inner": "hand"}, "unknown inner predictor 'hand'")])
+    ({"nodes": 0}, "nodes must be a whole number"), ({"inner": "hand"}, "unknown inner predictor 'hand'"),
+    ({"rule": "simpson"}, "unknown hand rule 'simpson'; allowed: gauss-hermite, equal-probability")])
 def test_a_bad_hand_is_refused_in_a_line(registry, world, config, words):
     with pytest.raises(ValueError, match=words):
         registry.create("predictor", {"name": "hand", "inner": "veridical", **config}, world=world)

@@ -65,16 +65,10 @@ def equal_probability(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rule_hand(world, inner, sd: float, rule: str, n: int):
-    """A HandPredictor with ``rule``'s ``n`` nodes: the class itself for Gauss-Hermite; for the others its
-    nodes and weights replaced (offsets rounded as the class rounds them)."""
-    from overhang_builtins.hand import X_DECIMALS, HandPredictor
+    """A HandPredictor with ``rule``'s ``n`` nodes."""
+    from overhang_builtins.hand import HandPredictor
 
-    hand = HandPredictor(world, inner, sd=sd, nodes=n)
-    if rule != "gauss-hermite":
-        z, w = equal_probability(n)
-        hand.offsets = np.round(sd * z, X_DECIMALS)
-        hand.weights = w
-    return hand
+    return HandPredictor(world, inner, sd=sd, nodes=n, rule=rule)
 
 
 def sampled_answers(world, inner, state, actions, sd: float, z: np.ndarray, seed, K: int) -> np.ndarray:
