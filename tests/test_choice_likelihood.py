@@ -136,3 +136,14 @@ def test_the_agreement_command_writes_its_report_and_continues_a_stopped_run(tmp
     bad = subprocess.run([sys.executable, "-m", "overhang_framework.fit.agreement", "--out", str(out), "--quick",
                           "--only", "9"], capture_output=True, text=True, cwd=REPO)
     assert bad.returncode == 2 and "--only takes case numbers from 0 to 2" in bad.stderr
+
+
+def test_a_bank_that_forgets_its_oldest_nodes_gives_the_same_verdicts_when_asked_again(world):
+    small = VerdictBank(world, sigma=0.03, size=50, seed=4, max_rows=30)
+    whole = VerdictBank(world, sigma=0.03, size=50, seed=4)
+    states = [build_state(world, name) for name in ("A", "B", "C")]
+    first = [small.verdicts(s, world.legal_actions(s)) for s in states]
+    assert small._held <= 30 + max(len(world.legal_actions(s)) for s in states)  # the oldest nodes went
+    again = [small.verdicts(s, world.legal_actions(s)) for s in states]
+    for a, b, s in zip(first, again, states):
+        assert np.array_equal(a, b) and np.array_equal(a, whole.verdicts(s, world.legal_actions(s)))

@@ -201,7 +201,7 @@ def report(rows: list[dict], total: int) -> str:
              f"It gives the simulated choices {_loss(df, 'median')} nats less log-likelihood per choice than the "
              f"likelihood does (median over the cases; {_loss(df, 'min')} to {_loss(df, 'max')}).",
              f"- The likelihood's Monte Carlo variance is at most {df['mc_share'].max():.0%} of a count's sampling "
-             "variance in any cell (so its error cannot make a G-test reject).", "",
+             "variance in any cell, too little to make a G-test reject.", "",
              markdown_table(["case", "state", "depth", "K", "beta", "lapse", "risk", "hand", "percept", "actions",
                              "choices", "G (df)", "p", "Holm", "old G (df)", "old p", "old Holm", "power vs old",
                              "seconds"],

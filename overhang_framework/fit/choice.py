@@ -32,6 +32,7 @@ bank's ``B`` columns.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Optional, Sequence
 
@@ -45,6 +46,9 @@ from overhang_framework.search import node_rng, risk_weight, state_key
 BANK_SIZE = 200
 #: Monte Carlo samples of the participant's noise behind each ``prob``.
 DRAWS = 20_000
+#: Verdict rows a bank keeps (about 300 bytes each): past them it forgets its least recently asked nodes, whose
+#: rows are the same numbers when asked again (a percept's towers are seldom seen twice).
+MAX_ROWS = 2_000_000
 #: Elements of one gathered array of a Monte Carlo chunk (bounds the memory ``prob`` uses).
 CHUNK_ELEMENTS = 20_000_000
 
@@ -55,11 +59,12 @@ class VerdictBank:
     ``verdicts(state, actions)`` is a boolean ``(len(actions), size)`` array: the verdict of the tower after each
     action under each of the node's draws. A verdict depends on the node, the action and the draw only (the IPE
     draws a call's noise once for every candidate, and the static backend decides each scene alone), so the bank
-    computes each action's row once, when first asked, and keeps it.
+    computes each action's row once, when first asked, and keeps it (up to ``max_rows`` rows: then the least
+    recently asked nodes are forgotten, and made again, the same, if asked again).
     """
 
     def __init__(self, world: World, sigma: float = 0.03, size: int = BANK_SIZE, seed: int = 0,
-                 predictor: Optional[dict] = None):
+                 predictor: Optional[dict] = None, max_rows: int = MAX_ROWS):
         from overhang_framework.plugins import Registry
 
         if isinstance(size, bool) or not isinstance(size, int) or size < 1:
@@ -67,18 +72,28 @@ class VerdictBank:
         self.world, self.size, self.seed, self.sigma = world, int(size), int(seed), float(sigma)
         config = {"name": "ipe", **dict(predictor or {}), "K": self.size, "sigma": self.sigma}
         self.ipe = Registry().create("predictor", config, world=world)
-        self._rows: dict[tuple, dict[tuple, np.ndarray]] = {}
+        self._rows: OrderedDict[tuple, dict[tuple, np.ndarray]] = OrderedDict()
+        self._held = 0
+        self.max_rows = int(max_rows)
         self.computed = 0
 
     def verdicts(self, state: State, actions: Sequence[Action]) -> np.ndarray:
         key = state_key(state)
-        rows = self._rows.setdefault(key, {})
+        rows = self._rows.get(key)
+        if rows is None:
+            rows = self._rows[key] = {}
+        else:
+            self._rows.move_to_end(key)
         missing = [a for a in actions if (a.x, a.layer) not in rows]
         if missing:
             found = self.ipe.sample_verdicts(state, missing, node_rng(self.seed, key))
             for a, row in zip(missing, found):
                 rows[(a.x, a.layer)] = row
             self.computed += len(missing) * self.size
+            self._held += len(missing)
+            while self._held > self.max_rows and len(self._rows) > 1:  # the oldest nodes: made again if asked
+                _, dropped = self._rows.popitem(last=False)
+                self._held -= len(dropped)
         if not len(actions):
             return np.zeros((0, self.size), dtype=bool)
         return np.stack([rows[(a.x, a.layer)] for a in actions])
