@@ -53,9 +53,25 @@ def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
     assert len(fits) == 4 * 2 and set(fits["K"]) <= {1, 10} and set(fits["sigma"]) == {0.03}
     assert (fits["k"] == 3).all()  # beta, lapse and K (one sigma)
     assert "- **Summed BIC:**" in (out / "comparison.md").read_text()
+    # two worker processes give the same fits; a run stopped with one participant's part missing fits only it
+    two = tmp_path / "two"
+    args = [sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(two), "--sigma", "0.03",
+            "--K", "1,10", "--depths", "1,2", "--draws", "100"]
+    proc = subprocess.run(args + ["--jobs", "2"], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    pd.testing.assert_frame_equal(pd.read_csv(two / "fits.csv"), fits)
+    parts = sorted((two / "parts").glob("*.csv"))
+    assert len(parts) == 4
+    parts[0].unlink()
+    again = subprocess.run(args, capture_output=True, text=True, cwd=REPO)
+    assert again.returncode == 0 and "3 participants' fits kept" in again.stderr, again.stderr
+    assert "fitted 1 participants" in again.stdout
+    pd.testing.assert_frame_equal(pd.read_csv(two / "fits.csv"), fits)
+    other = subprocess.run(args[:-1] + ["200"], capture_output=True, text=True, cwd=REPO)
+    assert other.returncode == 2 and "holds a fit of other logs or settings" in other.stderr
     bad = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
                           "--K", "0"], capture_output=True, text=True, cwd=REPO)
-    assert bad.returncode == 2 and "K, depths, --draws and --bank must be whole numbers >= 1" in bad.stderr
+    assert bad.returncode == 2 and "K, depths, --draws, --bank and --jobs must be whole numbers >= 1" in bad.stderr
 
 
 @pytest.mark.parametrize("module", ["overhang_framework.fit.marginal", "overhang_framework.fit.agreement",

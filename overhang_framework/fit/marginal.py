@@ -10,7 +10,10 @@ bank of ``bank`` noise draws per node (the IPE's noise distribution as the fit s
 mental simulations, is a parameter of the model, fitted on a grid beside ``sigma``, the depth and the risk.
 
 For each participant and each grid point, ``beta`` and the lapse are fitted by L-BFGS-B on the stored score
-samples; each model index (``ipe/D2``) keeps its best grid point. ``fits.csv`` has the fit's columns and ``K``;
+samples; each model index (``ipe/D2``) keeps its best grid point. ``--jobs N`` fits participants on ``N``
+processes; each participant's rows are kept in ``DIR/parts`` as it ends, so a stopped run continues where it
+stopped (``DIR/marginal.json`` records the logs' contents and the settings, and another fit into the same
+directory is refused). ``fits.csv`` has the fit's columns and ``K``;
 ``comparison.md`` is the fit's comparison (:mod:`overhang_framework.fit.compare`). The samples of a state are
 drawn from a generator seeded by the state and the run's seed, the same for every model (common random numbers
 between models).
@@ -23,6 +26,7 @@ without a percept or a hand (docs/fitting.md, "The participant's own noise").
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import itertools
 import math
@@ -206,6 +210,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--bank", type=int, default=BANK_SIZE, help=f"noise draws per node (default {BANK_SIZE})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--physics", default="static", help="the world's physics (default static)")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     args = parser.parse_args(argv)
     if args.recovery is not None:
         import json
@@ -221,14 +226,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print("error: give the behaviour logs and --out DIR (or --recovery FITS TRUTH)", file=sys.stderr)
         return 2
     try:
-        if any(k < 1 for k in args.K) or any(d < 1 for d in args.depths) or args.draws < 1 or args.bank < 1:
-            raise OverhangError("K, depths, --draws and --bank must be whole numbers >= 1")
+        if any(k < 1 for k in args.K) or any(d < 1 for d in args.depths) or min(args.draws, args.bank, args.jobs) < 1:
+            raise OverhangError("K, depths, --draws, --bank and --jobs must be whole numbers >= 1")
         if any(not 0 <= r < 1 for r in args.risk) or any(s < 0 for s in args.sigma):
             raise OverhangError("risks must be from 0 to below 1, sigmas >= 0")
         df = require_records(read_log([str(p) for p in args.logs]), args.logs)
         registry = Registry()
         world = registry.create("world", {"name": "overhang", "physics": args.physics})
-        value = registry.create("value", {"name": "overhang"}, world=world)
     except (OverhangError, OSError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -238,23 +242,78 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     conditions = {p.participant: p.condition for p in placements}
     if args.condition:
         people = [p for p in people if conditions[p] in args.condition]
+    import json
+
+    from overhang_framework.fit.scores import file_sha256
+
+    settings = {"logs": [file_sha256(p) for p in args.logs], "grid": dataclasses.asdict(grid), "draws": args.draws,
+                "bank": args.bank, "seed": args.seed, "physics": args.physics}
     args.out.mkdir(parents=True, exist_ok=True)
-    rows, started = [], time.perf_counter()
-    banks: dict = {}
-    for participant in progress_bar(people, desc="participants", unit="participant"):
-        mapped = map_placements(world, [p for p in placements if p.participant == participant])
-        for row in fit_participant(world, value, mapped.states, mapped.chosen, grid, args.draws, args.bank,
-                                   args.seed, banks):
-            rows.append({"participant": participant, "condition": conditions[participant], **row,
-                         "unmapped": mapped.unmapped})
-        atomic_write_text(args.out / "fits.csv", pd.DataFrame(rows).to_csv(index=False))
+    kept = args.out / "marginal.json"
+    if kept.is_file() and json.loads(kept.read_text()) != json.loads(json.dumps(settings)):
+        print(f"error: {args.out} holds a fit of other logs or settings ({kept}); use another --out", file=sys.stderr)
+        return 2
+    atomic_write_text(kept, json.dumps(settings, indent=2, sort_keys=True))
+    parts = args.out / "parts"
+    parts.mkdir(exist_ok=True)
+
+    def part(participant: str) -> Path:
+        return parts / (hashlib.sha256(participant.encode()).hexdigest()[:16] + ".csv")
+
+    todo = [p for p in people if not part(p).is_file()]
+    if len(todo) < len(people):
+        print(f"{len(people) - len(todo)} participants' fits kept in {parts} from a stopped run", file=sys.stderr)
+    started = time.perf_counter()
+    units = [(participant, conditions[participant],
+              map_placements(world, [p for p in placements if p.participant == participant])) for participant in todo]
+    setup_args = (args.physics, grid, args.draws, args.bank, args.seed)
+    bar = progress_bar(total=len(units), desc="participants", unit="participant")
+    try:
+        if args.jobs > 1 and len(units) > 1:
+            from overhang_framework.parallel import pool_map
+
+            results = ((item[0], rows) for item, rows, _ in pool_map(_setup, setup_args, _work, units, args.jobs,
+                                                                       lambda: None, in_flight=args.jobs))
+        else:
+            state = _setup(*setup_args)
+            results = ((unit[0], _work(state, unit)) for unit in units)
+        for participant, rows in results:
+            atomic_write_text(part(participant), pd.DataFrame(rows).to_csv(index=False))
+            bar.update(1)
+    except KeyboardInterrupt:
+        print(f"interrupted: the finished participants' fits are kept in {parts}; run the same command to "
+              "continue", file=sys.stderr)
+        return 130
+    finally:
+        bar.close()
     seconds = time.perf_counter() - started
+    frames = [pd.read_csv(part(p)) for p in people]
+    fits = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    atomic_write_text(args.out / "fits.csv", fits.to_csv(index=False))
     from overhang_framework.fit.compare import comparison
 
-    comparison(pd.DataFrame(rows), args.out)
-    print(f"fitted {len(people)} participants x {len(grid.depths)} depths in {seconds:.0f} s; wrote "
-          f"{args.out / 'fits.csv'} and {args.out / 'comparison.md'}")
+    comparison(fits, args.out)
+    print(f"fitted {len(units)} participants x {len(grid.depths)} depths in {seconds:.0f} s ({len(people)} in "
+          f"fits.csv); wrote {args.out / 'fits.csv'} and {args.out / 'comparison.md'}")
     return 0
+
+
+def _setup(physics: str, grid: Grid, draws: int, bank: int, seed: int) -> dict:
+    """A worker's world, value and banks (each worker draws the same bank: a node's draws follow its key)."""
+    from overhang_framework.plugins import Registry
+
+    registry = Registry()
+    world = registry.create("world", {"name": "overhang", "physics": physics})
+    return {"world": world, "value": registry.create("value", {"name": "overhang"}, world=world), "grid": grid,
+            "draws": draws, "bank": bank, "seed": seed, "banks": {}}
+
+
+def _work(state: dict, unit) -> list[dict]:
+    """One participant's rows: ``unit`` is (participant, condition, its mapped placements)."""
+    participant, condition, mapped = unit
+    rows = fit_participant(state["world"], state["value"], mapped.states, mapped.chosen, state["grid"],
+                           state["draws"], state["bank"], state["seed"], state["banks"])
+    return [{"participant": participant, "condition": condition, **row, "unmapped": mapped.unmapped} for row in rows]
 
 
 if __name__ == "__main__":
