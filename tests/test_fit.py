@@ -345,7 +345,7 @@ def test_comparison_opens_with_what_was_found_on_fits_whose_answer_is_known(tmp_
                         "parameters of one model fitted to every participant): Depth is higher under b than "
                         "under a (2 against 1, p = .002). Beta (p = 1.000) and lapse (p = 1.000) do not differ at "
                         "p < .05.")
-    assert len(found) == 3                              # no truth given: nothing about simulated participants
+    assert len(found) == 4 and found[3].startswith("- **Placements left out:** none")  # no truth: no simulated participants
     # the Conditions table: one cell per header cell, none of them empty
     table = _table(_section(text, "Conditions"))
     assert table[0] == ["parameter", "a", "b", "p"]

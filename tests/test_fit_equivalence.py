@@ -153,3 +153,15 @@ def test_the_kept_paper_size_comparison_is_the_one_its_fits_give(name):
         fresh = comparison(pd.read_csv(kept / "fits.csv"), Path(tmp))
     # every finding but the truth's (which needs the simulated cohort) is the same
     assert [f for f in _findings(fresh)] == [f for f in _findings(text) if not f.startswith("- **Simulated")]
+
+
+def test_the_comparison_says_how_many_placements_it_left_out_per_participant(tmp_path):
+    from overhang_framework.fit.compare import comparison
+
+    fits = _fits({"a/myopic": [-50.0, -48.0, -52.0, -47.5], "b/myopic": [-60.0] * 4})
+    text = comparison(fits, tmp_path / "none")
+    assert "- **Placements left out:** none; every one of the 160 placements maps onto the world's grid" in text
+    fits.loc[fits["participant"] == "p02", "unmapped"] = 3
+    text = comparison(fits, tmp_path / "some")
+    assert ("- **Placements left out:** 3 of 163 (1.8%) have no legal grid action of their layer within a step and "
+            "are in no likelihood, for 1 of 4 participants (the most: p02 3 of 43).") in text

@@ -187,6 +187,7 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     differences = _differences(win, fits, conditions, seed) if len(conditions) == 2 else None
     truth = _matched(truth, win)
     lines += findings(table, result, len(pids), win, conditions, differences, truth, groups)
+    lines.append(unmapped_sentence(df))
     if held is not None:
         lines.append(heldout_sentence(table, win, held, int(df["folds"].dropna().iloc[0])))
     lines += ["", "## Models", "",
@@ -233,6 +234,26 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     text = "\n".join(lines) + "\n"
     atomic_write_text(out / "comparison.md", text)
     return text
+
+
+def unmapped_sentence(df: pd.DataFrame) -> str:
+    """How many of each participant's placements the fit left out because no grid action of their layer was
+    within a step (``unmapped`` in fits.csv), in a sentence that is always there."""
+    if "unmapped" not in df.columns or "n" not in df.columns:
+        return "- **Placements left out:** this fits.csv does not count them."
+    each = df.groupby(df["participant"].astype(str))[["unmapped", "n"]].first()
+    left, total = int(each["unmapped"].sum()), int((each["unmapped"] + each["n"]).sum())
+    if not left:
+        return (f"- **Placements left out:** none; every one of the {total:,} placements maps onto the world's grid "
+                "(the nearest legal grid action of its layer, within a step).")
+    worst = each.assign(share=each["unmapped"] / (each["unmapped"] + each["n"])).sort_values(
+        ["share", "unmapped"], ascending=False)
+    shown = ", ".join(f"{p} {int(r.unmapped)} of {int(r.unmapped + r.n)}" for p, r in worst.head(5).iterrows()
+                      if r.unmapped)
+    some = int((each["unmapped"] > 0).sum())
+    return (f"- **Placements left out:** {left:,} of {total:,} ({left / total:.1%}) have no legal grid action of their "
+            f"layer within a step and are in no likelihood, for {some} of {len(each)} participants (the most: "
+            f"{shown}).")
 
 
 def heldout_winners(fits: pd.DataFrame) -> Optional[pd.DataFrame]:
