@@ -12,21 +12,12 @@ import pytest
 
 from overhang_framework.fit.agreement import build_state, rejects
 from overhang_framework.fit.choice import BankChoice, ChoiceParams, VerdictBank, fixed_draw_prob, g_test, holm
-from overhang_framework.plugins import Registry
 from overhang_framework.testing.likelihood import ChoiceModelContract
 
+sys.path.insert(0, str(Path(__file__).parent))
+from search_fixtures import value, world  # noqa: E402,F401  (the static world and its value)
+
 REPO = Path(__file__).resolve().parents[1]
-REG = Registry()
-
-
-@pytest.fixture(scope="module")
-def world():
-    return REG.create("world", {"name": "overhang", "physics": "static"})
-
-
-@pytest.fixture(scope="module")
-def value(world):
-    return REG.create("value", {"name": "overhang"}, world=world)
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is, p
 from overhang_framework.errors import ConfigError
 from overhang_framework.fit.bms import BMSResult, bms
 from overhang_framework.fit.equivalence import (TOLERANCE, best_sets, label, merge_equivalent, one_model,
-                                                with_neutral)
+                                                per_participant, with_neutral)
 from overhang_framework.fit.run import POOLED
 from overhang_framework.fit.scores import Model
 from overhang_framework.results import atomic_write_text
@@ -39,10 +39,6 @@ TRUTH = "participants.csv"
 #: The columns of a truth table (:func:`read_truth`).
 TRUTH_COLUMNS = ["participant", "true_predictor", "true_family", "true_model", "true_depth", "depth_reached",
                  "true_sigma", "true_beta", "true_lapse", "true_switch", "true_risk", "true_hand", "true_percept"]
-
-
-def per_participant(fits: pd.DataFrame) -> pd.DataFrame:
-    return fits[~fits["participant"].astype(str).str.startswith(POOLED)]
 
 
 def winners(fits: pd.DataFrame) -> pd.DataFrame:

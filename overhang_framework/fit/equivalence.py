@@ -37,7 +37,8 @@ NEUTRAL = {"risk": 0.0, "hand": 0.0, "percept": 0.0}
 PARAMETERS = ("sigma", "switch", "risk", "hand", "percept", "beta", "lapse")
 
 
-def _people(fits: pd.DataFrame) -> pd.DataFrame:
+def per_participant(fits: pd.DataFrame) -> pd.DataFrame:
+    """The rows of ``fits`` of participants, not of pooled conditions."""
     from overhang_framework.fit.run import POOLED
 
     return fits[~fits["participant"].astype(str).str.startswith(POOLED)]
@@ -66,7 +67,7 @@ def equivalent_groups(fits: pd.DataFrame) -> list[list[str]]:
     """The models of ``fits`` (one participant's row per model) tied for every participant fitted with both,
     grouped (each group sorted; groups of one model left out). Two models fitted to no common participant are
     not grouped."""
-    people = _people(fits)
+    people = per_participant(fits)
     models = sorted(people["model"].astype(str).unique())
     by_model = {m: at.set_index(at["participant"].astype(str)) for m, at in people.groupby(people["model"].astype(str))}
     parent = {m: m for m in models}
@@ -139,7 +140,7 @@ def best_sets(fits: pd.DataFrame, pooled: bool = False) -> pd.DataFrame:
     ``model`` and ``family`` the tied set's labels (:func:`label`), ``ties`` the number of models in it,
     ``members`` their labels and ``member_families`` their families (lists), and a parameter the set's
     members do not share (``depth`` included) left empty."""
-    people = _people(fits)
+    people = per_participant(fits)
     if pooled:
         people = fits[~fits.index.isin(people.index)]
     if not len(people):
@@ -170,7 +171,7 @@ def one_model(fits: pd.DataFrame, name: str) -> Optional[str]:
     a value of ``name`` for each, those whose value varies between participants (a fitted grid), else all of
     them; of those, the one of lowest summed BIC (equal sums: the models predict the same, and either gives
     the same values). None when no model has a value for every participant."""
-    people = _people(fits)
+    people = per_participant(fits)
     if name not in people.columns or not len(people):
         return None
     everyone = people["participant"].astype(str).nunique()
