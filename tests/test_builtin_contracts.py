@@ -74,3 +74,9 @@ class TestRiskAverseLookaheadPlanner(_StaticWorld, PlannerContract):
     @pytest.fixture
     def planner(self, world):
         return Registry().create("planner", {"name": "lookahead", "depth": 2, "risk": 0.5}, world=world)
+
+
+class TestEdgePlanner(_StaticWorld, PlannerContract):
+    @pytest.fixture
+    def planner(self, world):
+        return Registry().create("planner", {"name": "edge", "choice": "softmax", "beta": 20.0}, world=world)

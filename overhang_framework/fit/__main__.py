@@ -147,6 +147,7 @@ def truth_files(truth: Any, logs: Sequence[str]) -> list[Path]:
 def run(cfg: DictConfig) -> dict:
     """Fit this job's share of the units; write its part, and the aggregate when every part is there."""
     from overhang_framework.fit.compare import comparison, read_truth
+    from overhang_framework.fit import adequacy
     from overhang_framework.fit.fitting import log_placements
     from overhang_framework.fit.run import (FitJournal, Predictors, aggregate, check_directory, fit_units,
                                             journal_path, log_hashes, logs_digest, shard_units, units_of,
@@ -200,7 +201,8 @@ def run(cfg: DictConfig) -> dict:
     if fits is not None:
         families = {i.family: str(i.variants[0].judged_by.get("name")) for i in space}
         truth = read_truth(checked["truth"], families, checked["df"]) if checked["truth"] else None
-        comparison(fits, out, truth=truth)
+        fitness = adequacy.run(out, cfg.cache, progress=cfg.progress, records=checked["df"])
+        comparison(fits, out, truth=truth, adequacy=fitness)
     stats = {label: vars(s) for label, s in result.stats.items()}
     log.info("fitted %d units x %d models in %.1f s: %s", len(mine), len(space), result.seconds, stats)
     return {"part": str(part), "complete": fits is not None, "seconds": result.seconds, "tables": stats,

@@ -195,13 +195,13 @@ def _same(a: Any, b: Any) -> bool:
 
 def fitted_models(spec: Mapping[str, Any], fits: pd.DataFrame, model: Optional[str] = None) -> list[Fitted]:
     """Each participant's model to check: the best by BIC, or the row of ``model`` (a label of fits.csv)."""
-    from overhang_framework.fit.compare import per_participant, winners
+    from overhang_framework.fit.equivalence import best_sets, per_participant, with_neutral
     from overhang_framework.fit.scores import Model
 
     people = per_participant(fits)
     if model is None:
         # a participant's best models predict the same on their data: the first of a tied set stands for it
-        best = winners(fits)
+        best = best_sets(with_neutral(fits))
         first = {str(r.participant): r.members[0] for r in best.itertuples(index=False)}
         rows = people[[first.get(str(p)) == str(m) for p, m in zip(people["participant"], people["model"])]]
         rows = rows.reset_index(drop=True)

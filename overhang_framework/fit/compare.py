@@ -19,6 +19,8 @@ import pandas as pd
 
 from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is, permutation_p, save_figure
 from overhang_framework.errors import ConfigError
+from overhang_framework.fit.adequacy import read as read_adequacy
+from overhang_framework.fit.adequacy import sentence as adequacy_sentence
 from overhang_framework.fit.bms import BMSResult, bms
 from overhang_framework.fit.equivalence import (TOLERANCE, best_sets, label, merge_equivalent, one_model,
                                                 per_participant, with_neutral)
@@ -138,11 +140,14 @@ def _number(value) -> Optional[float]:
     return x if np.isfinite(x) else None
 
 
-def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.DataFrame] = None) -> str:
+def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.DataFrame] = None,
+               adequacy: Optional[Mapping] = None) -> str:
     """Write ``comparison.md``, ``comparison.csv`` and ``comparison.png`` from ``fits``; return the markdown.
 
-    The markdown opens with what was found, in sentences; ``truth`` (:func:`read_truth`) adds the simulated
-    participants' true models and parameters beside the fitted ones.
+    The markdown opens with what was found, in sentences: first, when ``adequacy`` (the summary of
+    :mod:`overhang_framework.fit.adequacy`) is given, whether any model describes the participants at all;
+    ``truth`` (:func:`read_truth`) adds the simulated participants' true models and parameters beside the
+    fitted ones.
     """
     fits, groups = merge_equivalent(with_neutral(fits))
     df = per_participant(fits)
@@ -182,6 +187,8 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     conditions = sorted(c for c in win["condition"].unique() if c != "mixed")
     differences = _differences(win, fits, conditions, seed) if len(conditions) == 2 else None
     truth = _matched(truth, win)
+    if adequacy is not None:
+        lines += [adequacy.get("sentence") or adequacy_sentence(adequacy), ""]
     lines += findings(table, result, len(pids), win, conditions, differences, truth, groups)
     lines.append(unmapped_sentence(df))
     if held is not None:
@@ -594,7 +601,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m overhang_framework.fit.compare",
                                      description="Write a fit's comparison again from its fits.csv (models that "
-                                                 "predict the same as one, parameters of one model).")
+                                                 "predict the same as one, parameters of one model), opening with "
+                                                 "adequacy.json's finding when it describes that fits.csv.")
     parser.add_argument("dir", type=Path, help="a fit's directory (fits.csv and fit.json)")
     parser.add_argument("--truth", type=Path, action="append", default=None,
                         help="participants.csv of simulated participants (default: the one beside each log of "
@@ -626,11 +634,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (ConfigError, OSError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    comparison(fits, args.dir, seed=args.seed, truth=truth)
+    fitness = read_adequacy(args.dir)
+    comparison(fits, args.dir, seed=args.seed, truth=truth, adequacy=fitness)
     if args.summary is not None:
         from overhang_framework.results import atomic_write_json
 
-        atomic_write_json(args.summary, summary(fits, truth, args.seed))
+        atomic_write_json(args.summary, {**summary(fits, truth, args.seed),
+                                         **({"adequacy": fitness} if fitness is not None else {})})
     print(f"wrote {args.dir / 'comparison.md'}" + (f" (truth: {len(truth)} simulated participants)"
                                                    if truth is not None else ""))
     return 0

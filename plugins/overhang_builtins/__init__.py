@@ -30,6 +30,7 @@ def register_predictors(register):
 
 @hookimpl
 def register_planners(register):
+    from overhang_builtins.edge import EdgePlanner
     from overhang_builtins.lookahead import LookaheadPlanner
     from overhang_builtins.mcts import MCTSPlanner
     from overhang_builtins.myopic import MyopicPlanner
@@ -41,6 +42,7 @@ def register_planners(register):
     register("mcts", MCTSPlanner)
     register("optimal", OptimalPlanner)
     register("policy", PolicyPlanner)
+    register("edge", EdgePlanner)
 
 
 @hookimpl
