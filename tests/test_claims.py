@@ -16,7 +16,8 @@ from overhang_framework import docfigures
 ROOT = Path(__file__).resolve().parents[1]
 #: The registry's entries whose figures come from kept files, recomputed in seconds.
 KEPT = ["fitting-paper-comparison", "fitting-own-noise-pilot", "fitting-own-noise-pilot-fixed-k50",
-        "fitting-own-noise-pilot-fixed-k10", "fitting-agreement"]
+        "fitting-own-noise-pilot-fixed-k10", "fitting-agreement", "fitting-adequacy-inspace", "fitting-adequacy-cvar",
+        "fitting-adequacy-edge"]
 
 
 def test_every_figure_from_a_kept_file_is_what_the_file_gives_today():
@@ -28,6 +29,7 @@ def test_every_figure_from_a_kept_file_is_what_the_file_gives_today():
 @pytest.mark.parametrize("entry, figure, edited", [
     ("fitting-paper-comparison", "is the best model's for 79 of 81", "is the best model's for 78 of 81"),
     ("fitting-own-noise-pilot", "the risk the true one for 4 of 8", "the risk the true one for 5 of 8"),
+    ("fitting-adequacy-edge", "-1.13 (-1.32 to -0.89)", "-1.03 (-1.32 to -0.89)"),
 ])
 def test_a_figure_edited_in_its_page_fails_the_check(tmp_path, entry, figure, edited):
     """A copy of the page with one figure changed, checked against the same kept files: the check fails."""
