@@ -44,7 +44,7 @@ enable_plugin_configs()
 log = logging.getLogger("overhang_framework.fit")
 CONFIG_NAME = "fit"
 TOP = ("world", "value", "logs", "out", "models", "depths", "cache", "shard", "shards", "pooled", "progress",
-       "states", "jobs", "truth", "cv")
+       "states", "jobs", "truth", "cv", "motor")
 
 
 def _plain(node) -> Any:
@@ -91,6 +91,9 @@ def check_config(cfg: DictConfig) -> dict:
 
     if cfg.get("states") not in STATES:
         raise ConfigError(f"states must be one of {', '.join(STATES)}, got {cfg.get('states')!r}")
+    from overhang_framework.fit.motor import Motor
+
+    motor = Motor.from_config(_plain(cfg.get("motor")))
     depths = _plain(cfg.depths)
     if not isinstance(depths, list):
         depths = [depths]
@@ -110,7 +113,7 @@ def check_config(cfg: DictConfig) -> dict:
                 built.add(repr(sorted(model.predictor.items())))
                 registry.create("predictor", dict(model.predictor), world=world)
     return {"df": df, "space": space, "world": world, "value": value, "registry": registry, "shard": shard,
-            "shards": shards, "logs": [str(Path(p).resolve()) for p in logs], "truth": truth}
+            "shards": shards, "logs": [str(Path(p).resolve()) for p in logs], "truth": truth, "motor": motor}
 
 
 def model_entry(model, predictor: Mapping) -> list:
@@ -166,6 +169,8 @@ def run(cfg: DictConfig) -> dict:
                    "models": [model_entry(m, _strip(dict(m.predictor), ENGINE_KEYS)) for i in space for m in i.variants],
                    "context": context, "pooled": cfg.pooled, "shards": checked["shards"],
                    "states": cfg.states, "cv": cfg.cv}
+    if checked["motor"] is not None:  # a fit without one keeps the description it had
+        description["motor"] = checked["motor"].describe()
     check_directory(out, description)
     units = units_of(log_placements(checked["df"]), cfg.pooled)
     shards = shard_units(units, checked["shards"])  # every job's: jobs sharing a cache split the tables they need
@@ -190,7 +195,7 @@ def run(cfg: DictConfig) -> dict:
     try:
         result = fit_units(mine, world, value, context, space, cache, build, on_unit, cfg.states, cfg.jobs,
                            lambda: table_bar.update(1), set_total, cfg.cv, journal,
-                           shards, checked["shard"])
+                           shards, checked["shard"], checked["motor"])
     finally:
         table_bar.close()
         bar.close()
@@ -202,7 +207,8 @@ def run(cfg: DictConfig) -> dict:
         families = {i.family: str(i.variants[0].judged_by.get("name")) for i in space}
         truth = read_truth(checked["truth"], families, checked["df"]) if checked["truth"] else None
         fitness = adequacy.run(out, cfg.cache, progress=cfg.progress, records=checked["df"])
-        comparison(fits, out, truth=truth, adequacy=fitness)
+        comparison(fits, out, truth=truth, adequacy=fitness,
+                   motor=None if checked["motor"] is None else checked["motor"].describe())
     stats = {label: vars(s) for label, s in result.stats.items()}
     log.info("fitted %d units x %d models in %.1f s: %s", len(mine), len(space), result.seconds, stats)
     return {"part": str(part), "complete": fits is not None, "seconds": result.seconds, "tables": stats,

@@ -141,7 +141,7 @@ def _number(value) -> Optional[float]:
 
 
 def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.DataFrame] = None,
-               adequacy: Optional[Mapping] = None) -> str:
+               adequacy: Optional[Mapping] = None, motor: Optional[Mapping] = None) -> str:
     """Write ``comparison.md``, ``comparison.csv`` and ``comparison.png`` from ``fits``; return the markdown.
 
     The markdown opens with what was found, in sentences: first, when ``adequacy`` (the summary of
@@ -190,7 +190,7 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     if adequacy is not None:
         lines += [adequacy.get("sentence") or adequacy_sentence(adequacy), ""]
     lines += findings(table, result, len(pids), win, conditions, differences, truth, groups)
-    lines.append(unmapped_sentence(df))
+    lines.append(unmapped_sentence(df, motor))
     if held is not None:
         lines.append(heldout_sentence(table, win, held, int(df["folds"].dropna().iloc[0])))
     lines += ["", "## Models", "",
@@ -239,14 +239,21 @@ def comparison(fits: pd.DataFrame, out: Path, seed: int = 0, truth: Optional[pd.
     return text
 
 
-def unmapped_sentence(df: pd.DataFrame) -> str:
+def unmapped_sentence(df: pd.DataFrame, motor: Optional[Mapping] = None) -> str:
     """How many of each participant's placements the fit left out because no grid action of their layer was
-    within a step (``unmapped`` in fits.csv), in a sentence that is always there."""
+    within a step (``unmapped`` in fits.csv), or with a ``motor`` model (fit.json's) none could reach them, in a
+    sentence that is always there."""
     if "unmapped" not in df.columns or "n" not in df.columns:
         return "- **Placements left out:** this fits.csv does not count them."
     each = df.groupby(df["participant"].astype(str))[["unmapped", "n"]].first()
     left, total = int(each["unmapped"].sum()), int((each["unmapped"] + each["n"]).sum())
+    reach = ("no legal grid action of their layer within a step" if motor is None else
+             f"no legal grid action of their layer that the motor noise (sd {float(motor['sd']):g} m) can reach")
     if not left:
+        if motor is not None:
+            return (f"- **Placements left out:** none; each of the {total:,} placements is scored where it was made "
+                    f"(its x to {float(motor.get('precision', 0.001)) * 1000:g} mm, given every grid action it may "
+                    f"have been planned as, with motor noise of sd {float(motor['sd']):g} m).")
         return (f"- **Placements left out:** none; every one of the {total:,} placements maps onto the world's grid "
                 "(the nearest legal grid action of its layer, within a step).")
     worst = each.assign(share=each["unmapped"] / (each["unmapped"] + each["n"])).sort_values(
@@ -254,8 +261,8 @@ def unmapped_sentence(df: pd.DataFrame) -> str:
     shown = ", ".join(f"{p} {int(r.unmapped)} of {int(r.unmapped + r.n)}" for p, r in worst.head(5).iterrows()
                       if r.unmapped)
     some = int((each["unmapped"] > 0).sum())
-    return (f"- **Placements left out:** {left:,} of {total:,} ({left / total:.1%}) have no legal grid action of their "
-            f"layer within a step and are in no likelihood, for {some} of {len(each)} participants (the most: "
+    return (f"- **Placements left out:** {left:,} of {total:,} ({left / total:.1%}) have {reach} and are in no "
+            f"likelihood, for {some} of {len(each)} participants (the most: "
             f"{shown}).")
 
 
@@ -635,7 +642,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     fitness = read_adequacy(args.dir)
-    comparison(fits, args.dir, seed=args.seed, truth=truth, adequacy=fitness)
+    comparison(fits, args.dir, seed=args.seed, truth=truth, adequacy=fitness, motor=spec.get("motor"))
     if args.summary is not None:
         from overhang_framework.results import atomic_write_json
 

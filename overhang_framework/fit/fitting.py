@@ -71,13 +71,16 @@ class Mapped:
     unmapped: int
     #: The (participant, trial) of each mapped placement: the unit of held-out folds.
     trials: list[tuple[str, int]] = field(default_factory=list)
+    #: With a motor model, each placement's ``W`` over its state's legal actions (:mod:`~overhang_framework.fit.motor`).
+    weights: Optional[list[np.ndarray]] = None
 
 
 #: How decision states are built: ``logged`` takes the log's towers, ``grid`` replays each trial's mapped grid actions.
 STATES = ("logged", "grid")
 
 
-def map_placements(world: World, placements: Sequence[Placement], states: str = "logged") -> Mapped:
+def map_placements(world: World, placements: Sequence[Placement], states: str = "logged",
+                   motor: Optional[Any] = None) -> Mapped:
     """The decision states of ``placements`` and the grid action each executed placement maps to.
 
     With ``states="logged"`` (the default), every decision state is the logged
@@ -89,10 +92,16 @@ def map_placements(world: World, placements: Sequence[Placement], states: str = 
     near its balance limit can stand on the grid and fall as logged, or the
     reverse, which the lapse then absorbs (docs/fitting.md). When a placement is
     unmapped, or a record is missing, a grid trial goes on from the logged tower.
+
+    With ``motor`` (a :class:`~overhang_framework.fit.motor.Motor`) each placement also gets its ``W`` over the
+    legal actions; it is kept when some grid action of its layer can reach it (its nearest grid action, or the
+    action most likely to have put it there, stands as ``chosen`` for the statistics that need one).
     """
     if states not in STATES:
         raise ValueError(f"unknown decision states {states!r}; allowed: {', '.join(STATES)}")
-    out, chosen, trials, unmapped = [], [], [], 0
+    from overhang_framework.fit.motor import weights as motor_weights
+
+    out, chosen, trials, unmapped, weights = [], [], [], 0, []
     after: dict[tuple, State] = {}  # (participant, trial) -> the grid state after its last mapped placement
     for p in placements:
         state = p.state
@@ -101,6 +110,13 @@ def map_placements(world: World, placements: Sequence[Placement], states: str = 
         if replayed is not None and len(replayed.geometry) == len(p.state.geometry):
             state = State(replayed.geometry, p.state.remaining)
         index = action_index(world, state, p.x, p.layer)
+        if motor is not None:
+            w = motor_weights(world, state, p.x, p.layer, motor)
+            if not (w > 0).any():
+                unmapped += 1
+                continue
+            weights.append(w)
+            index = int(np.argmax(w)) if index is None else index
         if index is None:
             unmapped += 1
             continue
@@ -109,7 +125,7 @@ def map_placements(world: World, placements: Sequence[Placement], states: str = 
         trials.append((p.participant, p.trial))
         if states == "grid":
             after[trial] = world.successor(state, world.legal_actions(state)[index])
-    return Mapped(out, chosen, unmapped, trials)
+    return Mapped(out, chosen, unmapped, trials, weights if motor is not None else None)
 
 
 @dataclass
@@ -207,10 +223,10 @@ def fold_of(trials: Sequence[tuple[str, int]], folds: int, seed: int = 0) -> np.
 
 def _decisions(tables: ScoreTables, mapped: Mapped) -> Decisions:
     if not tables.model.percept:
-        return Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen)
+        return Decisions.of([tables.table(s) for s in mapped.states], mapped.chosen, mapped.weights)
     from overhang_framework.fit.percept import perceived_decisions
 
-    return perceived_decisions(tables, mapped.states, mapped.chosen, tables.model.percept)
+    return perceived_decisions(tables, mapped.states, mapped.chosen, tables.model.percept, mapped.weights)
 
 
 def _best(decisions: Sequence[Decisions]) -> tuple[SoftmaxFit, int]:

@@ -18,6 +18,11 @@ A placement with no legal grid action of its layer within a step (possible for a
 person squeezing a block into a gap the grid does not reach) is *unmapped*: it
 is left out of the likelihood, and counted in ``fits.csv`` (``unmapped``).
 Timed-out records place nothing and are left out too.
+
+**With a motor model** (the fit's ``motor``, :mod:`overhang_framework.fit.motor`) a placement is not mapped:
+its probability is that of its x given each legal grid action the participant may have planned,
+``P(x) = sum_i P(a_i) W_i``, the lapse's uniform action included, and only a placement no grid action of its
+layer can reach is left out.
 """
 
 from __future__ import annotations
@@ -50,33 +55,47 @@ class Decisions:
     """A participant's decisions under one model: score tables padded into one array, and the chosen indices.
 
     ``scores`` is ``(n, m)`` with ``-inf`` past each table's ``sizes``; ``chosen``
-    the index of each executed action.
+    the index of each executed action. With a motor model (:mod:`overhang_framework.fit.motor`) ``weights``
+    ``(n, m)`` holds, for every legal action, the probability that a placement planned as it lands where the
+    executed one did; a decision's probability is then ``sum_j P(a_j) weights_j`` (None: the chosen action's).
     """
 
     scores: np.ndarray
     sizes: np.ndarray
     chosen: np.ndarray
+    weights: Optional[np.ndarray] = None
 
     @classmethod
-    def of(cls, tables: Sequence[np.ndarray], chosen: Sequence[int]) -> "Decisions":
+    def of(cls, tables: Sequence[np.ndarray], chosen: Sequence[int],
+           weights: Optional[Sequence[np.ndarray]] = None) -> "Decisions":
         n = len(tables)
         m = max((len(t) for t in tables), default=1)
         scores = np.full((n, m), -np.inf)
         for i, t in enumerate(tables):
             scores[i, : len(t)] = t
-        return cls(scores, np.array([len(t) for t in tables], dtype=float), np.asarray(chosen, dtype=int))
+        padded = None
+        if weights is not None:
+            padded = np.zeros((n, m))
+            for i, w in enumerate(weights):
+                padded[i, : len(w)] = w
+        return cls(scores, np.array([len(t) for t in tables], dtype=float), np.asarray(chosen, dtype=int), padded)
 
     def __len__(self) -> int:
         return len(self.chosen)
 
     def subset(self, rows: np.ndarray) -> "Decisions":
-        return Decisions(self.scores[rows], self.sizes[rows], self.chosen[rows])
+        return Decisions(self.scores[rows], self.sizes[rows], self.chosen[rows],
+                         None if self.weights is None else self.weights[rows])
 
     def concat(self, other: "Decisions") -> "Decisions":
+        if (self.weights is None) != (other.weights is None):
+            raise ValueError("cannot join decisions with a motor model to decisions without one")
         m = max(self.scores.shape[1], other.scores.shape[1])
-        pad = lambda s: np.pad(s, ((0, 0), (0, m - s.shape[1])), constant_values=-np.inf)  # noqa: E731
-        return Decisions(np.vstack([pad(self.scores), pad(other.scores)]), np.concatenate([self.sizes, other.sizes]),
-                         np.concatenate([self.chosen, other.chosen]))
+        pad = lambda s, v: np.pad(s, ((0, 0), (0, m - s.shape[1])), constant_values=v)  # noqa: E731
+        weights = None if self.weights is None else np.vstack([pad(self.weights, 0.0), pad(other.weights, 0.0)])
+        return Decisions(np.vstack([pad(self.scores, -np.inf), pad(other.scores, -np.inf)]),
+                         np.concatenate([self.sizes, other.sizes]), np.concatenate([self.chosen, other.chosen]),
+                         weights)
 
 
 def choice_probabilities(scores: np.ndarray, beta: float, lapse: float) -> np.ndarray:
@@ -98,6 +117,11 @@ def log_likelihood(decisions: Decisions, beta: float, lapse: float) -> float:
     top = s.max(axis=1, keepdims=True)
     with np.errstate(invalid="ignore"):
         z = np.where(np.isfinite(s), beta * (s - top), -np.inf)
+    if decisions.weights is not None:
+        e = np.exp(z)
+        w = decisions.weights
+        p = (1 - lapse) * (e * w).sum(axis=1) / e.sum(axis=1) + lapse * w.sum(axis=1) / decisions.sizes
+        return float(np.log(np.maximum(p, 1e-300)).sum())
     log_norm = np.log(np.exp(z).sum(axis=1))
     chosen = z[np.arange(len(decisions)), decisions.chosen] - log_norm
     p = (1 - lapse) * np.exp(chosen) + lapse / decisions.sizes

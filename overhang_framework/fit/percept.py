@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -73,27 +73,36 @@ class PerceivedDecisions:
     scores: np.ndarray
     hit: np.ndarray
     sizes: np.ndarray
+    #: With a motor model, each decision's lapse weight ``sum_j W_j / n`` (None: ``1 / n``); ``hit`` is then ``W``
+    #: of the real action each seen action becomes.
+    lapse_weight: Optional[np.ndarray] = None
 
     @classmethod
     def of(cls, tables: Sequence[Sequence[np.ndarray]], targets: Sequence[Sequence[np.ndarray]],
-           chosen: Sequence[int], sizes: Sequence[int]) -> "PerceivedDecisions":
-        """From each decision's percepts' tables and their actions' real indices (:func:`seen_to_real`)."""
+           chosen: Sequence[int], sizes: Sequence[int],
+           weights: Optional[Sequence[np.ndarray]] = None) -> "PerceivedDecisions":
+        """From each decision's percepts' tables and their actions' real indices (:func:`seen_to_real`); with
+        ``weights`` (a motor model's ``W`` of each decision's real actions) the executed x's probability."""
         n = len(tables)
         k = max((len(t) for t in tables), default=1)
         m = max((len(x) for t in tables for x in t), default=1)
         scores = np.full((n, k, m), -np.inf)
-        hit = np.zeros((n, k, m), dtype=bool)
+        hit = np.zeros((n, k, m), dtype=bool if weights is None else float)
         for i, (row, target) in enumerate(zip(tables, targets)):
             for j, (table, real) in enumerate(zip(row, target)):
                 scores[i, j, : len(table)] = table
-                hit[i, j, : len(real)] = np.asarray(real) == int(chosen[i])
-        return cls(scores, hit, np.asarray(sizes, dtype=float))
+                real = np.asarray(real, dtype=int)
+                hit[i, j, : len(real)] = real == int(chosen[i]) if weights is None else np.asarray(weights[i])[real]
+        sizes = np.asarray(sizes, dtype=float)
+        lapse_weight = None if weights is None else np.array([np.sum(w) for w in weights]) / sizes
+        return cls(scores, hit, sizes, lapse_weight)
 
     def __len__(self) -> int:
         return len(self.sizes)
 
     def subset(self, rows: np.ndarray) -> "PerceivedDecisions":
-        return PerceivedDecisions(self.scores[rows], self.hit[rows], self.sizes[rows])
+        return PerceivedDecisions(self.scores[rows], self.hit[rows], self.sizes[rows],
+                                  None if self.lapse_weight is None else self.lapse_weight[rows])
 
     def probabilities(self, beta: float, lapse: float) -> np.ndarray:
         """Each decision's probability of its executed action."""
@@ -103,7 +112,8 @@ class PerceivedDecisions:
             z = np.where(np.isfinite(s), beta * (s - top), -np.inf)
         w = np.exp(z)
         seen = (w * self.hit).sum(axis=2) / w.sum(axis=2)
-        return (1 - lapse) * seen.mean(axis=1) + lapse / self.sizes
+        uniform = 1.0 / self.sizes if self.lapse_weight is None else self.lapse_weight
+        return (1 - lapse) * seen.mean(axis=1) + lapse * uniform
 
     def log_likelihood(self, beta: float, lapse: float) -> float:
         if len(self) == 0:
@@ -111,11 +121,13 @@ class PerceivedDecisions:
         return float(np.log(np.maximum(self.probabilities(beta, lapse), 1e-300)).sum())
 
 
-def perceived_decisions(tables, states: Sequence[State], chosen: Sequence[int], percept: float) -> PerceivedDecisions:
-    """The decisions of ``states`` (with the executed actions' indices ``chosen``) of a participant with perceptual
-    noise ``percept``, scored with ``tables`` (the model's without the percept; with ``table`` and ``world``)."""
+def perceived_decisions(tables, states: Sequence[State], chosen: Sequence[int], percept: float,
+                        weights: Optional[Sequence[np.ndarray]] = None) -> PerceivedDecisions:
+    """The decisions of ``states`` (with the executed actions' indices ``chosen``, or a motor model's ``weights``)
+    of a participant with perceptual noise ``percept``, scored with ``tables`` (the model's without the percept;
+    with ``table`` and ``world``)."""
     world = tables.world
     seen = [percepts(s, percept) for s in states]
     return PerceivedDecisions.of([[tables.table(x) for x in row] for row in seen],
                                  [[seen_to_real(world, s, x) for x in row] for s, row in zip(states, seen)],
-                                 chosen, [len(world.legal_actions(s)) for s in states])
+                                 chosen, [len(world.legal_actions(s)) for s in states], weights)

@@ -159,7 +159,7 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
               jobs: int = 1, on_table: Callable[[], None] = lambda: None,
               on_total: Callable[[int], None] = lambda n: None, folds: int = 0,
               journal: Optional[FitJournal] = None, shards: Sequence[Sequence[Unit]] = (),
-              shard: int = 0) -> JobResult:
+              shard: int = 0, motor=None) -> JobResult:
     """Fit every model index of ``space`` to every unit. Tables are shared across units (one
     :class:`ScoreTables` per model) and kept in ``cache``. ``states`` says how decision states are built
     (:func:`~overhang_framework.fit.fitting.map_placements`). The tables not in the cache are first computed
@@ -170,9 +170,10 @@ def fit_units(units: Sequence[Unit], world, value, context: Mapping[str, Any], s
     ``shards`` holds the units of every job of a multirun that shares ``cache``, in shard order, this job's
     (``units``) at index ``shard``: the jobs then split the tables they all need between them
     (:func:`fill_tables`) instead of each computing those of its own units (with a cache on disk; without
-    one ``shards`` is not used)."""
+    one ``shards`` is not used). ``motor`` (a :class:`~overhang_framework.fit.motor.Motor`) puts the executed
+    placements' motor noise in the likelihood."""
     started = time.perf_counter()
-    mapped = {u.name: map_placements(world, u.placements, states) for u in units}
+    mapped = {u.name: map_placements(world, u.placements, states, motor) for u in units}
     tables = model_tables(space, world, value, context, cache, build_predictor)
     distinct = list({id(t.tables): t.tables for variants in tables for t in variants}.values())
     share_memory(distinct)
