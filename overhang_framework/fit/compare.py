@@ -584,6 +584,30 @@ def summary(fits: pd.DataFrame, truth: Optional[pd.DataFrame] = None, seed: int 
         tied = [best.loc[r.participant, "ties"] > 1 for r in known.itertuples()]
         out.update(known=int(len(known)), recovered=int(sum(hit)),
                    recovered_through_ties=int(sum(h and t for h, t in zip(hit, tied))))
+        out["parameters"] = recovered_parameters(truth, best)
+    return out
+
+
+def recovered_parameters(truth: pd.DataFrame, best: pd.DataFrame) -> dict:
+    """How each best model's β, σ and lapse (the first of a tied set's) stand to the simulated participants' truth:
+    β's median ratio fitted / true and the correlation of their logs, σ's mean absolute error, the lapse's median
+    difference fitted - true; over the participants with both."""
+    rows = [(best.loc[r.participant], r) for r in truth.itertuples() if r.participant in best.index]
+    out: dict = {}
+    pairs = [(float(b["beta"]), float(t.true_beta)) for b, t in rows
+             if pd.notna(t.true_beta) and pd.notna(b["beta"]) and b["beta"] > 0]
+    if pairs:
+        fitted, true = np.array(pairs).T
+        out["beta"] = {"median_ratio": float(np.median(fitted / true)), "n": len(pairs),
+                       "r_log": float(np.corrcoef(np.log(fitted), np.log(true))[0, 1]) if len(pairs) > 2 else None}
+    pairs = [(float(b["sigma"]), float(t.true_sigma)) for b, t in rows if pd.notna(t.true_sigma) and pd.notna(b["sigma"])]
+    if pairs:
+        fitted, true = np.array(pairs).T
+        out["sigma"] = {"mean_abs_error": float(np.mean(np.abs(fitted - true))), "n": len(pairs)}
+    pairs = [(float(b["lapse"]), float(t.true_lapse)) for b, t in rows if pd.notna(t.true_lapse) and pd.notna(b["lapse"])]
+    if pairs:
+        fitted, true = np.array(pairs).T
+        out["lapse"] = {"median_difference": float(np.median(fitted - true)), "n": len(pairs)}
     return out
 
 
