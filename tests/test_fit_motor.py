@@ -38,7 +38,7 @@ def test_the_cells_of_a_planned_action_hold_all_its_probability(world, state, sd
     actions = world.legal_actions(state)
     j = {"first": 0, "last": len(actions) - 1, "middle": len(actions) // 2}[which]
     motor = Motor(sd, retries=5, precision=0.002)
-    _, w = cells(world, state, actions and j, motor, 7 * sd)
+    _, w = cells(world, state, j, motor, 7 * sd)
     assert w.sum() == pytest.approx(1.0, abs=2e-3)
 
 
