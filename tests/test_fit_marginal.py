@@ -38,6 +38,32 @@ def test_the_sampled_likelihood_and_its_gradient_are_the_average_softmax_and_its
             axis=1, keepdims=True))[:, 4].mean() + lapse / 7))
 
 
+def test_with_a_motor_model_the_sampled_likelihood_weighs_every_action_and_its_gradient_is_exact():
+    from overhang_framework.fit.marginal import SampledDecisions
+
+    rng = np.random.default_rng(1)
+    samples = [rng.random((30, n)) for n in (5, 7, 3)]
+    weights = [rng.random(n) * (rng.random(n) < 0.6) for n in (5, 7, 3)]
+    d = SampledDecisions.of(samples, [0, 0, 0], weights)
+    beta, lapse = 4.0, 0.2
+    by_hand = 0.0
+    for s, w in zip(samples, weights):
+        soft = np.exp(beta * s) / np.exp(beta * s).sum(axis=1, keepdims=True)
+        by_hand += np.log((1 - lapse) * (soft @ w).mean() + lapse * w.sum() / s.shape[1])
+    value, grad = d.value_and_grad(beta, lapse)
+    assert value == pytest.approx(by_hand, rel=1e-12) and d.log_likelihood(beta, lapse) == pytest.approx(by_hand)
+    h = 1e-6
+    numeric = [(d.log_likelihood(beta + h, lapse) - d.log_likelihood(beta - h, lapse)) / (2 * h),
+               (d.log_likelihood(beta, lapse + h) - d.log_likelihood(beta, lapse - h)) / (2 * h)]
+    assert grad == pytest.approx(numeric, rel=1e-5)
+    # one-hot weights are the chosen actions'
+    hot = SampledDecisions.of(samples, [1, 4, 2], [np.eye(n)[c] for n, c in zip((5, 7, 3), (1, 4, 2))])
+    assert hot.value_and_grad(beta, lapse)[0] == pytest.approx(
+        SampledDecisions.of(samples, [1, 4, 2]).value_and_grad(beta, lapse)[0], rel=1e-12)
+    assert d.subset(np.array([2])).log_likelihood(beta, lapse) == pytest.approx(
+        SampledDecisions.of(samples[2:], [0], weights[2:]).log_likelihood(beta, lapse))
+
+
 def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
     """Two myopic and two depth-2 participants (IPE, K = 10): every fitted row names a K and a sigma of the grids,
     the comparison is written, and bad grids are one line."""
@@ -69,6 +95,14 @@ def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
     pd.testing.assert_frame_equal(pd.read_csv(two / "fits.csv"), fits)
     other = subprocess.run(args[:-1] + ["200"], capture_output=True, text=True, cwd=REPO)
     assert other.returncode == 2 and "holds a fit of other logs or settings" in other.stderr
+    motor = subprocess.run(args[:-2] + ["--out", str(tmp_path / "motor"), "--motor-sd", "0.02"], capture_output=True,
+                           text=True, cwd=REPO)
+    assert motor.returncode == 0, motor.stderr
+    assert "is scored where it was made" in (tmp_path / "motor" / "comparison.md").read_text()
+    assert '"motor"' in (tmp_path / "motor" / "marginal.json").read_text()
+    bad = subprocess.run(args[:-2] + ["--out", str(tmp_path / "bad"), "--motor-sd", "0"], capture_output=True,
+                         text=True, cwd=REPO)
+    assert bad.returncode == 2 and "--motor-sd must be a number of metres above 0" in bad.stderr
     bad = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
                           "--K", "0"], capture_output=True, text=True, cwd=REPO)
     assert bad.returncode == 2 and "K, depths, --draws, --bank and --jobs must be whole numbers >= 1" in bad.stderr

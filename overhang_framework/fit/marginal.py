@@ -20,7 +20,8 @@ between models).
 
 This is the IPE family's likelihood on the world's grid, without a call budget (a budgeted participant's
 search completes depth 1 when the budget is below what depth 2 needs, so its depth-1 model is its own), and
-without a percept or a hand (docs/fitting.md, "The participant's own noise").
+without a percept or a hand (docs/fitting.md, "The participant's own noise"). ``--motor-sd`` scores each
+placement's x with the executed placement's motor noise (:mod:`overhang_framework.fit.motor`).
 """
 
 from __future__ import annotations
@@ -51,27 +52,44 @@ class SampledDecisions(PerceivedDecisions):
     """A participant's decisions under a model with its own noise: ``scores`` ``(n, draws, m)``, the root scores of
     each decision under each sample (``-inf`` past each state's actions), and the chosen indices; the likelihood
     is that of a percept's (:class:`~overhang_framework.fit.percept.PerceivedDecisions`) whose draws all see the
-    real tower: ``P(a) = (1 - lapse) * mean_draws softmax_beta(scores)_a + lapse / size``."""
+    real tower: ``P(a) = (1 - lapse) * mean_draws softmax_beta(scores)_a + lapse / size``. With a motor model's
+    ``weights`` ``(n, m)`` (:mod:`overhang_framework.fit.motor`) it is the executed x's probability,
+    ``sum_j P(a_j) W_j``."""
 
-    def __init__(self, scores: np.ndarray, chosen: np.ndarray, sizes: np.ndarray):
-        hit = np.zeros(scores.shape, dtype=bool)
-        hit[np.arange(len(chosen)), :, np.asarray(chosen, dtype=int)] = True
-        super().__init__(scores, hit, np.asarray(sizes, dtype=float))
+    def __init__(self, scores: np.ndarray, chosen: np.ndarray, sizes: np.ndarray,
+                 weights: Optional[np.ndarray] = None):
+        sizes = np.asarray(sizes, dtype=float)
+        if weights is None:
+            hit = np.zeros(scores.shape, dtype=bool)
+            hit[np.arange(len(chosen)), :, np.asarray(chosen, dtype=int)] = True
+            super().__init__(scores, hit, sizes)
+        else:
+            weights = np.asarray(weights, dtype=float)
+            super().__init__(scores, weights[:, None, :], sizes, weights.sum(axis=1) / sizes)
+        self.weights = weights
         self.chosen = np.asarray(chosen, dtype=int)
         self._cache = None
 
     @classmethod
-    def of(cls, samples: Sequence[np.ndarray], chosen: Sequence[int]) -> "SampledDecisions":
+    def of(cls, samples: Sequence[np.ndarray], chosen: Sequence[int],
+           weights: Optional[Sequence[np.ndarray]] = None) -> "SampledDecisions":
         n = len(samples)
         draws = max((s.shape[0] for s in samples), default=1)
         m = max((s.shape[1] for s in samples), default=1)
         scores = np.full((n, draws, m), -np.inf)
         for i, s in enumerate(samples):
             scores[i, : s.shape[0], : s.shape[1]] = s
-        return cls(scores, np.asarray(chosen, dtype=int), np.array([s.shape[1] for s in samples], dtype=float))
+        padded = None
+        if weights is not None:
+            padded = np.zeros((n, m))
+            for i, w in enumerate(weights):
+                padded[i, : len(w)] = w
+        return cls(scores, np.asarray(chosen, dtype=int), np.array([s.shape[1] for s in samples], dtype=float),
+                   padded)
 
     def subset(self, rows: np.ndarray) -> "SampledDecisions":
-        return SampledDecisions(self.scores[rows], self.chosen[rows], self.sizes[rows])
+        return SampledDecisions(self.scores[rows], self.chosen[rows], self.sizes[rows],
+                                None if self.weights is None else self.weights[rows])
 
     def _centred(self):
         if self._cache is None:
@@ -88,12 +106,20 @@ class SampledDecisions(PerceivedDecisions):
         centred, inside, picked = self._centred()
         w = np.where(inside, np.exp(beta * centred), 0.0)
         total = w.sum(axis=2)
-        soft = np.exp(beta * picked) / total  # (n, draws): the chosen action's softmax
         mean_score = (w * centred).sum(axis=2) / total
+        if self.weights is None:
+            soft = np.exp(beta * picked) / total  # (n, draws): the chosen action's softmax
+            dsoft = soft * (picked - mean_score)
+            uniform = 1 / self.sizes
+        else:  # the softmax's mass on the motor model's weights, and its derivative in beta
+            hit = self.weights[:, None, :]
+            soft = (w * hit).sum(axis=2) / total
+            dsoft = (w * hit * centred).sum(axis=2) / total - soft * mean_score
+            uniform = self.lapse_weight
         q = soft.mean(axis=1)
-        dq = (soft * (picked - mean_score)).mean(axis=1)
-        p = np.maximum((1 - lapse) * q + lapse / self.sizes, 1e-300)
-        grad = np.array([float(((1 - lapse) * dq / p).sum()), float(((1 / self.sizes - q) / p).sum())])
+        dq = dsoft.mean(axis=1)
+        p = np.maximum((1 - lapse) * q + lapse * uniform, 1e-300)
+        grad = np.array([float(((1 - lapse) * dq / p).sum()), float(((uniform - q) / p).sum())])
         return float(np.log(p).sum()), grad
 
 
@@ -116,8 +142,10 @@ def _seed(state: State, seed: int) -> np.random.Generator:
 
 
 def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int], grid: Grid, draws: int = DRAWS,
-                    bank_size: int = BANK_SIZE, seed: int = 0, banks: Optional[dict] = None) -> list[dict]:
-    """One row per model index (depth) of the IPE family: the best grid point's parameters and likelihood."""
+                    bank_size: int = BANK_SIZE, seed: int = 0, banks: Optional[dict] = None,
+                    weights: Optional[Sequence[np.ndarray]] = None) -> list[dict]:
+    """One row per model index (depth) of the IPE family: the best grid point's parameters and likelihood
+    (``weights``: a motor model's, :mod:`overhang_framework.fit.motor`)."""
     from overhang_framework.fit.fitting import fit_softmax
 
     banks = {} if banks is None else banks
@@ -132,7 +160,7 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
                                       risk_form=grid.risk_form)
                 choice = BankChoice(world, value, bank, params, draws=draws, seed=seed, trees=trees)
                 samples = [choice.score_samples(s, draws, _seed(s, seed)) for s in states]
-                fit = fit_softmax(SampledDecisions.of(samples, chosen))
+                fit = fit_softmax(SampledDecisions.of(samples, chosen, weights))
                 if best is None or fit.loglik > best[0].loglik + 1e-9:
                     best = (fit, sigma, K, risk)
         fit, sigma, K, risk = best
@@ -211,6 +239,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--physics", default="static", help="the world's physics (default static)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--motor-sd", type=float, default=None, metavar="METRES",
+                        help="score each placement's x with motor noise of this sd (docs/fitting.md, motor noise in "
+                             "the likelihood; 5 retries, to the millimetre); default: its nearest grid action")
     args = parser.parse_args(argv)
     if args.recovery is not None:
         import json
@@ -230,6 +261,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise OverhangError("K, depths, --draws, --bank and --jobs must be whole numbers >= 1")
         if any(not 0 <= r < 1 for r in args.risk) or any(s < 0 for s in args.sigma):
             raise OverhangError("risks must be from 0 to below 1, sigmas >= 0")
+        from overhang_framework.fit.motor import Motor
+
+        if args.motor_sd is not None and not 0 < args.motor_sd <= 0.5:
+            raise OverhangError(f"--motor-sd must be a number of metres above 0 and at most 0.5, got {args.motor_sd}")
+        motor = None if args.motor_sd is None else Motor(float(args.motor_sd))
         df = require_records(read_log([str(p) for p in args.logs]), args.logs)
         registry = Registry()
         world = registry.create("world", {"name": "overhang", "physics": args.physics})
@@ -248,6 +284,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     settings = {"logs": [file_sha256(p) for p in args.logs], "grid": dataclasses.asdict(grid), "draws": args.draws,
                 "bank": args.bank, "seed": args.seed, "physics": args.physics}
+    if motor is not None:  # a fit without one keeps the settings it had
+        settings["motor"] = motor.describe()
     args.out.mkdir(parents=True, exist_ok=True)
     kept = args.out / "marginal.json"
     if kept.is_file() and json.loads(kept.read_text()) != json.loads(json.dumps(settings)):
@@ -265,7 +303,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"{len(people) - len(todo)} participants' fits kept in {parts} from a stopped run", file=sys.stderr)
     started = time.perf_counter()
     units = [(participant, conditions[participant],
-              map_placements(world, [p for p in placements if p.participant == participant])) for participant in todo]
+              map_placements(world, [p for p in placements if p.participant == participant], "logged", motor))
+             for participant in todo]
     setup_args = (args.physics, grid, args.draws, args.bank, args.seed)
     bar = progress_bar(total=len(units), desc="participants", unit="participant")
     try:
@@ -292,7 +331,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     atomic_write_text(args.out / "fits.csv", fits.to_csv(index=False))
     from overhang_framework.fit.compare import comparison
 
-    comparison(fits, args.out)
+    comparison(fits, args.out, motor=None if motor is None else motor.describe())
     print(f"fitted {len(units)} participants x {len(grid.depths)} depths in {seconds:.0f} s ({len(people)} in "
           f"fits.csv); wrote {args.out / 'fits.csv'} and {args.out / 'comparison.md'}")
     return 0
@@ -312,7 +351,7 @@ def _work(state: dict, unit) -> list[dict]:
     """One participant's rows: ``unit`` is (participant, condition, its mapped placements)."""
     participant, condition, mapped = unit
     rows = fit_participant(state["world"], state["value"], mapped.states, mapped.chosen, state["grid"],
-                           state["draws"], state["bank"], state["seed"], state["banks"])
+                           state["draws"], state["bank"], state["seed"], state["banks"], mapped.weights)
     return [{"participant": participant, "condition": condition, **row, "unmapped": mapped.unmapped} for row in rows]
 
 
