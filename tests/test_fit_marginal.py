@@ -109,7 +109,7 @@ def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
 
 
 @pytest.mark.parametrize("module", ["overhang_framework.fit.marginal", "overhang_framework.fit.agreement",
-                                    "overhang_framework.fit.compare"])
+                                    "overhang_framework.fit.compare", "overhang_framework.fit.adequacy"])
 def test_each_new_fit_command_explains_itself(module):
     proc = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, cwd=REPO)
     assert proc.returncode == 0 and proc.stdout.startswith("usage: python -m " + module), proc.stderr
