@@ -39,8 +39,10 @@ PERMUTATIONS = 2_000
 POWER_PERMUTATIONS = 500
 ALPHA = 0.05
 TARGET_POWER = 0.8
-#: Participants per level at which power is estimated.
-SIZES = (10, 20, 30, 40, 60, 80, 120, 160)
+#: Participants per level at which power is estimated: from 4, where a trend over four levels can first be tested.
+SIZES = (4, 5, 6, 8, 10, 12, 15, 20, 30, 40, 60, 80, 120, 160)
+#: Redrawn studies behind each power figure (its Monte Carlo error is at most 0.5 / sqrt(RESAMPLES), 0.016).
+RESAMPLES = 1_000
 
 
 @dataclass(frozen=True)
@@ -164,9 +166,11 @@ def draw(df: pd.DataFrame, levels: Sequence[str], n: int, rng: np.random.Generat
 
 
 def power(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] = MEASURES,
-          sizes: Sequence[int] = SIZES, resamples: int = 200, seed: int = 0) -> pd.DataFrame:
+          sizes: Sequence[int] = SIZES, resamples: int = RESAMPLES, seed: int = 0,
+          on_study=lambda: None) -> pd.DataFrame:
     """One row per measure and size: the share of ``resamples`` studies of that size per level in which the
-    measure's trend holds (:func:`holds`)."""
+    measure's trend holds (:func:`holds`), and its Monte Carlo error ``sqrt(power (1 - power) / resamples)``
+    (``mc_error``). ``on_study`` is called after each redrawn study."""
     rows = []
     for measure in measures:
         if measure.column not in df.columns or not df[measure.column].notna().any():
@@ -177,9 +181,11 @@ def power(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] =
             for b in range(resamples):
                 rho, p = trend(draw(df, levels, n, rng), levels, measure.column, POWER_PERMUTATIONS, seed + b)
                 hits += holds(rho, p, measure.direction)
-            rows.append({"measure": measure.name, "per_level": int(n), "power": hits / resamples,
-                         "resamples": int(resamples)})
-    return pd.DataFrame(rows, columns=["measure", "per_level", "power", "resamples"])
+                on_study()
+            rate = hits / resamples
+            rows.append({"measure": measure.name, "per_level": int(n), "power": rate, "resamples": int(resamples),
+                         "mc_error": float(np.sqrt(rate * (1 - rate) / resamples))})
+    return pd.DataFrame(rows, columns=["measure", "per_level", "power", "resamples", "mc_error"])
 
 
 def sample_sizes(power_table: pd.DataFrame, target: float = TARGET_POWER) -> dict[str, Optional[int]]:
@@ -242,7 +248,11 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
         way = "grows" if r["direction"] > 0 else "shrinks"
         found_text = "shows" if r["holds"] else "does not show"
         pool_n = min(pool.get(level, 0) for level in levels)
-        size = (f"{n} participants per level give 80% power" if n is not None else
+        at_n = power_table[(power_table["measure"] == r["measure"]) & (power_table["per_level"] == n)]
+        error = (f" ({float(at_n['power'].iloc[0]):.2f} ± {float(at_n['mc_error'].iloc[0]):.2f}, the share of "
+                 f"{int(at_n['resamples'].iloc[0]):,} redrawn studies ± its Monte Carlo error)"
+                 if n is not None and len(at_n) and "mc_error" in at_n.columns else "")
+        size = (f"{n} participants per level give 80% power{error}" if n is not None else
                 f"No size up to {int(power_table['per_level'].max())} per level gives 80% power"
                 if len(power_table) else "Power was not estimated")
         if n is not None and n > pool_n:
@@ -256,8 +266,12 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
         lines.append(f"| {label.get(measure, measure)} | " + " | ".join(f"{v:.2f}" for v in at["power"]) + " |")
     flat = [label.get(r["measure"], r["measure"]) for _, r in found.iterrows()
             if r["direction"] == 0 and r["measure"] in set(power_table["measure"])]
+    counts = sorted({int(v) for v in power_table["resamples"]}) if "resamples" in power_table.columns else []
     lines += ["", "(power: the share of studies of that many participants per level, drawn with replacement from "
               "the simulated pool, in which the trend holds at p < .05 the expected way"
+              + (f"; {', '.join(f'{c:,}' for c in counts)} redrawn studies a figure, each within about "
+                 f"{max(0.5 / np.sqrt(min(counts)), 0.0):.3f} of its limit (one Monte Carlo standard error at most)"
+                 if counts else "")
               + (f"; for {', '.join(flat)}, of which no trend is expected, the share in which none shows" if flat
                  else "") + "; a pool smaller than the size makes it optimistic)", ""]
     return "\n".join(lines)

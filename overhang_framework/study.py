@@ -441,7 +441,7 @@ def _compose(words: Sequence[str], config_name: str, what: str):
 
 
 def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: Optional[int] = None,
-        jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 200, replicas: int = 39, seed: int = 0,
+        jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 1000, replicas: int = 39, seed: int = 0,
         world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
         progress: bool = True, say: Callable[[str], None] = lambda s: None, sims: Sequence[str | Path] = (),
         fit_models: bool = True) -> dict:
@@ -531,7 +531,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         steps.finish("fit", digest, time.perf_counter() - t0)
 
     if study in GRADED:
-        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models)
+        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models, progress)
 
     # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
@@ -732,7 +732,7 @@ def _participants(out: Path, sizes: dict[str, int], fitted: bool = True) -> tupl
 
 
 def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples: int, seed: int,
-            started: float, fitted: bool = True) -> dict:
+            started: float, fitted: bool = True, progress: bool = False) -> dict:
     """A graded study's step 4: each level's figures, the trends and the sample sizes (:mod:`overhang_framework.graded`)."""
     from overhang_framework import graded
 
@@ -742,8 +742,16 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
     pool_people, people = _participants(out, sizes, fitted)
     pred = graded.predictions(people, levels, seed=seed)
     found = graded.trends(people, levels, seed=seed)
-    table = graded.power(pool_people, levels, resamples=resamples, seed=seed) if resamples else \
-        pd.DataFrame(columns=["measure", "per_level", "power", "resamples"])
+    from overhang_framework.progress import progress_bar
+
+    measured = [m for m in graded.MEASURES if m.column in pool_people.columns and pool_people[m.column].notna().any()]
+    bar = progress_bar(total=len(measured) * len(graded.SIZES) * resamples, desc="power", unit="study",
+                       disable=not progress or not resamples, mininterval=1.0, dynamic_ncols=True)
+    try:
+        table = graded.power(pool_people, levels, resamples=resamples, seed=seed, on_study=lambda: bar.update(1)) \
+            if resamples else pd.DataFrame(columns=["measure", "per_level", "power", "resamples", "mc_error"])
+    finally:
+        bar.close()
     for name, frame in (("predictions.csv", pred), ("trends.csv", found), ("power.csv", table)):
         atomic_write_text(out / name, frame.to_csv(index=False))
     steps.finish("findings", "", time.perf_counter() - t0)
@@ -881,7 +889,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--tasks", type=int, default=None, help="tasks per participant (default: all 20)")
     ap.add_argument("--depths", default="1,2", help="fitted depths (default 1,2)")
     ap.add_argument("--jobs", type=int, default=1)
-    ap.add_argument("--resamples", type=int, default=200, help="redrawn studies for power (default 200; 0: none)")
+    ap.add_argument("--resamples", type=int, default=1000,
+                    help="redrawn studies for power (default 1000: each power within 0.016; 0: none)")
     ap.add_argument("--replicas", type=int, default=39, help="predictive check replicas (default 39; 0: no check)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--world", action="append", default=[], metavar="OVERRIDE", help="world override, every step")

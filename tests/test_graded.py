@@ -72,6 +72,11 @@ def test_power_grows_with_the_size_and_the_sample_size_is_the_first_to_reach_80_
                          table, levels, LEVELS, {lv: 40 for lv in levels})
     assert f"**average overhang** grows with the time allowed, as expected" in text
     assert f"{first} participants per level give 80% power" in text
+    # each power with its Monte Carlo error, from the redrawn studies it counts
+    at = table[(table["measure"] == "overhang") & (table["per_level"] == first)].iloc[0]
+    assert at["mc_error"] == pytest.approx(np.sqrt(at["power"] * (1 - at["power"]) / 60))
+    assert f"({at['power']:.2f} ± {at['mc_error']:.2f}, the share of 60 redrawn studies" in text
+    assert graded.SIZES[0] == 4 and graded.RESAMPLES >= 1000
 
 
 def test_a_study_without_a_fit_claims_nothing_of_the_fitted_depth_and_says_where_a_flat_measure_differs():
