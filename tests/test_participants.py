@@ -269,3 +269,31 @@ def test_each_condition_can_draw_from_its_own_distributions_and_time_model(tmp_p
     with pytest.raises(ConfigError, match="cohort.by_condition.unconstrained.parameters.lapse must give a probability"):
         cohort_from_config({**base, "by_condition": {"unconstrained": {"parameters": {
             "lapse": {"dist": "fixed", "value": 2}}}}}, conditions)
+
+
+def test_a_cohort_can_draw_each_participants_number_of_mental_simulations(tmp_path):
+    """``cohort.parameters.K``: each participant's IPE simulates its own K times; participants.csv says which, and
+    the other parameters' draws are those of a cohort without it."""
+    import pandas as pd
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, run
+
+    base = ["world.physics=static", "progress=false", "cohort.participants.time_limited=0",
+            "cohort.participants.unconstrained=6", "cohort.n_tasks=1"]
+    run(compose_config(base + ["+cohort.parameters.K={dist: categorical, values: [1, 50], p: [0.5, 0.5]}"],
+                       config_name=CONFIG_NAME), tmp_path / "k")
+    run(compose_config(base, config_name=CONFIG_NAME), tmp_path / "plain")
+    with_k, plain = pd.read_csv(tmp_path / "k" / "participants.csv"), pd.read_csv(tmp_path / "plain" / "participants.csv")
+    assert set(with_k["K"]) == {1, 50} and "K" not in plain.columns
+    pd.testing.assert_frame_equal(with_k.drop(columns="K"), plain)
+
+
+def test_a_drawn_k_must_be_a_whole_number_of_simulations():
+    from overhang_framework.behaviour.participants import cohort_from_config
+    from overhang_framework.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="K must give a whole number of mental simulations >= 1|whole number of mental"):
+        cohort_from_config({"name": "x", "participants": {"unconstrained": 1},
+                            "parameters": {"K": {"dist": "uniform", "low": 0.5, "high": 3}}},
+                           {"unconstrained": {"time_limit": None}})

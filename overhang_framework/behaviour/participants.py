@@ -74,14 +74,14 @@ from overhang_framework.interfaces import Budget, Task, World
 from overhang_framework.plugins import Registry, accepted_parameters
 
 #: The parameters each participant draws, and the model parameter each one sets.
-PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "hand", "pace", "steadiness")
+PARAMETERS = ("sigma", "depth", "beta", "lapse", "switch", "risk", "percept", "hand", "pace", "steadiness", "K")
 #: Where a drawn parameter goes: (model group, parameter name).
 TARGETS = {"sigma": ("predictor", "sigma"), "depth": ("planner", "depth"), "beta": ("planner", "beta"),
-           "switch": ("predictor", "switch"), "risk": ("planner", "risk")}
+           "switch": ("predictor", "switch"), "risk": ("planner", "risk"), "K": ("predictor", "K")}
 #: The largest risk aversion a participant draws (the planner's ``risk`` must be below 1).
 MAX_RISK = 0.999
 #: Parameters whose column ``participants.csv`` has only when some participant draws them.
-OPTIONAL = ("switch", "risk", "percept", "hand", "pace", "steadiness")
+OPTIONAL = ("switch", "risk", "percept", "hand", "pace", "steadiness", "K")
 #: The deepest search a participant may have (a paper20 trial has 5 placements).
 MAX_DEPTH = 5
 #: The distributions a parameter may be drawn from, with their arguments.
@@ -385,6 +385,8 @@ def _distributions(where_all: str, params: Mapping[str, Any]) -> dict[str, Optio
                 _check_range(where, dist, 1, MAX_DEPTH, f"a depth from 1 to {MAX_DEPTH}", whole=True)
             elif name == "switch":
                 _check_range(where, dist, 1, math.inf, "a whole number of blocks >= 1", whole=True)
+            elif name == "K":
+                _check_range(where, dist, 1, math.inf, "a whole number of mental simulations >= 1", whole=True)
             elif name == "risk":
                 _check_range(where, dist, 0.0, 1.0, "a risk aversion from 0 (risk-neutral) to 1 (a draw above "
                              f"{MAX_RISK} counts as {MAX_RISK})")
@@ -417,6 +419,8 @@ class Participant:
     hand: Optional[float] = None
     pace: Optional[float] = None
     steadiness: Optional[float] = None
+    #: The number of mental simulations of the IPE (its ``K``; None: the predictor's own).
+    K: Optional[int] = None
 
     @property
     def planned_hand(self) -> Optional[float]:
@@ -457,6 +461,7 @@ def draw_participants(cohort: Cohort, seed: int) -> list[Participant]:
                 beta=drawn["beta"], lapse=0.0 if drawn["lapse"] is None else float(drawn["lapse"]),
                 switch=None if drawn.get("switch") is None else int(drawn["switch"]),
                 risk=None if drawn.get("risk") is None else min(float(drawn["risk"]), MAX_RISK),
+                K=None if drawn.get("K") is None else int(drawn["K"]),
                 **{k: None if drawn.get(k) is None else float(drawn[k])
                    for k in ("percept", "hand", "pace", "steadiness")}))
     return out
@@ -501,7 +506,7 @@ class Agents:
                 continue
             config = self.configs[group]
             takes = accepted_parameters(registry.get(group, config["name"]).factory)
-            inner = _nested_ipe(config) if group == "predictor" and key == "sigma" else None
+            inner = _nested_ipe(config) if group == "predictor" and key in ("sigma", "K") else None
             if inner is not None and (takes is None or key not in takes):
                 self.nested[name] = inner
                 continue

@@ -175,7 +175,8 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
 
 def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
     """How a fit recovers simulated participants (``truth``: participants.csv, with ``depth``, ``sigma`` and,
-    when drawn, ``risk``): the best model's depth, and at the true depth the fitted risk, sigma and K."""
+    when drawn, ``risk`` and ``K``): the best model's depth, and at the true depth the fitted risk, sigma and K
+    (with a drawn ``K``, how often it is the truth and the table of true against fitted)."""
     from overhang_framework.fit.compare import per_participant
     from overhang_framework.fit.equivalence import with_neutral
 
@@ -199,6 +200,11 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
     if "K" in fits.columns:
         out["K"] = [int(at[p]["K"]) for p in people]
         out["K_counts"] = {f"K{k}": out["K"].count(k) for k in sorted(set(out["K"]))}
+        if "K" in truth.columns and truth["K"].notna().any():  # each participant drew its own K
+            true_K = [int(truth.loc[p, "K"]) for p in people]
+            out["K_right"] = int(sum(f == t for f, t in zip(out["K"], true_K)))
+            out["K_confusion"] = {f"true{t}": {f"fitted{f}": sum(1 for a, b in zip(true_K, out["K"]) if a == t and b == f)
+                                               for f in sorted(set(out["K"]))} for t in sorted(set(true_K))}
     return out
 
 
