@@ -108,6 +108,23 @@ def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
     assert bad.returncode == 2 and "K, depths, --draws, --bank and --jobs must be whole numbers >= 1" in bad.stderr
 
 
+def test_the_hand_a_planner_plans_for_is_fitted_on_a_grid(tmp_path):
+    from search_fixtures import simulated_log
+
+    log = simulated_log(tmp_path / "sim", "[[1.2,0.6,1.2]]")
+    out = tmp_path / "fit"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
+                           "--sigma", "0.03", "--K", "1", "--depths", "1", "--hand", "0,0.13", "--draws", "50"],
+                          capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    fits = pd.read_csv(out / "fits.csv")
+    assert set(fits["hand"]) <= {0.0, 0.13} and (fits["k"] == 3).all()  # beta, lapse and the hand
+    assert '"hands"' in (out / "marginal.json").read_text()
+    bad = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
+                          "--hand=-0.1"], capture_output=True, text=True, cwd=REPO)
+    assert bad.returncode == 2 and "sigmas and hands >= 0" in bad.stderr
+
+
 @pytest.mark.parametrize("module", ["overhang_framework.fit.marginal", "overhang_framework.fit.agreement",
                                     "overhang_framework.fit.compare", "overhang_framework.fit.adequacy"])
 def test_each_new_fit_command_explains_itself(module):

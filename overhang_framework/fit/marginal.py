@@ -20,7 +20,8 @@ between models).
 
 This is the IPE family's likelihood on the world's grid, without a call budget (a budgeted participant's
 search completes depth 1 when the budget is below what depth 2 needs, so its depth-1 model is its own), and
-without a percept or a hand (docs/fitting.md, "The participant's own noise"). ``--motor-sd`` scores each
+without a percept (docs/fitting.md, "The participant's own noise"); ``--hand`` fits the hand the planner plans
+for on a grid. ``--motor-sd`` scores each
 placement's x with the executed placement's motor noise (:mod:`overhang_framework.fit.motor`).
 """
 
@@ -125,13 +126,22 @@ class SampledDecisions(PerceivedDecisions):
 
 @dataclass(frozen=True)
 class Grid:
-    """The model space: the IPE's sigmas, the numbers of simulations ``K``, the depths and the risks."""
+    """The model space: the IPE's sigmas, the numbers of simulations ``K``, the depths, the risks and the hand the
+    planner plans for (metres; 0: none)."""
 
     sigmas: tuple = (0.02, 0.03, 0.05)
     Ks: tuple = (1, 10, 50)
     depths: tuple = (1, 2)
     risks: tuple = (0.0,)
     risk_form: str = "power"
+    hands: tuple = (0.0,)
+
+    def settings(self) -> dict:
+        """As ``marginal.json`` records it (a grid without a hand as it was recorded before hands were fitted)."""
+        out = dataclasses.asdict(self)
+        if tuple(self.hands) == (0.0,):
+            del out["hands"]
+        return out
 
 
 def _seed(state: State, seed: int) -> np.random.Generator:
@@ -152,22 +162,22 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
     rows = []
     for depth in grid.depths:
         best = None
-        for sigma in grid.sigmas:
+        for sigma, hand in itertools.product(grid.sigmas, grid.hands):
             bank = banks.setdefault(sigma, VerdictBank(world, sigma=float(sigma), size=bank_size, seed=seed))
-            trees: dict = {}
+            trees: dict = {}  # a tree's answers are the hand's: shared by one sigma and hand's K and risks
             for K, risk in itertools.product(grid.Ks, grid.risks):
                 params = ChoiceParams(depth=int(depth), K=int(K), beta=1.0, risk=float(risk),
-                                      risk_form=grid.risk_form)
+                                      risk_form=grid.risk_form, hand=float(hand))
                 choice = BankChoice(world, value, bank, params, draws=draws, seed=seed, trees=trees)
                 samples = [choice.score_samples(s, draws, _seed(s, seed)) for s in states]
                 fit = fit_softmax(SampledDecisions.of(samples, chosen, weights))
                 if best is None or fit.loglik > best[0].loglik + 1e-9:
-                    best = (fit, sigma, K, risk)
-        fit, sigma, K, risk = best
-        k = 2 + sum(len(set(g)) > 1 for g in (grid.sigmas, grid.Ks, grid.risks))
+                    best = (fit, sigma, K, risk, hand)
+        fit, sigma, K, risk, hand = best
+        k = 2 + sum(len(set(g)) > 1 for g in (grid.sigmas, grid.Ks, grid.risks, grid.hands))
         n = len(states)
         rows.append({"model": f"ipe/{'myopic' if depth == 1 else f'D{depth}'}", "family": "ipe", "depth": int(depth),
-                     "sigma": float(sigma), "K": int(K), "risk": float(risk), "hand": 0.0, "percept": 0.0,
+                     "sigma": float(sigma), "K": int(K), "risk": float(risk), "hand": float(hand), "percept": 0.0,
                      "beta": fit.beta, "lapse": fit.lapse, "loglik": fit.loglik, "k": k, "n": n,
                      "bic": k * math.log(n) - 2 * fit.loglik if n else math.nan, "aic": 2 * k - 2 * fit.loglik})
     return rows
@@ -197,6 +207,9 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
            "risk_of_averse": float(np.mean(averse)) if averse else None,
            "risk_of_neutral": float(np.mean(neutral)) if neutral else None,
            "sigma_error": float(np.mean([abs(float(at[p]["sigma"]) - float(truth.loc[p, "sigma"])) for p in people]))}
+    if "hand" in truth.columns and truth["hand"].notna().any():
+        true_hand = {p: float(truth.loc[p, "hand"]) if pd.notna(truth.loc[p, "hand"]) else 0.0 for p in people}
+        out["hand"] = int(sum(math.isclose(float(at[p]["hand"]), true_hand[p], abs_tol=1e-9) for p in people))
     if "K" in fits.columns:
         out["K"] = [int(at[p]["K"]) for p in people]
         out["K_counts"] = {f"K{k}": out["K"].count(k) for k in sorted(set(out["K"]))}
@@ -238,6 +251,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--K", type=lambda t: _numbers(t, int), default=Grid.Ks, help="K grid (default 1,10,50)")
     parser.add_argument("--depths", type=lambda t: _numbers(t, int), default=Grid.depths, help="depths (default 1,2)")
     parser.add_argument("--risk", type=_numbers, default=Grid.risks, help="risk grid (default 0)")
+    parser.add_argument("--hand", type=_numbers, default=Grid.hands,
+                        help="grid of the hand the planner plans for, metres (default 0: none)")
     parser.add_argument("--condition", action="append", default=None,
                         help="fit only the participants of this condition (repeatable; default: all)")
     parser.add_argument("--draws", type=int, default=DRAWS, help=f"noise samples per state (default {DRAWS})")
@@ -265,8 +280,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if any(k < 1 for k in args.K) or any(d < 1 for d in args.depths) or min(args.draws, args.bank, args.jobs) < 1:
             raise OverhangError("K, depths, --draws, --bank and --jobs must be whole numbers >= 1")
-        if any(not 0 <= r < 1 for r in args.risk) or any(s < 0 for s in args.sigma):
-            raise OverhangError("risks must be from 0 to below 1, sigmas >= 0")
+        if any(not 0 <= r < 1 for r in args.risk) or any(s < 0 for s in args.sigma) or any(h < 0 for h in args.hand):
+            raise OverhangError("risks must be from 0 to below 1, sigmas and hands >= 0")
         from overhang_framework.fit.motor import Motor
 
         if args.motor_sd is not None and not 0 < args.motor_sd <= 0.5:
@@ -278,7 +293,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (OverhangError, OSError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    grid = Grid(tuple(args.sigma), tuple(args.K), tuple(args.depths), tuple(args.risk))
+    grid = Grid(tuple(args.sigma), tuple(args.K), tuple(args.depths), tuple(args.risk),
+                hands=tuple(float(h) for h in args.hand))
     placements = log_placements(df)
     people = sorted({p.participant for p in placements})
     conditions = {p.participant: p.condition for p in placements}
@@ -288,7 +304,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     from overhang_framework.fit.scores import file_sha256
 
-    settings = {"logs": [file_sha256(p) for p in args.logs], "grid": dataclasses.asdict(grid), "draws": args.draws,
+    settings = {"logs": [file_sha256(p) for p in args.logs], "grid": grid.settings(), "draws": args.draws,
                 "bank": args.bank, "seed": args.seed, "physics": args.physics}
     if motor is not None:  # a fit without one keeps the settings it had
         settings["motor"] = motor.describe()
