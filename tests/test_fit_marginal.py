@@ -79,6 +79,13 @@ def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
     assert len(fits) == 4 * 2 and set(fits["K"]) <= {1, 10} and set(fits["sigma"]) == {0.03}
     assert (fits["k"] == 3).all()  # beta, lapse and K (one sigma)
     assert "- **Summed BIC:**" in (out / "comparison.md").read_text()
+    # whether any model describes them opens the comparison: two a condition on two tasks are too few to tell
+    import json
+
+    fitness = json.loads((out / "adequacy.json").read_text())
+    assert fitness["verdict"] == "cannot tell" and fitness["placements"] == int(fits.groupby("participant")["n"].first().sum())
+    assert (out / "comparison.md").read_text().split("\n")[2] == fitness["sentence"]
+    assert "choice_logp" not in fits.columns
     # two worker processes give the same fits; a run stopped with one participant's part missing fits only it
     two = tmp_path / "two"
     args = [sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(two), "--sigma", "0.03",

@@ -89,12 +89,18 @@ def choice_rows(world, fitted, tables, placements, states: str) -> list[dict]:
 
     mapped = map_placements(world, placements, states)
     probs, _ = observed_agreement(tables, world, placements, states, fitted)
+    return rows_of(world, fitted.participant, fitted.condition, mapped.states, mapped.chosen,
+                   [math.log(max(float(p), 1e-300)) for p in probs])
+
+
+def rows_of(world, participant: str, condition: str, states, chosen, log_model) -> list[dict]:
+    """The rows of :func:`assess` of one participant's decisions ``states`` with the chosen actions' indices and
+    the log-probabilities a model gives them."""
     rows = []
-    for state, chosen, p in zip(mapped.states, mapped.chosen, probs):
+    for state, index, lp in zip(states, chosen, log_model):
         legal = action_keys(world, state)
-        rows.append({"participant": fitted.participant, "condition": fitted.condition,
-                     "state": state_key(state, world.resolution), "action": legal[chosen], "legal": legal,
-                     "log_model": math.log(max(float(p), 1e-300))})
+        rows.append({"participant": participant, "condition": condition, "state": state_key(state, world.resolution),
+                     "action": legal[int(index)], "legal": legal, "log_model": float(lp)})
     return rows
 
 

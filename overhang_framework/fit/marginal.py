@@ -47,6 +47,8 @@ from overhang_framework.interfaces import State
 
 #: Monte Carlo samples of a participant's noise per decision state.
 DRAWS = 500
+#: The parts' column of each decision's log-probability of its grid action under the row's model (not in fits.csv).
+LOGP = "choice_logp"
 
 
 class SampledDecisions(PerceivedDecisions):
@@ -172,14 +174,18 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
                 samples = [choice.score_samples(s, draws, _seed(s, seed)) for s in states]
                 fit = fit_softmax(SampledDecisions.of(samples, chosen, weights))
                 if best is None or fit.loglik > best[0].loglik + 1e-9:
-                    best = (fit, sigma, K, risk, hand)
-        fit, sigma, K, risk, hand = best
+                    best = (fit, sigma, K, risk, hand, samples)
+        fit, sigma, K, risk, hand, samples = best
+        # each choice's probability of its grid action under the best grid point: whether any model describes the
+        # participant (fit.adequacy) asks it
+        chosen_p = SampledDecisions.of(samples, chosen).probabilities(fit.beta, fit.lapse) if len(states) else []
         k = 2 + sum(len(set(g)) > 1 for g in (grid.sigmas, grid.Ks, grid.risks, grid.hands))
         n = len(states)
         rows.append({"model": f"ipe/{'myopic' if depth == 1 else f'D{depth}'}", "family": "ipe", "depth": int(depth),
                      "sigma": float(sigma), "K": int(K), "risk": float(risk), "hand": float(hand), "percept": 0.0,
                      "beta": fit.beta, "lapse": fit.lapse, "loglik": fit.loglik, "k": k, "n": n,
-                     "bic": k * math.log(n) - 2 * fit.loglik if n else math.nan, "aic": 2 * k - 2 * fit.loglik})
+                     "bic": k * math.log(n) - 2 * fit.loglik if n else math.nan, "aic": 2 * k - 2 * fit.loglik,
+                     LOGP: ";".join(f"{math.log(max(float(p), 1e-300)):.9g}" for p in chosen_p)})
     return rows
 
 
@@ -350,13 +356,46 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     seconds = time.perf_counter() - started
     frames = [pd.read_csv(part(p)) for p in people]
     fits = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    choices = fits.pop(LOGP) if LOGP in fits.columns else None
     atomic_write_text(args.out / "fits.csv", fits.to_csv(index=False))
     from overhang_framework.fit.compare import comparison
 
-    comparison(fits, args.out, motor=None if motor is None else motor.describe())
+    fitness = _adequacy(args.out, world, fits, choices, placements, args.seed, motor)
+    comparison(fits, args.out, adequacy=fitness, motor=None if motor is None else motor.describe())
     print(f"fitted {len(units)} participants x {len(grid.depths)} depths in {seconds:.0f} s ({len(people)} in "
           f"fits.csv); wrote {args.out / 'fits.csv'} and {args.out / 'comparison.md'}")
     return 0
+
+
+def _adequacy(out: Path, world, fits: pd.DataFrame, choices: Optional[pd.Series], placements, seed: int,
+              motor=None) -> Optional[dict]:
+    """Whether any model describes the participants (:mod:`overhang_framework.fit.adequacy`), from each one's best
+    model's probabilities of their grid actions (kept in the parts); written to ``out/adequacy.*``. None (and
+    nothing written) when some part predates those probabilities."""
+    from overhang_framework.fit import adequacy
+    from overhang_framework.fit.equivalence import best_sets, with_neutral
+    from overhang_framework.fit.fitting import map_placements
+    from overhang_framework.results import atomic_write_json, atomic_write_text
+
+    if choices is None or choices.isna().any():
+        return None
+    best = best_sets(with_neutral(fits))
+    first = {str(r.participant): r.members[0] for r in best.itertuples(index=False)}
+    rows = []
+    for i, r in fits.iterrows():
+        participant = str(r["participant"])
+        if first.get(participant) != str(r["model"]):
+            continue
+        mapped = map_placements(world, [p for p in placements if p.participant == participant], "logged", motor)
+        logp = [float(v) for v in str(choices[i]).split(";") if v]
+        if len(logp) != len(mapped.states):
+            return None
+        rows += adequacy.rows_of(world, participant, str(r["condition"]), mapped.states, mapped.chosen, logp)
+    people, summary = adequacy.assess(rows, seed)
+    summary.update(fits=adequacy.fits_digest(out), sentence=adequacy.sentence(summary))
+    atomic_write_text(out / "adequacy.csv", people.to_csv(index=False))
+    atomic_write_json(out / "adequacy.json", summary)
+    return summary
 
 
 def _setup(physics: str, grid: Grid, draws: int, bank: int, seed: int) -> dict:
