@@ -275,3 +275,39 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
               + (f"; for {', '.join(flat)}, of which no trend is expected, the share in which none shows" if flat
                  else "") + "; a pool smaller than the size makes it optimistic)", ""]
     return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """``python -m overhang_framework.graded POWER.csv``: each measure's sample size (the smallest per level whose
+    power reaches 80%) and that power with its Monte Carlo error, as JSON, from a study's ``power.csv``."""
+    import argparse
+    import json
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.graded",
+                                 description="The sample sizes of a graded study's power.csv, as JSON.")
+    ap.add_argument("power", help="a graded study's power.csv (python -m overhang_framework.study graded_budgets)")
+    args = ap.parse_args(argv)
+    try:
+        table = pd.read_csv(args.power)
+    except (OSError, ValueError) as err:
+        print(f"error: {args.power}: cannot read a power table ({getattr(err, 'strerror', None) or err})",
+              file=sys.stderr)
+        return 2
+    missing = [c for c in ("measure", "per_level", "power", "resamples") if c not in table.columns]
+    if missing:
+        print(f"error: {args.power} is not a graded study's power.csv: no column {missing[0]!r}", file=sys.stderr)
+        return 2
+    out = {}
+    for measure, n in sample_sizes(table).items():
+        row = table[(table["measure"] == measure) & (table["per_level"] == n)] if n is not None else table.iloc[0:0]
+        out[measure] = {"per_level": n, "power": float(row["power"].iloc[0]) if len(row) else None,
+                        "mc_error": float(row["mc_error"].iloc[0]) if len(row) and "mc_error" in row.columns else None,
+                        "resamples": int(row["resamples"].iloc[0]) if len(row) else None,
+                        "smallest_tried": int(table["per_level"].min())}
+    print(json.dumps(out, sort_keys=True))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

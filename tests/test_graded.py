@@ -140,3 +140,19 @@ def test_a_fitted_measure_that_only_some_best_models_have_says_over_how_many_it_
     assert "(n = 18 of 20)" in row and "(n = 1 of 20)" in row and row.count("(n = ") == 2
     assert "(n = " not in next(line for line in text.splitlines() if line.startswith("| average overhang |"))
     assert "fitted risk aversion over the k participants whose best model has the axis" in text
+
+
+def test_the_sample_sizes_of_a_kept_power_table_are_printed_with_their_error(tmp_path, capsys):
+    import json
+
+    levels = graded.levels_of(LEVELS)
+    table = graded.power(cohort(40, 0.03), levels, [graded.MEASURES[0]], sizes=(4, 20, 60), resamples=40)
+    table.to_csv(tmp_path / "power.csv", index=False)
+    assert graded.main([str(tmp_path / "power.csv")]) == 0
+    out = json.loads(capsys.readouterr().out)["overhang"]
+    assert out["per_level"] == graded.sample_sizes(table)["overhang"] and out["resamples"] == 40
+    assert out["smallest_tried"] == 4 and out["mc_error"] == pytest.approx(
+        np.sqrt(out["power"] * (1 - out["power"]) / 40))
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
+    assert graded.main([str(tmp_path / "bad.csv")]) == 2
+    assert "no column 'measure'" in capsys.readouterr().err
