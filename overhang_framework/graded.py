@@ -189,13 +189,15 @@ def power(df: pd.DataFrame, levels: Sequence[str], measures: Sequence[Measure] =
 
 
 def sample_sizes(power_table: pd.DataFrame, target: float = TARGET_POWER) -> dict[str, Optional[int]]:
-    """Each measure's smallest size per level whose power reaches ``target`` (None when no size of the table
-    does, or when no trend is expected)."""
+    """Each measure's smallest size per level from which every size of the table reaches ``target`` power (so a
+    size that reaches it by its Monte Carlo error alone, below one that does not, is not taken; None when the
+    largest does not, or when no trend is expected)."""
     out: dict[str, Optional[int]] = {}
     for measure, at in power_table.sort_values("per_level").groupby("measure", sort=True):
         direction = next((m.direction for m in MEASURES if m.name == measure), 1)
-        reached = at[at["power"] >= target]
-        out[measure] = int(reached["per_level"].iloc[0]) if direction and len(reached) else None
+        below = np.flatnonzero(at["power"].to_numpy() < target)
+        first = 0 if not below.size else int(below[-1]) + 1
+        out[measure] = int(at["per_level"].iloc[first]) if direction and first < len(at) else None
     return out
 
 
@@ -291,8 +293,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         table = pd.read_csv(args.power)
     except (OSError, ValueError) as err:
-        print(f"error: {args.power}: cannot read a power table ({getattr(err, 'strerror', None) or err})",
-              file=sys.stderr)
+        why = str(getattr(err, "strerror", None) or err).strip().splitlines()[0]
+        print(f"error: {args.power}: cannot read a power table ({why})", file=sys.stderr)
         return 2
     missing = [c for c in ("measure", "per_level", "power", "resamples") if c not in table.columns]
     if missing:

@@ -35,6 +35,17 @@ def test_the_others_choices_leave_the_participant_out():
     assert others_choices(rows, alpha=0.5)[1].tolist() == [1, 0, 1]
 
 
+def test_with_a_motor_model_the_others_choices_are_placed_with_the_same_hand():
+    rows = rows_of([[0], [0], [1]], lambda p, s, a: -1.0)
+    w = np.zeros(len(LEGAL))
+    w[0], w[1] = 0.2, 0.6  # the placement could have been planned as action 0 or 1
+    rows[2]["weights"] = w
+    logp, _ = others_choices(rows, alpha=0.5)
+    shares = np.full(len(LEGAL), 0.5 / 7)
+    shares[0] = 2.5 / 7  # p0's and p1's 0
+    assert logp[2] == pytest.approx(math.log(shares @ w))
+
+
 def shared_rule_cohort(n=12, states=8, seed=0):
     """Participants who all choose action 3 in every state but for a random one now and then."""
     rng = np.random.default_rng(seed)
@@ -167,3 +178,18 @@ def test_compare_reads_the_finding_only_for_the_fits_it_describes(cohorts, tmp_p
     assert adequacy.read(fit) is None
     assert compare.main([str(fit)]) == 0
     assert "No model of the space describes" not in (fit / "comparison.md").read_text()
+
+
+@pytest.mark.parametrize("text, message", [
+    ("participant,condition\nx,y\n", "no column 'placements'"),
+    ("participant,condition,placements,shared,model,chance,sum_vs_chance,sum_vs_others,model_shared,others_shared\n"
+     "p,c,many,1,-1,-2,3,0.5,-1,-1.5\n", "column 'placements' must hold numbers"),
+    ("participant,condition,placements,shared,model,chance,sum_vs_chance,sum_vs_others,model_shared,others_shared\n"
+     "p,c,0,0,-1,-2,0,0,,\n", "placements must be counts >= 0, and some above 0"),
+    ('a,"b\n1,2,3\n4\n', "cannot read a participant table"),
+])
+def test_a_bad_table_is_one_line(tmp_path, capsys, text, message):
+    (tmp_path / "t.csv").write_text(text)
+    assert adequacy.main(["--table", str(tmp_path / "t.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err, err

@@ -147,5 +147,11 @@ def test_a_fit_scores_placements_where_they_were_made(tmp_path):
     fits = pd.read_csv(tmp_path / "fit" / "fits.csv")
     assert (fits["unmapped"] == 0).all() and np.isfinite(fits["loglik"]).all()
     assert "is scored where it was made" in (tmp_path / "fit" / "comparison.md").read_text()
+    assert json.loads((tmp_path / "fit" / "adequacy.json").read_text())["placements"] == int(
+        fits.groupby("participant")["n"].first().sum())
     proc = fit("motor={sd: 0.03}")
     assert proc.returncode != 0 and "motor" in proc.stderr and "\n" not in proc.stderr.strip()
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(tmp_path / "sim" / "log.jsonl"), "--out",
+                           str(tmp_path / "grid"), "states=grid", "motor={sd: 0.06}"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 2 and "motor needs states=logged" in proc.stderr

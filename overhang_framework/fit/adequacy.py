@@ -17,6 +17,9 @@ set beside two yardsticks that need no model.
   own choice rule, it would predict each participant better than any mixture of the others' choices, up to
   the error of its fitted parameters.
 
+With a motor model (the fit's ``motor``) both score the placement's x as the fit did: the model its
+``sum_j P(a_j) W_j``, the others' choices their shares of the planned actions placed with the same ``W``.
+
 The comparison is per choice (nats), on the placements where both apply (shared states for the ceiling,
 every mapped placement for chance), summed per participant and resampled over participants
 (:data:`RESAMPLES` times; a 95% percentile interval). **No model describes the participants** when the
@@ -81,26 +84,29 @@ def action_keys(world, state) -> list[tuple[int, int]]:
     return [(int(round(a.x / world.resolution)), int(a.layer)) for a in world.legal_actions(state)]
 
 
-def choice_rows(world, fitted, tables, placements, states: str) -> list[dict]:
+def choice_rows(world, fitted, tables, placements, states: str, motor=None) -> list[dict]:
     """One row per mapped placement of a participant: its state's key, its grid action's key, the legal actions'
-    keys, and the log-probability the fitted model gives it."""
-    from overhang_framework.fit.check import observed_agreement
-    from overhang_framework.fit.fitting import map_placements
+    keys, and the log-probability the fitted model gives what was done (with a ``motor`` model, the placement's
+    x, as the fit scored it; its weights go with the row, so the others' choices are scored the same way)."""
+    from overhang_framework.fit.fitting import _decisions, map_placements
+    from overhang_framework.fit.likelihood import decision_probabilities
 
-    mapped = map_placements(world, placements, states)
-    probs, _ = observed_agreement(tables, world, placements, states, fitted)
+    mapped = map_placements(world, placements, states, motor)
+    decisions = _decisions(tables, mapped)
+    probs = decision_probabilities(decisions, fitted.beta, fitted.lapse)
     return rows_of(world, fitted.participant, fitted.condition, mapped.states, mapped.chosen,
-                   [math.log(max(float(p), 1e-300)) for p in probs])
+                   [math.log(max(float(p), 1e-300)) for p in probs], mapped.weights)
 
 
-def rows_of(world, participant: str, condition: str, states, chosen, log_model) -> list[dict]:
+def rows_of(world, participant: str, condition: str, states, chosen, log_model, weights=None) -> list[dict]:
     """The rows of :func:`assess` of one participant's decisions ``states`` with the chosen actions' indices and
-    the log-probabilities a model gives them."""
+    the log-probabilities a model gives them (``weights``: a motor model's, one array a decision)."""
     rows = []
-    for state, index, lp in zip(states, chosen, log_model):
+    for i, (state, index, lp) in enumerate(zip(states, chosen, log_model)):
         legal = action_keys(world, state)
         rows.append({"participant": participant, "condition": condition, "state": state_key(state, world.resolution),
-                     "action": legal[int(index)], "legal": legal, "log_model": float(lp)})
+                     "action": legal[int(index)], "legal": legal, "log_model": float(lp),
+                     "weights": None if weights is None else np.asarray(weights[i], dtype=float)})
     return rows
 
 
@@ -121,7 +127,13 @@ def others_choices(rows: Sequence[Mapping[str, Any]], alpha: float) -> tuple[np.
         n = {a: total.get(a, 0) - mine.get(a, 0) for a in r["legal"]}
         others = sum(n.values())
         support[i] = others
-        logp[i] = math.log((n[r["action"]] + alpha) / (others + alpha * len(r["legal"])))
+        denominator = others + alpha * len(r["legal"])
+        w = r.get("weights")
+        if w is None:
+            logp[i] = math.log((n[r["action"]] + alpha) / denominator)
+        else:  # the others' shares as planned actions, placed with the motor model's hand: the fit's own scale
+            shares = np.array([n[a] + alpha for a in r["legal"]]) / denominator
+            logp[i] = math.log(max(float(shares @ w), 1e-300))
     return logp, support
 
 
@@ -231,12 +243,18 @@ def read_table(path: Path) -> pd.DataFrame:
     try:
         people = pd.read_csv(path)
     except (OSError, ValueError) as err:
-        raise AdequacyError(f"{path}: cannot read a participant table ({getattr(err, 'strerror', None) or err})") from None
+        why = str(getattr(err, "strerror", None) or err).strip().splitlines()[0]
+        raise AdequacyError(f"{path}: cannot read a participant table ({why})") from None
     missing = [c for c in COLUMNS if c not in people.columns]
     if missing:
         raise AdequacyError(f"{path} is not an adequacy.csv: no column {missing[0]!r}; it needs {', '.join(COLUMNS)}")
     if not len(people):
         raise AdequacyError(f"{path} has no participant")
+    numeric = [c for c in COLUMNS[2:8] if not pd.api.types.is_numeric_dtype(people[c])]
+    if numeric:
+        raise AdequacyError(f"{path}: column {numeric[0]!r} must hold numbers")
+    if people["placements"].sum() <= 0 or (people[["placements", "shared"]] < 0).any().any():
+        raise AdequacyError(f"{path}: placements must be counts >= 0, and some above 0")
     return people
 
 
@@ -263,6 +281,7 @@ def run(fitdir: Path, cache: Optional[str] = DEFAULT_CACHE, seed: int = 0, progr
     from overhang_framework.behaviour.log import read_log
     from overhang_framework.fit.check import CheckError, _setup, _tables, fitted_models, read_fit, spec_models
     from overhang_framework.fit.fitting import log_placements
+    from overhang_framework.fit.motor import Motor
     from overhang_framework.progress import progress_bar
 
     started = time.perf_counter()
@@ -276,6 +295,7 @@ def run(fitdir: Path, cache: Optional[str] = DEFAULT_CACHE, seed: int = 0, progr
         df = read_log(spec["logs"]) if records is None else records
     except OSError as err:
         raise AdequacyError(f"the fit's log cannot be read: {err}") from None
+    motor = Motor.from_config(spec.get("motor"))
     env = _setup(spec["context"], cache, spec_models(spec))
     world, states = env["world"], spec.get("states", "logged")
     by_person = {str(p): g for p, g in df.groupby(df["participant"].astype(str), sort=False)}
@@ -285,7 +305,7 @@ def run(fitdir: Path, cache: Optional[str] = DEFAULT_CACHE, seed: int = 0, progr
             mine = by_person.get(fitted.participant)
             if mine is None:
                 continue
-            rows += choice_rows(world, fitted, _tables(env, fitted.model), log_placements(mine), states)
+            rows += choice_rows(world, fitted, _tables(env, fitted.model), log_placements(mine), states, motor)
     finally:
         env["cache"].close()
     people, summary = assess(rows, seed)

@@ -98,6 +98,25 @@ class Decisions:
                          weights)
 
 
+def decision_probabilities(decisions: "Decisions", beta: float, lapse: float) -> np.ndarray:
+    """Each decision's probability of what was done: its executed grid action's, or with a motor model's weights
+    its placement's (the terms :func:`log_likelihood` sums the logs of)."""
+    if not isinstance(decisions, Decisions):
+        return np.asarray(decisions.probabilities(beta, lapse), dtype=float)
+    if len(decisions) == 0:
+        return np.zeros(0)
+    s = decisions.scores
+    top = s.max(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore"):
+        z = np.where(np.isfinite(s), beta * (s - top), -np.inf)
+    e = np.exp(z)
+    soft = e / e.sum(axis=1, keepdims=True)
+    if decisions.weights is not None:
+        w = decisions.weights
+        return (1 - lapse) * (soft * w).sum(axis=1) + lapse * w.sum(axis=1) / decisions.sizes
+    return (1 - lapse) * soft[np.arange(len(decisions)), decisions.chosen] + lapse / decisions.sizes
+
+
 def choice_probabilities(scores: np.ndarray, beta: float, lapse: float) -> np.ndarray:
     """``P(a_i)`` of every action of one table (see the module docstring)."""
     s = np.asarray(scores, dtype=float)

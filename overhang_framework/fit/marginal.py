@@ -47,7 +47,8 @@ from overhang_framework.interfaces import State
 
 #: Monte Carlo samples of a participant's noise per decision state.
 DRAWS = 500
-#: The parts' column of each decision's log-probability of its grid action under the row's model (not in fits.csv).
+#: The parts' column of each decision's log-probability of what was done (its grid action, or with a motor model its
+#: x) under the row's model (not in fits.csv).
 LOGP = "choice_logp"
 
 
@@ -178,7 +179,8 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
         fit, sigma, K, risk, hand, samples = best
         # each choice's probability of its grid action under the best grid point: whether any model describes the
         # participant (fit.adequacy) asks it
-        chosen_p = SampledDecisions.of(samples, chosen).probabilities(fit.beta, fit.lapse) if len(states) else []
+        chosen_p = SampledDecisions.of(samples, chosen, weights).probabilities(fit.beta, fit.lapse) if len(states) \
+            else []
         k = 2 + sum(len(set(g)) > 1 for g in (grid.sigmas, grid.Ks, grid.risks, grid.hands))
         n = len(states)
         rows.append({"model": f"ipe/{'myopic' if depth == 1 else f'D{depth}'}", "family": "ipe", "depth": int(depth),
@@ -214,16 +216,25 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
            "risk_of_neutral": float(np.mean(neutral)) if neutral else None,
            "sigma_error": float(np.mean([abs(float(at[p]["sigma"]) - float(truth.loc[p, "sigma"])) for p in people]))}
     if "hand" in truth.columns and truth["hand"].notna().any():
-        true_hand = {p: float(truth.loc[p, "hand"]) if pd.notna(truth.loc[p, "hand"]) else 0.0 for p in people}
+        def planned(p):  # the hand the planner plans for: hand x steadiness when drawn
+            hand = float(truth.loc[p, "hand"]) if pd.notna(truth.loc[p, "hand"]) else 0.0
+            steady = truth.loc[p, "steadiness"] if "steadiness" in truth.columns else None
+            return hand * float(steady) if steady is not None and pd.notna(steady) else hand
+
+        true_hand = {p: planned(p) for p in people}
         out["hand"] = int(sum(math.isclose(float(at[p]["hand"]), true_hand[p], abs_tol=1e-9) for p in people))
     if "K" in fits.columns:
         out["K"] = [int(at[p]["K"]) for p in people]
         out["K_counts"] = {f"K{k}": out["K"].count(k) for k in sorted(set(out["K"]))}
-        if "K" in truth.columns and truth["K"].notna().any():  # each participant drew its own K
-            true_K = [int(truth.loc[p, "K"]) for p in people]
-            out["K_right"] = int(sum(f == t for f, t in zip(out["K"], true_K)))
-            out["K_confusion"] = {f"true{t}": {f"fitted{f}": sum(1 for a, b in zip(true_K, out["K"]) if a == t and b == f)
-                                               for f in sorted(set(out["K"]))} for t in sorted(set(true_K))}
+        drew = [p for p in people if "K" in truth.columns and pd.notna(truth.loc[p, "K"])]
+        if drew:  # the participants who drew their own K
+            fitted = {p: k for p, k in zip(people, out["K"])}
+            true_K = {p: int(truth.loc[p, "K"]) for p in drew}
+            out["K_right"] = int(sum(fitted[p] == true_K[p] for p in drew))
+            out["K_drawn"] = len(drew)
+            out["K_confusion"] = {f"true{t}": {f"fitted{f}": sum(1 for p in drew if true_K[p] == t and fitted[p] == f)
+                                               for f in sorted(set(fitted.values()))}
+                                  for t in sorted(set(true_K.values()))}
     return out
 
 
@@ -390,7 +401,8 @@ def _adequacy(out: Path, world, fits: pd.DataFrame, choices: Optional[pd.Series]
         logp = [float(v) for v in str(choices[i]).split(";") if v]
         if len(logp) != len(mapped.states):
             return None
-        rows += adequacy.rows_of(world, participant, str(r["condition"]), mapped.states, mapped.chosen, logp)
+        rows += adequacy.rows_of(world, participant, str(r["condition"]), mapped.states, mapped.chosen, logp,
+                                 mapped.weights)
     people, summary = adequacy.assess(rows, seed)
     summary.update(fits=adequacy.fits_digest(out), sentence=adequacy.sentence(summary))
     atomic_write_text(out / "adequacy.csv", people.to_csv(index=False))

@@ -20,7 +20,8 @@ is left out only when no legal grid action of its layer can reach it (every ``W_
 
 ``q_j`` is one minus the normal's mass on the intervals of legal x of the action's layer (:func:`legal_intervals`,
 exact), so ``W`` sums to 1 over the cells of a planned action up to the cells cut by an interval's end
-(tests/test_fit_motor.py measures it, and ``W`` against the simulator's own draws).
+(tests/test_fit_motor.py measures it, and ``W`` against the simulator's own draws). The legal x are those of the
+built-in world's rules (:mod:`overhang_framework.rules`), which the simulated participants' hand obeys.
 """
 
 from __future__ import annotations
@@ -114,7 +115,9 @@ def illegal_mass(geometry, width: float, xs: np.ndarray, layers: np.ndarray, sd:
 def weights(world, state, x: float, layer: int, motor: Motor) -> np.ndarray:
     """``W_j`` (module docstring) for every legal grid action of ``state``, in ``world.legal_actions``' order: the
     probability that a placement planned as that action lands at ``x`` (to ``motor.precision``) on ``layer``."""
-    xs, layers = world.legal_xs(state)
+    actions = world.legal_actions(state)
+    xs = np.array([a.x for a in actions], dtype=float)
+    layers = np.array([a.layer for a in actions], dtype=int)
     out = np.zeros(len(xs))
     same = np.flatnonzero(layers == int(layer))
     if not same.size:
