@@ -17,7 +17,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: The registry's entries whose figures come from kept files, recomputed in seconds.
 KEPT = ["fitting-paper-comparison", "fitting-own-noise-pilot", "fitting-own-noise-pilot-fixed-k50",
         "fitting-own-noise-pilot-fixed-k10", "fitting-agreement", "fitting-adequacy-inspace", "fitting-adequacy-cvar",
-        "fitting-adequacy-edge", "fitting-motor-grid", "fitting-motor-motor", "people-graded-sizes"]
+        "fitting-adequacy-edge", "fitting-motor-grid", "fitting-motor-motor", "people-graded-sizes",
+        "fitting-risk-recovery-own-noise", "fitting-risk-recovery-fixed-k50", "fitting-risk-recovery-fixed-k10",
+        "fitting-k-recovery", "people-risk-own-noise", "people-risk-fixed-k50", "people-risk-fixed-k10",
+        "people-k-own-noise"]
 
 
 def test_every_figure_from_a_kept_file_is_what_the_file_gives_today():

@@ -213,6 +213,10 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
            "depth": int(sum(int(best.loc[p, "depth"]) == int(truth.loc[p, "depth"]) for p in people)),
            "risk": int(sum(math.isclose(float(at[p]["risk"]), true_risk[p], abs_tol=1e-9) for p in people)),
            "risk_of_averse": float(np.mean(averse)) if averse else None,
+           "averse": len(averse), "neutral": len(neutral),
+           "averse_right": int(sum(math.isclose(float(at[p]["risk"]), true_risk[p], abs_tol=1e-9)
+                                   for p in people if true_risk[p] > 0)),
+           "neutral_right": int(sum(float(at[p]["risk"]) == 0 for p in people if true_risk[p] == 0)),
            "risk_of_neutral": float(np.mean(neutral)) if neutral else None,
            "sigma_error": float(np.mean([abs(float(at[p]["sigma"]) - float(truth.loc[p, "sigma"])) for p in people]))}
     if "hand" in truth.columns and truth["hand"].notna().any():
