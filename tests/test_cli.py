@@ -179,7 +179,7 @@ def test_a_crashed_worker_stops_the_run_and_keeps_finished_episodes(tmp_path, ca
                    "seed=[...] for a list"),
     (["predictor=hybird", "planner=lookahaed", "planner.depth=3"],
      "error: unknown predictor 'hybird' and planner 'lookahaed'; installed predictors: cnn, hand, hybrid, ipe, veridical; "
-     "installed planners: lookahead, mcts, myopic, optimal"),
+     "installed planners: edge, lookahead, mcts, myopic, optimal"),
     (["-m", "predictor=veridical,nope", "value=nada"],
      "error: unknown predictor 'nope' and value 'nada'; installed predictors: cnn, hand, hybrid, ipe, veridical; installed values:"),
     (["-m", "seed=1,2", "world.resoluton=0.05"], "error: unknown config key 'world.resoluton'"),
@@ -244,7 +244,7 @@ def test_a_typo_is_one_line_as_typed_from_the_repository_root():
     assert proc.stderr.count("\n") == 1
 
 
-TOP_FIT = "cache, cv, depths, jobs, logs, models, out, pooled, progress, shard, shards, states, truth, value, world"
+TOP_FIT = "cache, cv, depths, jobs, logs, models, motor, out, pooled, progress, shard, shards, states, truth, value, world"
 
 
 MISSPELT = [
