@@ -198,6 +198,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m overhang_framework.report.table2",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("dir", help="the sweep directory of experiment=table2 (or any sweep)")
+    parser.add_argument("--json", type=Path, default=None,
+                        help="also write each model's row (reward and its SEM across tasks, episodes, ...) to this file")
     args = parser.parse_args(argv)
     if not Path(args.dir).is_dir():
         print(f"error: {args.dir} is not a directory", file=sys.stderr)
@@ -207,6 +209,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except FileNotFoundError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    if args.json is not None:
+        from overhang_framework.optimum import load_optima
+        from overhang_framework.results import atomic_write_json
+
+        rows = rows_of(load_jobs(Path(args.dir)), load_optima())
+        atomic_write_json(args.json, {"models": {r["model"]: r for r in rows}})
     print(text, end="")
     print(f"table: {path}")
     return 0
