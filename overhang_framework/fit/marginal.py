@@ -193,7 +193,8 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
 
 def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
     """How a fit recovers simulated participants (``truth``: participants.csv, with ``depth``, ``sigma`` and,
-    when drawn, ``risk`` and ``K``): the best model's depth, and at the true depth the fitted risk, sigma and K
+    when drawn, ``risk`` and ``K``): the best model's depth, and at the true depth (the fit's deepest for a
+    participant who planned deeper) the fitted risk, sigma and K
     (with a drawn ``K``, how often it is the truth and the table of true against fitted)."""
     from overhang_framework.fit.compare import per_participant
     from overhang_framework.fit.equivalence import with_neutral
@@ -203,8 +204,9 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
     people = [p for p in truth.index if p in set(fits["participant"].astype(str))]
     best = fits.loc[fits.groupby("participant")["bic"].idxmin()]
     best = best.set_index(best["participant"].astype(str))
-    at = {p: fits[(fits["participant"].astype(str) == p) & (fits["depth"] == int(truth.loc[p, "depth"]))].iloc[0]
-          for p in people}
+    deepest = int(fits["depth"].max())  # a participant planning deeper than the fit's depths: its deepest model
+    at = {p: fits[(fits["participant"].astype(str) == p)
+                  & (fits["depth"] == min(int(truth.loc[p, "depth"]), deepest))].iloc[0] for p in people}
     true_risk = {p: float(truth.loc[p, "risk"]) if "risk" in truth.columns and pd.notna(truth.loc[p, "risk"])
                  else 0.0 for p in people}
     averse = [float(at[p]["risk"]) for p in people if true_risk[p] > 0]
@@ -242,6 +244,22 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
     return out
 
 
+def against(fits: pd.DataFrame, other: pd.DataFrame) -> dict:
+    """Each participant's best log-likelihood in ``fits`` against the best in ``other`` over the same families and
+    depths (``other``'s rows of the families and depths ``fits`` has): how many are higher, and the median and
+    mean difference (nats a participant)."""
+    from overhang_framework.fit.equivalence import per_participant
+
+    fits, other = per_participant(fits), per_participant(other)
+    other = other[other["family"].isin(set(fits["family"])) & other["depth"].isin(set(fits["depth"]))]
+    mine = fits.groupby(fits["participant"].astype(str))["loglik"].max()
+    theirs = other.groupby(other["participant"].astype(str))["loglik"].max()
+    common = mine.index.intersection(theirs.index)
+    d = (mine[common] - theirs[common]).to_numpy()
+    return {"participants": int(len(common)), "higher": int((d > 0).sum()),
+            "median_gain": float(np.median(d)) if len(d) else None, "mean_gain": float(np.mean(d)) if len(d) else None}
+
+
 def _numbers(text: str, kind=float) -> tuple:
     try:
         values = tuple(kind(v) for v in text.split(",") if v.strip())
@@ -268,6 +286,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--recovery", type=Path, nargs=2, metavar=("FITS", "TRUTH"), default=None,
                         help="print, as JSON, how the fits of FITS (a fits.csv) recover the simulated participants of "
                              "TRUTH (their participants.csv), and fit nothing")
+    parser.add_argument("--against", type=Path, default=None, metavar="FITS",
+                        help="with --recovery: also compare each participant's best log-likelihood with that of FITS "
+                             "(another fit's fits.csv) over the same family and depths")
     parser.add_argument("--sigma", type=_numbers, default=Grid.sigmas, help="IPE noise grid (default 0.02,0.03,0.05)")
     parser.add_argument("--K", type=lambda t: _numbers(t, int), default=Grid.Ks, help="K grid (default 1,10,50)")
     parser.add_argument("--depths", type=lambda t: _numbers(t, int), default=Grid.depths, help="depths (default 1,2)")
@@ -293,7 +314,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         except (OSError, ValueError) as err:
             print(f"error: --recovery: {getattr(err, 'strerror', None) or err}", file=sys.stderr)
             return 2
-        print(json.dumps(recovery(fits, truth), sort_keys=True))
+        out = recovery(fits, truth)
+        if args.against is not None:
+            try:
+                other = pd.read_csv(args.against)
+            except (OSError, ValueError) as err:
+                print(f"error: --against: {getattr(err, 'strerror', None) or err}", file=sys.stderr)
+                return 2
+            out["against"] = against(fits, other)
+        print(json.dumps(out, sort_keys=True))
         return 0
     if not args.logs or args.out is None:
         print("error: give the behaviour logs and --out DIR (or --recovery FITS TRUTH)", file=sys.stderr)
