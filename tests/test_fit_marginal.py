@@ -137,3 +137,15 @@ def test_the_hand_a_planner_plans_for_is_fitted_on_a_grid(tmp_path):
 def test_each_new_fit_command_explains_itself(module):
     proc = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, cwd=REPO)
     assert proc.returncode == 0 and proc.stdout.startswith("usage: python -m " + module), proc.stderr
+
+
+def test_against_compares_best_likelihoods_over_the_same_family_and_depths():
+    from overhang_framework.fit.marginal import against
+
+    mine = pd.DataFrame({"participant": ["a", "a", "b", "b"], "family": "ipe", "depth": [1, 2, 1, 2],
+                         "loglik": [-10.0, -9.0, -20.0, -21.0]})
+    theirs = pd.DataFrame({"participant": ["a", "a", "b", "b", "b"], "family": ["ipe", "ipe", "ipe", "ipe", "cnn"],
+                           "depth": [1, 3, 1, 2, 1], "loglik": [-9.5, -1.0, -19.0, -25.0, -1.0]})
+    out = against(mine, theirs)  # depth 3 and the CNN are not compared
+    assert out == {"participants": 2, "higher": 1, "median_gain": pytest.approx(-0.25),
+                   "mean_gain": pytest.approx(-0.25)}
