@@ -40,3 +40,21 @@ def simulated_log(out: Path, sequences: str) -> Path:
                         "progress=false", "cohort.participants.time_limited=2", "cohort.participants.unconstrained=2",
                         "cohort.n_tasks=null"], config_name=CONFIG_NAME), out)
     return out / "log.jsonl"
+
+
+def fixed_cohort(out: Path, parameters: dict, participants: int, n_tasks: int, *overrides: str) -> Path:
+    """The log of ``participants`` unconstrained simulated participants on the first ``n_tasks`` tasks, static
+    physics, each drawing ``parameters`` (``cohort.parameters``, replaced whole); ``overrides`` are more of the
+    participants command's (the predictor, the planner, the motor noise)."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config
+    from overhang_framework.participants import CONFIG_NAME, run
+
+    cfg = compose_config(["world.physics=static", "progress=false", "cohort.participants.time_limited=0",
+                          f"cohort.participants.unconstrained={participants}", f"cohort.n_tasks={n_tasks}",
+                          *overrides], config_name=CONFIG_NAME)
+    OmegaConf.set_struct(cfg, False)
+    cfg.cohort.parameters = parameters
+    run(cfg, out)
+    return out / "log.jsonl"

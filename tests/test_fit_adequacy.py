@@ -93,18 +93,9 @@ def test_a_directory_without_a_fit_is_one_line(tmp_path, capsys):
 
 
 def _cohort(root, name, overrides, parameters):
-    from omegaconf import OmegaConf
+    from search_fixtures import fixed_cohort
 
-    from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
-
-    cfg = compose_config(["world.physics=static", "progress=false", "cohort.participants.time_limited=0",
-                          "cohort.participants.unconstrained=8", "cohort.n_tasks=6", "cohort.motor.sd=0", *overrides],
-                         config_name=CONFIG_NAME)
-    OmegaConf.set_struct(cfg, False)
-    cfg.cohort.parameters = parameters
-    run(cfg, root / name)
-    return root / name / "log.jsonl"
+    return fixed_cohort(root / name, parameters, 8, 6, "cohort.motor.sd=0", *overrides)
 
 
 def _fit(root, log, out):

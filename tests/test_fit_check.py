@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from omegaconf import OmegaConf
 
 from overhang_framework.fit.check import coverage, interval, interval_rank, past_edge
 
@@ -19,17 +18,12 @@ from overhang_framework.fit.check import coverage, interval, interval_rank, past
 def fitted(tmp_path_factory):
     """Veridical myopic participants (beta 20, lapse 0.02, no motor noise), fitted with the veridical model
     and a noisy IPE (sigma 0.08)."""
-    from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from search_fixtures import fixed_cohort
 
     root = tmp_path_factory.mktemp("check")
-    cfg = compose_config(["world.physics=static", "progress=false", "predictor=veridical",
-                          "cohort.participants.time_limited=0", "cohort.participants.unconstrained=4",
-                          "cohort.n_tasks=6", "cohort.motor.sd=0"], config_name=CONFIG_NAME)
-    OmegaConf.set_struct(cfg, False)
-    cfg.cohort.parameters = {"depth": {"dist": "fixed", "value": 1}, "beta": {"dist": "fixed", "value": 20.0},
-                             "lapse": {"dist": "fixed", "value": 0.02}, "sigma": None}
-    run(cfg, root / "sim")
+    fixed_cohort(root / "sim", {"depth": {"dist": "fixed", "value": 1}, "beta": {"dist": "fixed", "value": 20.0},
+                                "lapse": {"dist": "fixed", "value": 0.02}, "sigma": None},
+                 4, 6, "predictor=veridical", "cohort.motor.sd=0")
     proc = _fit(root)
     assert proc.returncode == 0, proc.stderr
     return root

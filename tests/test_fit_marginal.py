@@ -15,6 +15,16 @@ sys.path.insert(0, str(Path(__file__).parent))
 REPO = Path(__file__).resolve().parents[1]
 
 
+def assert_likelihood_and_gradient(d, beta, lapse, by_hand):
+    """``d``'s log-likelihood is ``by_hand``, and its gradient in (beta, lapse) is the central differences'."""
+    value, grad = d.value_and_grad(beta, lapse)
+    assert value == pytest.approx(by_hand, rel=1e-12) and d.log_likelihood(beta, lapse) == pytest.approx(by_hand)
+    h = 1e-6
+    numeric = [(d.log_likelihood(beta + h, lapse) - d.log_likelihood(beta - h, lapse)) / (2 * h),
+               (d.log_likelihood(beta, lapse + h) - d.log_likelihood(beta, lapse - h)) / (2 * h)]
+    assert grad == pytest.approx(numeric, rel=1e-5)
+
+
 def test_the_sampled_likelihood_and_its_gradient_are_the_average_softmax_and_its_derivatives():
     from overhang_framework.fit.marginal import SampledDecisions
 
@@ -27,12 +37,7 @@ def test_the_sampled_likelihood_and_its_gradient_are_the_average_softmax_and_its
     for s, c in zip(samples, chosen):
         soft = np.exp(beta * s) / np.exp(beta * s).sum(axis=1, keepdims=True)
         by_hand += np.log((1 - lapse) * soft[:, c].mean() + lapse / s.shape[1])
-    value, grad = d.value_and_grad(beta, lapse)
-    assert value == pytest.approx(by_hand, rel=1e-12) and d.log_likelihood(beta, lapse) == pytest.approx(by_hand)
-    h = 1e-6
-    numeric = [(d.log_likelihood(beta + h, lapse) - d.log_likelihood(beta - h, lapse)) / (2 * h),
-               (d.log_likelihood(beta, lapse + h) - d.log_likelihood(beta, lapse - h)) / (2 * h)]
-    assert grad == pytest.approx(numeric, rel=1e-5)
+    assert_likelihood_and_gradient(d, beta, lapse, by_hand)
     assert d.subset(np.array([0, 2])).log_likelihood(beta, lapse) == pytest.approx(
         by_hand - np.log((1 - lapse) * (np.exp(beta * samples[1]) / np.exp(beta * samples[1]).sum(
             axis=1, keepdims=True))[:, 4].mean() + lapse / 7))
@@ -50,12 +55,7 @@ def test_with_a_motor_model_the_sampled_likelihood_weighs_every_action_and_its_g
     for s, w in zip(samples, weights):
         soft = np.exp(beta * s) / np.exp(beta * s).sum(axis=1, keepdims=True)
         by_hand += np.log((1 - lapse) * (soft @ w).mean() + lapse * w.sum() / s.shape[1])
-    value, grad = d.value_and_grad(beta, lapse)
-    assert value == pytest.approx(by_hand, rel=1e-12) and d.log_likelihood(beta, lapse) == pytest.approx(by_hand)
-    h = 1e-6
-    numeric = [(d.log_likelihood(beta + h, lapse) - d.log_likelihood(beta - h, lapse)) / (2 * h),
-               (d.log_likelihood(beta, lapse + h) - d.log_likelihood(beta, lapse - h)) / (2 * h)]
-    assert grad == pytest.approx(numeric, rel=1e-5)
+    assert_likelihood_and_gradient(d, beta, lapse, by_hand)
     # one-hot weights are the chosen actions'
     hot = SampledDecisions.of(samples, [1, 4, 2], [np.eye(n)[c] for n, c in zip((5, 7, 3), (1, 4, 2))])
     assert hot.value_and_grad(beta, lapse)[0] == pytest.approx(

@@ -116,18 +116,11 @@ def test_a_bad_motor_setting_is_one_clear_error(node, message):
 def test_a_fit_scores_placements_where_they_were_made(tmp_path):
     """Participants with a hand of 6 cm: the fit with the motor model leaves out nothing, says so, records the model,
     and refuses another motor setting into the same directory."""
-    from omegaconf import OmegaConf
+    from search_fixtures import fixed_cohort
 
-    from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
-
-    cfg = compose_config(["world.physics=static", "progress=false", "predictor=veridical",
-                          "cohort.participants.time_limited=0", "cohort.participants.unconstrained=3",
-                          "cohort.n_tasks=4", "cohort.motor.sd=0.06"], config_name=CONFIG_NAME)
-    OmegaConf.set_struct(cfg, False)
-    cfg.cohort.parameters = {"depth": {"dist": "fixed", "value": 1}, "beta": {"dist": "fixed", "value": 20.0},
-                             "lapse": {"dist": "fixed", "value": 0.02}, "sigma": None}
-    run(cfg, tmp_path / "sim")
+    fixed_cohort(tmp_path / "sim", {"depth": {"dist": "fixed", "value": 1}, "beta": {"dist": "fixed", "value": 20.0},
+                                    "lapse": {"dist": "fixed", "value": 0.02}, "sigma": None},
+                 3, 4, "predictor=veridical", "cohort.motor.sd=0.06")
 
     def fit(*extra):
         return subprocess.run([sys.executable, "-m", "overhang_framework.fit", str(tmp_path / "sim" / "log.jsonl"),

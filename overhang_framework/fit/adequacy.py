@@ -38,7 +38,6 @@ from a kept ``adequacy.csv`` alone (the resampling uses only its per-participant
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import sys
@@ -51,6 +50,7 @@ import numpy as np
 import pandas as pd
 
 from overhang_framework.errors import OverhangError
+from overhang_framework.fit.check import DEFAULT_CACHE
 from overhang_framework.results import atomic_write_json, atomic_write_text
 
 #: Smoothing of the others' choices: the value under which their leave-one-out predictions are best is used.
@@ -65,7 +65,6 @@ RESAMPLES = 2000
 LEVEL = 0.95
 #: What :func:`assess` concludes.
 VERDICTS = ("described", "not described", "cannot tell")
-DEFAULT_CACHE = "~/.cache/overhang_framework/scores.sqlite"
 
 
 class AdequacyError(OverhangError):
@@ -258,8 +257,11 @@ def read_table(path: Path) -> pd.DataFrame:
     return people
 
 
-def fits_digest(fitdir: Path) -> str:
-    return hashlib.sha256((Path(fitdir) / "fits.csv").read_bytes()).hexdigest()
+def fits_digest(fitdir: Path) -> Optional[str]:
+    """The SHA-256 of ``fitdir/fits.csv``: which fits a check describes."""
+    from overhang_framework.fit.scores import file_sha256
+
+    return file_sha256(Path(fitdir) / "fits.csv")
 
 
 def read(fitdir: Path) -> Optional[dict]:

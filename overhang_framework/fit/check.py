@@ -639,9 +639,9 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
     except OSError as err:
         raise CheckError(f"the fit's log cannot be read: {err}") from None
     which = f"the {model} model" if model else "each participant's best model (BIC)"
-    import hashlib
+    from overhang_framework.fit.scores import file_sha256
 
-    fitted_digest = hashlib.sha256((fitdir / "fits.csv").read_bytes()).hexdigest()
+    fitted_digest = file_sha256(fitdir / "fits.csv")
     settings = {"fit": str(fitdir.resolve()), "fits": fitted_digest, "replicas": replicas, "model": model,
                 "seed": seed, "participants": wanted}
     (out / PARTS).mkdir(parents=True, exist_ok=True)
