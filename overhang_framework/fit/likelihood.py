@@ -73,12 +73,8 @@ class Decisions:
         scores = np.full((n, m), -np.inf)
         for i, t in enumerate(tables):
             scores[i, : len(t)] = t
-        padded = None
-        if weights is not None:
-            padded = np.zeros((n, m))
-            for i, w in enumerate(weights):
-                padded[i, : len(w)] = w
-        return cls(scores, np.array([len(t) for t in tables], dtype=float), np.asarray(chosen, dtype=int), padded)
+        return cls(scores, np.array([len(t) for t in tables], dtype=float), np.asarray(chosen, dtype=int),
+                   padded_weights(weights, m))
 
     def __len__(self) -> int:
         return len(self.chosen)
@@ -96,6 +92,17 @@ class Decisions:
         return Decisions(np.vstack([pad(self.scores, -np.inf), pad(other.scores, -np.inf)]),
                          np.concatenate([self.sizes, other.sizes]), np.concatenate([self.chosen, other.chosen]),
                          weights)
+
+
+def padded_weights(weights: Optional[Sequence[np.ndarray]], m: int) -> Optional[np.ndarray]:
+    """A motor model's weights of each decision (one array a decision) padded with zeros into ``(n, m)``; None
+    stays None."""
+    if weights is None:
+        return None
+    out = np.zeros((len(weights), m))
+    for i, w in enumerate(weights):
+        out[i, : len(w)] = w
+    return out
 
 
 def decision_probabilities(decisions: "Decisions", beta: float, lapse: float) -> np.ndarray:

@@ -21,8 +21,8 @@ between models).
 This is the IPE family's likelihood on the world's grid, without a call budget (a budgeted participant's
 search completes depth 1 when the budget is below what depth 2 needs, so its depth-1 model is its own), and
 without a percept (docs/fitting.md, "The participant's own noise"); ``--hand`` fits the hand the planner plans
-for on a grid. ``--motor-sd`` scores each
-placement's x with the executed placement's motor noise (:mod:`overhang_framework.fit.motor`).
+for on a grid. ``--motor-sd`` scores each placement's x with the executed placement's motor noise
+(:mod:`overhang_framework.fit.motor`).
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ import numpy as np
 import pandas as pd
 
 from overhang_framework.fit.choice import BANK_SIZE, BankChoice, ChoiceParams, VerdictBank
+from overhang_framework.fit.likelihood import padded_weights
 from overhang_framework.fit.percept import PerceivedDecisions
 from overhang_framework.interfaces import State
 
@@ -83,13 +84,8 @@ class SampledDecisions(PerceivedDecisions):
         scores = np.full((n, draws, m), -np.inf)
         for i, s in enumerate(samples):
             scores[i, : s.shape[0], : s.shape[1]] = s
-        padded = None
-        if weights is not None:
-            padded = np.zeros((n, m))
-            for i, w in enumerate(weights):
-                padded[i, : len(w)] = w
         return cls(scores, np.asarray(chosen, dtype=int), np.array([s.shape[1] for s in samples], dtype=float),
-                   padded)
+                   padded_weights(weights, m))
 
     def subset(self, rows: np.ndarray) -> "SampledDecisions":
         return SampledDecisions(self.scores[rows], self.chosen[rows], self.sizes[rows],
