@@ -66,6 +66,34 @@ class TestPercept(_Participant):
     draws = 6_000
 
 
+class TestHybridAtDepthTwo(_Participant):
+    """The IPE judges the towers of 3 blocks, the CNN those of 4: both parts in one search."""
+    params = ChoiceParams(depth=2, K=10, beta=8.0, switch=4)
+    choices = 800
+    draws = 6_000
+
+
+class TestPaperLikePerson(_Participant):
+    """The CNN with a planned hand, a percept, risk and lapses (the paper's people under time pressure)."""
+    params = ChoiceParams(depth=1, K=50, beta=8.0, switch=3, hand=0.13, percept=0.03, risk=0.9, lapse=0.07)
+    choices = 500
+    draws = 1_500
+
+
+def test_the_hybrid_sends_each_tower_to_its_part(world, value, bank):
+    """Towers below the switch point are the bank's IPE's (they vary with the draws), the others the CNN's (the same
+    under every draw, and the CNN's own answers)."""
+    state = build_state(world, "A")  # 2 blocks: its children have 3
+    actions = world.legal_actions(state)
+    early = BankChoice(world, value, bank, ChoiceParams(depth=1, K=10, switch=4))._answers(state, actions)
+    late_choice = BankChoice(world, value, bank, ChoiceParams(depth=1, K=10, switch=3))
+    late = late_choice._answers(state, actions)
+    assert np.array_equal(early, bank.verdicts(state, actions).astype(float))
+    assert np.ptp(late, axis=1).max() == 0 and np.ptp(early, axis=1).max() > 0
+    cnn = late_choice.late().predict(state, actions, np.random.default_rng(0))
+    assert np.allclose(late[:, 0], cnn)
+
+
 def test_the_fixed_draw_likelihood_of_the_score_tables_fails_the_same_test(world, value, bank):
     """The likelihood with one fixed draw of the noise per node (the fit's score tables before the participant's
     own noise entered them) is rejected on every state where the marginal one is kept, at the suite's size."""

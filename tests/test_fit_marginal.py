@@ -64,6 +64,60 @@ def test_with_a_motor_model_the_sampled_likelihood_weighs_every_action_and_its_g
         SampledDecisions.of(samples[2:], [0], weights[2:]).log_likelihood(beta, lapse))
 
 
+def test_with_a_percept_each_sample_scores_its_seen_towers_actions_and_credits_their_real_placements():
+    from overhang_framework.fit.marginal import SampledDecisions
+
+    rng = np.random.default_rng(2)
+    samples = [rng.random((20, m)) for m in (6, 4)]
+    targets = [rng.integers(0, n, size=(20, m)) for m, n in ((6, 5), (4, 7))]
+    targets[1][:, 3] = -1  # a seen tower with fewer actions: padding
+    samples[1][:, 3] = -np.inf
+    chosen, sizes = [2, 6], [5, 7]
+    weights = [rng.random(5), rng.random(7)]
+    beta, lapse = 5.0, 0.15
+    for w in (None, weights):
+        d = SampledDecisions.of(samples, chosen, w, targets, sizes)
+        by_hand = 0.0
+        for s, t, c, n, i in zip(samples, targets, chosen, sizes, range(2)):
+            e = np.where(np.isfinite(s), np.exp(beta * np.where(np.isfinite(s), s, 0)), 0.0)
+            soft = e / e.sum(axis=1, keepdims=True)
+            credit = (t == c) if w is None else np.where(t >= 0, w[i][np.maximum(t, 0)], 0.0)
+            uniform = 1 / n if w is None else w[i].sum() / n
+            by_hand += np.log((1 - lapse) * (soft * credit).sum(axis=1).mean() + lapse * uniform)
+        assert_likelihood_and_gradient(d, beta, lapse, by_hand)
+        assert d.subset(np.array([1])).log_likelihood(beta, lapse) == pytest.approx(
+            SampledDecisions.of(samples[1:], chosen[1:], None if w is None else w[1:], targets[1:],
+                                sizes[1:]).log_likelihood(beta, lapse))
+
+
+@pytest.mark.parametrize("params", [dict(depth=1, K=10, switch=3, hand=0.13, percept=0.03, risk=0.9, lapse=0.07),
+                                    dict(depth=1, K=10, percept=0.04)])
+def test_the_fits_percept_samples_give_the_choice_models_probabilities(params):
+    """The fit's likelihood with a percept (towers seen per state, each with its share of the noise draws) is the
+    simulated participant's: each action's probability within the Monte Carlo error of ``BankChoice.prob``."""
+    from search_fixtures import value as value_fixture, world as world_fixture  # noqa: F401
+
+    from overhang_framework.fit.agreement import build_state
+    from overhang_framework.fit.choice import BankChoice, ChoiceParams, VerdictBank
+    from overhang_framework.fit.marginal import SampledDecisions, _seed
+    from overhang_framework.plugins import Registry
+
+    registry = Registry()
+    world = registry.create("world", {"name": "overhang", "physics": "static"})
+    value = registry.create("value", {"name": "overhang"}, world=world)
+    bank = VerdictBank(world, sigma=0.03, size=200, seed=99)
+    state = build_state(world, "A")
+    choice = BankChoice(world, value, bank, ChoiceParams(beta=8.0, **params), draws=1_500, seed=5)
+    scores, targets = choice.perceived_samples(state, 1_500, 30, _seed(state, 0))
+    n = len(world.legal_actions(state))
+    d = SampledDecisions.of([scores] * n, list(range(n)), None, [targets] * n, [n] * n)
+    fitted = d.probabilities(8.0, params["lapse"] if "lapse" in params else 0.0)
+    assert fitted.sum() == pytest.approx(1.0, abs=1e-9)
+    # both are Monte Carlo estimates of 1,500 draws: within four of their joint standard errors (and a percept's
+    # share, 30 towers against 1,500, of 0.01)
+    assert np.all(np.abs(fitted - choice.prob(state)) < 4 * np.sqrt(2) * choice.prob_error(state) + 0.01)
+
+
 def test_the_command_fits_k_sigma_and_depth_and_writes_a_comparison(tmp_path):
     """Two myopic and two depth-2 participants (IPE, K = 10): every fitted row names a K and a sigma of the grids,
     the comparison is written, and bad grids are one line."""

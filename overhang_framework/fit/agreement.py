@@ -117,7 +117,8 @@ def _c(state: str, choices: int, draws: int, **params) -> Case:
     return Case(state, ChoiceParams(**{"beta": 8.0, **params}), choices, draws)
 
 
-#: The full grid: every axis on and off, depths 1 and 2 at 20,000 choices, depth 3 at 5,000; K 1, 10 and 50.
+#: The full grid: every axis on and off, depths 1 and 2 at 20,000 choices, depth 3 at 5,000; K 1, 10 and 50; the
+#: hybrid's CNN part.
 CASES = (
     _c("A", 20_000, 100_000, depth=1, K=1),
     _c("A", 20_000, 100_000, depth=1, K=10),
@@ -136,6 +137,10 @@ CASES = (
     _c("B", 5_000, 20_000, depth=2, K=10, percept=0.03),
     _c("B", 5_000, 20_000, depth=3, K=10),
     _c("C", 5_000, 20_000, depth=3, K=50, risk=0.5, lapse=0.05),
+    # the stage-switch hybrid: the IPE judges the towers of 3 blocks, the CNN those of 4
+    _c("A", 20_000, 60_000, depth=2, K=10, switch=4),
+    # the paper-like person under time pressure: the CNN, a planned hand, a percept, risk and lapses
+    _c("A", 5_000, 20_000, depth=1, K=50, switch=3, hand=0.13, percept=0.03, risk=0.9, lapse=0.07),
 )
 
 #: A small grid for a quick look (and the default test suite's run of the command).

@@ -133,10 +133,11 @@ class ChoiceParams:
     hand: float = 0.0
     hand_nodes: int = 3
     percept: float = 0.0
+    switch: int = 0
 
     def label(self) -> str:
         parts = [f"D{self.depth}", f"K{self.K}", f"beta {self.beta:g}"]
-        for name in ("lapse", "risk", "hand", "percept"):
+        for name in ("lapse", "risk", "hand", "percept", "switch"):
             if getattr(self, name):
                 parts.append(f"{name} {getattr(self, name):g}")
         return ", ".join(parts)
@@ -162,9 +163,13 @@ class BankChoice:
     """
 
     def __init__(self, world: World, value: Any, bank: VerdictBank, params: ChoiceParams, draws: int = DRAWS,
-                 seed: int = 0, trees: Optional[dict] = None):
+                 seed: int = 0, trees: Optional[dict] = None, late: Optional[Predictor] = None):
         self.world, self.value, self.bank, self.params = world, value, bank, params
         self.draws, self.seed = int(draws), int(seed)
+        if isinstance(params.switch, bool) or not isinstance(params.switch, int) or params.switch < 0:
+            raise ValueError(f"switch must be a whole number of blocks >= 0 (0: no CNN), got {params.switch!r}")
+        #: the hybrid's late part (a deterministic predictor, the CNN unless given), built when first needed
+        self._late = late
         #: the search trees by (state, horizon): shared by choices of one bank and hand that differ in K, risk or
         #: softmax only (a tree holds the bank's answers, which those do not change)
         self._trees: dict[tuple, dict] = {} if trees is None else trees
@@ -180,6 +185,8 @@ class BankChoice:
 
             p = self.params
             predictor: Predictor = BankIPE(self.bank, p.K)
+            if p.switch:
+                predictor = self.hybrid()
             if p.hand:
                 predictor = HandPredictor(self.world, inner=predictor, sd=p.hand, nodes=p.hand_nodes)
             planner = LookaheadPlanner(self.world, depth=p.depth, choice="softmax", beta=p.beta, risk=p.risk,
@@ -190,6 +197,24 @@ class BankChoice:
                               risk=p.risk or None, percept=p.percept or None, hand=p.hand or None)
             self._built = (predictor, planner, spec, cohort, who)
         return self._built
+
+    def late(self) -> Predictor:
+        """The hybrid's late part: the predictor given, or the shipped CNN."""
+        if self._late is None:
+            from overhang_framework.plugins import Registry
+
+            self._late = Registry().create("predictor", {"name": "cnn"}, world=self.world)
+        return self._late
+
+    def hybrid(self) -> Predictor:
+        """The participant's stage-switch hybrid (:class:`overhang_builtins.hybrid.HybridPredictor`, its routing
+        and its calls): the IPE of the bank early, :meth:`late` late."""
+        if getattr(self, "_hybrid", None) is None:
+            from overhang_builtins.hybrid import HybridPredictor
+
+            self._hybrid = HybridPredictor(self.world, early=BankIPE(self.bank, self.params.K), late=self.late(),
+                                           switch=self.params.switch)
+        return self._hybrid
 
     def sample(self, state: State, rng: np.random.Generator) -> int:
         """The index in ``world.legal_actions(state)`` of the action the simulated participant chooses."""
@@ -231,6 +256,16 @@ class BankChoice:
         p = self.params
         if not actions:
             return np.zeros((0, self.bank.size))
+        if p.switch and self.hybrid().route(state) == "late":  # deterministic answers: the same under every draw
+            late = self.late()
+            if p.hand:
+                if getattr(self, "_late_hand", None) is None:
+                    from overhang_builtins.hand import HandPredictor
+
+                    self._late_hand = HandPredictor(self.world, inner=late, sd=p.hand, nodes=p.hand_nodes)
+                late = self._late_hand
+            answers = np.asarray(late.predict(state, list(actions), np.random.default_rng(0)), dtype=float)
+            return np.broadcast_to(answers[:, None], (len(actions), self.bank.size))
         if not p.hand:
             return self.bank.verdicts(state, actions).astype(float)
         predictor = self._agent()[0]
@@ -297,6 +332,30 @@ class BankChoice:
                 tail = node.overhang[i] if child is None else self._values(nodes, child, horizon - 1, columns, memo)
                 scores[:, i] = w[:, i] * tail
         return scores
+
+    def perceived_samples(self, state: State, draws: int, percepts: int,
+                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`score_samples` with the percept: ``percepts`` towers seen of ``state``
+        (:func:`overhang_framework.fit.percept.percepts`: standard normal draws that are a function of the state,
+        the same for every model), each with an equal share of the ``draws`` samples of every node's ``K``
+        columns. Returns ``(draws, m)`` root scores of the seen towers' actions (``-inf`` past a tower's
+        actions) and ``(draws, m)`` the index in ``world.legal_actions(state)`` of the placement each becomes
+        in the real tower (``-1`` past a tower's actions)."""
+        from overhang_framework.fit.percept import percepts as seen_towers, seen_to_real
+
+        seen = seen_towers(state, self.params.percept, int(percepts))
+        shares = np.full(len(seen), int(draws) // len(seen))
+        shares[: int(draws) % len(seen)] += 1
+        blocks = [(self.score_samples(x, int(c), rng), seen_to_real(self.world, state, x))
+                  for x, c in zip(seen, shares) if c]
+        m = max(b.shape[1] for b, _ in blocks)
+        scores, targets = np.full((int(draws), m), -np.inf), np.full((int(draws), m), -1, dtype=int)
+        row = 0
+        for block, real in blocks:
+            scores[row: row + len(block), : block.shape[1]] = block
+            targets[row: row + len(block), : len(real)] = real
+            row += len(block)
+        return scores, targets
 
     def _chunk(self, state: State) -> int:
         n = max(len(self.world.legal_actions(state)), 1)

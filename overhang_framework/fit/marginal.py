@@ -48,6 +48,8 @@ from overhang_framework.interfaces import State
 
 #: Monte Carlo samples of a participant's noise per decision state.
 DRAWS = 500
+#: Towers seen per decision state by a model with a percept (each with an equal share of the ``DRAWS``).
+PERCEPTS = 20
 #: The parts' column of each decision's log-probability of what was done (its grid action, or with a motor model its
 #: x) under the row's model (not in fits.csv).
 LOGP = "choice_logp"
@@ -62,34 +64,60 @@ class SampledDecisions(PerceivedDecisions):
     ``sum_j P(a_j) W_j``."""
 
     def __init__(self, scores: np.ndarray, chosen: np.ndarray, sizes: np.ndarray,
-                 weights: Optional[np.ndarray] = None):
+                 weights: Optional[np.ndarray] = None, targets: Optional[np.ndarray] = None):
         sizes = np.asarray(sizes, dtype=float)
-        if weights is None:
+        chosen = np.asarray(chosen, dtype=int)
+        if weights is None and targets is None:
             hit = np.zeros(scores.shape, dtype=bool)
-            hit[np.arange(len(chosen)), :, np.asarray(chosen, dtype=int)] = True
+            hit[np.arange(len(chosen)), :, chosen] = True
             super().__init__(scores, hit, sizes)
         else:
-            weights = np.asarray(weights, dtype=float)
-            super().__init__(scores, weights[:, None, :], sizes, weights.sum(axis=1) / sizes)
-        self.weights = weights
-        self.chosen = np.asarray(chosen, dtype=int)
+            if weights is not None:
+                weights = np.asarray(weights, dtype=float)
+                base = weights
+            else:  # the chosen real action, one-hot over the real actions
+                base = np.zeros((len(chosen), int(sizes.max(initial=1))))
+                base[np.arange(len(chosen)), chosen] = 1.0
+            if targets is None:
+                hit = base[:, None, :]
+            else:  # each seen action's real placement's weight
+                targets = np.asarray(targets, dtype=int)
+                rows = np.arange(len(chosen))[:, None, None]
+                hit = np.where(targets >= 0, base[rows, np.maximum(targets, 0)], 0.0)
+            super().__init__(scores, hit, sizes, None if weights is None else weights.sum(axis=1) / sizes)
+        self.weights, self.targets = weights, targets
+        self.chosen = chosen
         self._cache = None
 
     @classmethod
     def of(cls, samples: Sequence[np.ndarray], chosen: Sequence[int],
-           weights: Optional[Sequence[np.ndarray]] = None) -> "SampledDecisions":
+           weights: Optional[Sequence[np.ndarray]] = None,
+           targets: Optional[Sequence[np.ndarray]] = None,
+           sizes: Optional[Sequence[int]] = None) -> "SampledDecisions":
+        """From each decision's ``(draws, m)`` score samples; with a percept, ``targets``: each sample's seen actions'
+        real indices (:meth:`overhang_framework.fit.choice.BankChoice.perceived_samples`), and ``sizes``: the real
+        states' numbers of legal actions."""
+        if targets is not None and sizes is None:
+            raise ValueError("a percept's samples need the real states' sizes")
         n = len(samples)
         draws = max((s.shape[0] for s in samples), default=1)
         m = max((s.shape[1] for s in samples), default=1)
         scores = np.full((n, draws, m), -np.inf)
         for i, s in enumerate(samples):
             scores[i, : s.shape[0], : s.shape[1]] = s
-        return cls(scores, np.asarray(chosen, dtype=int), np.array([s.shape[1] for s in samples], dtype=float),
-                   padded_weights(weights, m))
+        padded = None
+        if targets is not None:
+            padded = np.full((n, draws, m), -1, dtype=int)
+            for i, t in enumerate(targets):
+                padded[i, : t.shape[0], : t.shape[1]] = t
+        sizes = np.array([s.shape[1] for s in samples] if targets is None else sizes, dtype=float)
+        width = m if targets is None else int(sizes.max(initial=1))
+        return cls(scores, np.asarray(chosen, dtype=int), sizes, padded_weights(weights, width), padded)
 
     def subset(self, rows: np.ndarray) -> "SampledDecisions":
         return SampledDecisions(self.scores[rows], self.chosen[rows], self.sizes[rows],
-                                None if self.weights is None else self.weights[rows])
+                                None if self.weights is None else self.weights[rows],
+                                None if self.targets is None else self.targets[rows])
 
     def _centred(self):
         if self._cache is None:
@@ -97,7 +125,7 @@ class SampledDecisions(PerceivedDecisions):
             inside = np.isfinite(s)
             top = np.where(inside, s, -np.inf).max(axis=2, keepdims=True)
             centred = np.where(inside, s - top, 0.0)
-            picked = centred[np.arange(len(self)), :, self.chosen]
+            picked = centred[np.arange(len(self)), :, self.chosen] if self.targets is None else None
             self._cache = (centred, inside, picked)
         return self._cache
 
@@ -107,15 +135,15 @@ class SampledDecisions(PerceivedDecisions):
         w = np.where(inside, np.exp(beta * centred), 0.0)
         total = w.sum(axis=2)
         mean_score = (w * centred).sum(axis=2) / total
-        if self.weights is None:
+        if self.weights is None and self.targets is None:
             soft = np.exp(beta * picked) / total  # (n, draws): the chosen action's softmax
             dsoft = soft * (picked - mean_score)
             uniform = 1 / self.sizes
-        else:  # the softmax's mass on the motor model's weights, and its derivative in beta
-            hit = self.weights[:, None, :]
+        else:  # the softmax's mass on the motor model's weights or the percepts' hits, and its derivative in beta
+            hit = self.hit
             soft = (w * hit).sum(axis=2) / total
             dsoft = (w * hit * centred).sum(axis=2) / total - soft * mean_score
-            uniform = self.lapse_weight
+            uniform = 1 / self.sizes if self.lapse_weight is None else self.lapse_weight
         q = soft.mean(axis=1)
         dq = dsoft.mean(axis=1)
         p = np.maximum((1 - lapse) * q + lapse * uniform, 1e-300)
@@ -125,8 +153,10 @@ class SampledDecisions(PerceivedDecisions):
 
 @dataclass(frozen=True)
 class Grid:
-    """The model space: the IPE's sigmas, the numbers of simulations ``K``, the depths, the risks and the hand the
-    planner plans for (metres; 0: none)."""
+    """The model space: the IPE's sigmas, the numbers of simulations ``K``, the depths, the risks, the hand the
+    planner plans for (metres; 0: none), the perceptual noise (metres; 0: none) and the families by their switch
+    point: 0 the IPE alone (family ``ipe``), any other the stage-switch hybrid that sends towers of that many
+    blocks and more to the shipped CNN (family ``hybrid``, its switch fitted on the grid's)."""
 
     sigmas: tuple = (0.02, 0.03, 0.05)
     Ks: tuple = (1, 10, 50)
@@ -134,13 +164,22 @@ class Grid:
     risks: tuple = (0.0,)
     risk_form: str = "power"
     hands: tuple = (0.0,)
+    percepts: tuple = (0.0,)
+    switches: tuple = (0,)
 
     def settings(self) -> dict:
-        """As ``marginal.json`` records it (a grid without a hand as it was recorded before hands were fitted)."""
+        """As ``marginal.json`` records it (an axis at its default left out, as it was recorded before the axis)."""
         out = dataclasses.asdict(self)
-        if tuple(self.hands) == (0.0,):
-            del out["hands"]
+        for name in ("hands", "percepts", "switches"):
+            if tuple(out[name]) == tuple(getattr(Grid, name)):
+                del out[name]
         return out
+
+    def families(self) -> list[tuple[str, tuple]]:
+        """``(family, switch points)``: ``ipe`` with ``(0,)`` and ``hybrid`` with the grid's other switches."""
+        out = [("ipe", (0,))] if 0 in self.switches else []
+        hybrid = tuple(int(s) for s in self.switches if s)
+        return out + ([("hybrid", hybrid)] if hybrid else [])
 
 
 def _seed(state: State, seed: int) -> np.random.Generator:
@@ -152,38 +191,58 @@ def _seed(state: State, seed: int) -> np.random.Generator:
 
 def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int], grid: Grid, draws: int = DRAWS,
                     bank_size: int = BANK_SIZE, seed: int = 0, banks: Optional[dict] = None,
-                    weights: Optional[Sequence[np.ndarray]] = None) -> list[dict]:
-    """One row per model index (depth) of the IPE family: the best grid point's parameters and likelihood
-    (``weights``: a motor model's, :mod:`overhang_framework.fit.motor`)."""
+                    weights: Optional[Sequence[np.ndarray]] = None, percepts: int = PERCEPTS) -> list[dict]:
+    """One row per model index (family and depth): the best grid point's parameters and likelihood (``weights``: a
+    motor model's, :mod:`overhang_framework.fit.motor`; ``percepts``: towers seen per state where the percept is
+    above 0). ``banks`` keeps the verdict banks by sigma and the hybrid's CNN (``"late"``) between calls."""
     from overhang_framework.fit.fitting import fit_softmax
 
     banks = {} if banks is None else banks
+    sizes = [len(world.legal_actions(s)) for s in states]
     rows = []
-    for depth in grid.depths:
-        best = None
-        for sigma, hand in itertools.product(grid.sigmas, grid.hands):
-            bank = banks.setdefault(sigma, VerdictBank(world, sigma=float(sigma), size=bank_size, seed=seed))
-            trees: dict = {}  # a tree's answers are the hand's: shared by one sigma and hand's K and risks
-            for K, risk in itertools.product(grid.Ks, grid.risks):
-                params = ChoiceParams(depth=int(depth), K=int(K), beta=1.0, risk=float(risk),
-                                      risk_form=grid.risk_form, hand=float(hand))
-                choice = BankChoice(world, value, bank, params, draws=draws, seed=seed, trees=trees)
-                samples = [choice.score_samples(s, draws, _seed(s, seed)) for s in states]
-                fit = fit_softmax(SampledDecisions.of(samples, chosen, weights))
-                if best is None or fit.loglik > best[0].loglik + 1e-9:
-                    best = (fit, sigma, K, risk, hand, samples)
-        fit, sigma, K, risk, hand, samples = best
-        # each choice's probability of its grid action under the best grid point: whether any model describes the
-        # participant (fit.adequacy) asks it
-        chosen_p = SampledDecisions.of(samples, chosen, weights).probabilities(fit.beta, fit.lapse) if len(states) \
-            else []
-        k = 2 + sum(len(set(g)) > 1 for g in (grid.sigmas, grid.Ks, grid.risks, grid.hands))
-        n = len(states)
-        rows.append({"model": f"ipe/{'myopic' if depth == 1 else f'D{depth}'}", "family": "ipe", "depth": int(depth),
-                     "sigma": float(sigma), "K": int(K), "risk": float(risk), "hand": float(hand), "percept": 0.0,
-                     "beta": fit.beta, "lapse": fit.lapse, "loglik": fit.loglik, "k": k, "n": n,
-                     "bic": k * math.log(n) - 2 * fit.loglik if n else math.nan, "aic": 2 * k - 2 * fit.loglik,
-                     LOGP: ";".join(f"{math.log(max(float(p), 1e-300)):.9g}" for p in chosen_p)})
+    for family, switches in grid.families():
+        late = None
+        if family == "hybrid":
+            if "late" not in banks:
+                from overhang_framework.plugins import Registry
+
+                banks["late"] = Registry().create("predictor", {"name": "cnn"}, world=world)
+            late = banks["late"]
+        for depth in grid.depths:
+            best = None
+            for sigma, hand, switch in itertools.product(grid.sigmas, grid.hands, switches):
+                bank = banks.setdefault(sigma, VerdictBank(world, sigma=float(sigma), size=bank_size, seed=seed))
+                trees: dict = {}  # a tree's answers are the hand's and the switch's: shared by their K, risks, percepts
+                for percept, K, risk in itertools.product(grid.percepts, grid.Ks, grid.risks):
+                    params = ChoiceParams(depth=int(depth), K=int(K), beta=1.0, risk=float(risk),
+                                          risk_form=grid.risk_form, hand=float(hand), percept=float(percept),
+                                          switch=int(switch))
+                    choice = BankChoice(world, value, bank, params, draws=draws, seed=seed, trees=trees, late=late)
+                    if percept:
+                        pairs = [choice.perceived_samples(s, draws, percepts, _seed(s, seed)) for s in states]
+                        samples, targets = [a for a, _ in pairs], [b for _, b in pairs]
+                    else:
+                        samples = [choice.score_samples(s, draws, _seed(s, seed)) for s in states]
+                        targets = None
+                    decisions = SampledDecisions.of(samples, chosen, weights, targets, sizes)
+                    fit = fit_softmax(decisions)
+                    if best is None or fit.loglik > best[0].loglik + 1e-9:
+                        best = (fit, sigma, K, risk, hand, percept, switch, decisions)
+            fit, sigma, K, risk, hand, percept, switch, decisions = best
+            # each choice's probability of what was done under the best grid point: whether any model describes the
+            # participant (fit.adequacy) asks it
+            chosen_p = decisions.probabilities(fit.beta, fit.lapse) if len(states) else []
+            axes = (grid.sigmas, grid.Ks, grid.risks, grid.hands, grid.percepts, switches)
+            k = 2 + sum(len(set(g)) > 1 for g in axes)
+            n = len(states)
+            row = {"model": f"{family}/{'myopic' if depth == 1 else f'D{depth}'}", "family": family,
+                   "depth": int(depth), "sigma": float(sigma), "K": int(K), "risk": float(risk), "hand": float(hand),
+                   "percept": float(percept), "beta": fit.beta, "lapse": fit.lapse, "loglik": fit.loglik, "k": k,
+                   "n": n, "bic": k * math.log(n) - 2 * fit.loglik if n else math.nan, "aic": 2 * k - 2 * fit.loglik,
+                   LOGP: ";".join(f"{math.log(max(float(p), 1e-300)):.9g}" for p in chosen_p)}
+            if family == "hybrid":
+                row["switch"] = int(switch)
+            rows.append(row)
     return rows
 
 
@@ -291,6 +350,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--risk", type=_numbers, default=Grid.risks, help="risk grid (default 0)")
     parser.add_argument("--hand", type=_numbers, default=Grid.hands,
                         help="grid of the hand the planner plans for, metres (default 0: none)")
+    parser.add_argument("--percept", type=_numbers, default=Grid.percepts,
+                        help="grid of the perceptual noise, metres (default 0: none)")
+    parser.add_argument("--percepts", type=int, default=PERCEPTS,
+                        help=f"towers seen per state where the percept is above 0 (default {PERCEPTS})")
+    parser.add_argument("--switch", type=lambda t: _numbers(t, int), default=Grid.switches,
+                        help="the families by switch point: 0 the IPE alone, N the hybrid sending towers of N blocks "
+                             "and more to the shipped CNN (default 0)")
     parser.add_argument("--condition", action="append", default=None,
                         help="fit only the participants of this condition (repeatable; default: all)")
     parser.add_argument("--draws", type=int, default=DRAWS, help=f"noise samples per state (default {DRAWS})")
@@ -326,8 +392,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if any(k < 1 for k in args.K) or any(d < 1 for d in args.depths) or min(args.draws, args.bank, args.jobs) < 1:
             raise OverhangError("K, depths, --draws, --bank and --jobs must be whole numbers >= 1")
-        if any(not 0 <= r < 1 for r in args.risk) or any(s < 0 for s in args.sigma) or any(h < 0 for h in args.hand):
-            raise OverhangError("risks must be from 0 to below 1, sigmas and hands >= 0")
+        if any(not 0 <= r < 1 for r in args.risk) or any(s < 0 for s in args.sigma) or any(h < 0 for h in args.hand) \
+                or any(x < 0 for x in args.percept):
+            raise OverhangError("risks must be from 0 to below 1, sigmas, hands and percepts >= 0")
+        if any(s < 0 for s in args.switch) or args.percepts < 1:
+            raise OverhangError("switch points must be whole numbers >= 0 (0: the IPE alone) and --percepts >= 1")
         from overhang_framework.fit.motor import Motor
 
         if args.motor_sd is not None and not 0 < args.motor_sd <= 0.5:
@@ -340,7 +409,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     grid = Grid(tuple(args.sigma), tuple(args.K), tuple(args.depths), tuple(args.risk),
-                hands=tuple(float(h) for h in args.hand))
+                hands=tuple(float(h) for h in args.hand), percepts=tuple(float(x) for x in args.percept),
+                switches=tuple(int(x) for x in args.switch))
     placements = log_placements(df)
     people = sorted({p.participant for p in placements})
     conditions = {p.participant: p.condition for p in placements}
@@ -354,6 +424,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 "bank": args.bank, "seed": args.seed, "physics": args.physics}
     if motor is not None:  # a fit without one keeps the settings it had
         settings["motor"] = motor.describe()
+    if any(grid.percepts):
+        settings["percepts"] = args.percepts
+    if any(grid.switches):  # the CNN by its weights
+        from overhang_framework.fit.scores import content_identity
+
+        settings["cnn"] = content_identity({"name": "cnn"})
     args.out.mkdir(parents=True, exist_ok=True)
     kept = args.out / "marginal.json"
     if kept.is_file() and json.loads(kept.read_text()) != json.loads(json.dumps(settings)):
@@ -373,7 +449,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     units = [(participant, conditions[participant],
               map_placements(world, [p for p in placements if p.participant == participant], "logged", motor))
              for participant in todo]
-    setup_args = (args.physics, grid, args.draws, args.bank, args.seed)
+    setup_args = (args.physics, grid, args.draws, args.bank, args.seed, args.percepts)
     bar = progress_bar(total=len(units), desc="participants", unit="participant")
     try:
         if args.jobs > 1 and len(units) > 1:
@@ -439,21 +515,22 @@ def _adequacy(out: Path, world, fits: pd.DataFrame, choices: Optional[pd.Series]
     return summary
 
 
-def _setup(physics: str, grid: Grid, draws: int, bank: int, seed: int) -> dict:
+def _setup(physics: str, grid: Grid, draws: int, bank: int, seed: int, percepts: int = PERCEPTS) -> dict:
     """A worker's world, value and banks (each worker draws the same bank: a node's draws follow its key)."""
     from overhang_framework.plugins import Registry
 
     registry = Registry()
     world = registry.create("world", {"name": "overhang", "physics": physics})
     return {"world": world, "value": registry.create("value", {"name": "overhang"}, world=world), "grid": grid,
-            "draws": draws, "bank": bank, "seed": seed, "banks": {}}
+            "draws": draws, "bank": bank, "seed": seed, "banks": {}, "percepts": percepts}
 
 
 def _work(state: dict, unit) -> list[dict]:
     """One participant's rows: ``unit`` is (participant, condition, its mapped placements)."""
     participant, condition, mapped = unit
     rows = fit_participant(state["world"], state["value"], mapped.states, mapped.chosen, state["grid"],
-                           state["draws"], state["bank"], state["seed"], state["banks"], mapped.weights)
+                           state["draws"], state["bank"], state["seed"], state["banks"], mapped.weights,
+                           state["percepts"])
     return [{"participant": participant, "condition": condition, **row, "unmapped": mapped.unmapped} for row in rows]
 
 

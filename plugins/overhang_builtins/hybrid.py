@@ -24,12 +24,12 @@ class HybridPredictor(Predictor):
     """``early`` judges towers of fewer than ``switch`` blocks (after the action), ``late`` the others.
 
     ``early`` and ``late`` are the registered names of any two predictors,
-    built with ``early_params`` and ``late_params``. Every call goes wholly to
+    built with ``early_params`` and ``late_params``, or predictor objects used as they are. Every call goes wholly to
     one of them: all the candidate actions of a state make towers of the same
     size. :meth:`stats` counts the calls and actions each one answered.
     """
 
-    def __init__(self, world: World, early: str = "ipe", late: str = "cnn", switch: int = 4,
+    def __init__(self, world: World, early: Any = "ipe", late: Any = "cnn", switch: int = 4,
                  early_params: Optional[Mapping[str, Any]] = None,
                  late_params: Optional[Mapping[str, Any]] = None):
         from overhang_framework.plugins import Registry
@@ -42,6 +42,8 @@ class HybridPredictor(Predictor):
         registry = Registry()
         names = registry.names("predictor")
         for label, name in (("early", early), ("late", late)):
+            if isinstance(name, Predictor):
+                continue
             if name == "hybrid":
                 raise ValueError(f"{label} cannot be 'hybrid' itself; allowed: "
                                  f"{', '.join(n for n in names if n != 'hybrid')}")
@@ -50,11 +52,14 @@ class HybridPredictor(Predictor):
                                  f"{', '.join(n for n in names if n != 'hybrid')}")
         self.world = world
         self.switch = switch
-        self.names = {"early": early, "late": late}
+        self.names = {label: part if isinstance(part, str) else type(part).__name__
+                      for label, part in (("early", early), ("late", late))}
         #: The settings each part was built with (a fit hands a part its own predictor of the same settings).
         self.params = {"early": dict(early_params or {}), "late": dict(late_params or {})}
-        self.early = registry.create("predictor", {"name": early, **dict(early_params or {})}, world=world)
-        self.late = registry.create("predictor", {"name": late, **dict(late_params or {})}, world=world)
+        self.early = early if isinstance(early, Predictor) else \
+            registry.create("predictor", {"name": early, **dict(early_params or {})}, world=world)
+        self.late = late if isinstance(late, Predictor) else \
+            registry.create("predictor", {"name": late, **dict(late_params or {})}, world=world)
         self.counts = {"early_calls": 0, "late_calls": 0, "early_actions": 0, "late_actions": 0}
         #: Whether either predictor prefers one large :meth:`predict_many` to many small ones.
         self.batched = bool(getattr(self.early, "batched", False) or getattr(self.late, "batched", False))
