@@ -183,7 +183,42 @@ def test_the_hand_a_planner_plans_for_is_fitted_on_a_grid(tmp_path):
     assert '"hands"' in (out / "marginal.json").read_text()
     bad = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
                           "--hand=-0.1"], capture_output=True, text=True, cwd=REPO)
-    assert bad.returncode == 2 and "sigmas and hands >= 0" in bad.stderr
+    assert bad.returncode == 2 and "sigmas, hands and percepts >= 0" in bad.stderr
+
+
+def test_the_hybrid_family_and_the_percept_are_fitted_on_their_grids(tmp_path):
+    """``--switch 0,3`` fits the IPE and the hybrid as two families, the switch a column of the hybrid's rows; the
+    percept a grid axis; the CNN's weights recorded with the settings."""
+    from search_fixtures import simulated_log
+
+    log = simulated_log(tmp_path / "sim", "[[1.2,0.6,1.2]]")
+    out = tmp_path / "fit"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
+                           "--sigma", "0.03", "--K", "10", "--depths", "1", "--switch", "0,3", "--percept", "0,0.03",
+                           "--percepts", "2", "--draws", "20", "--bank", "20"], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    fits = pd.read_csv(out / "fits.csv")
+    assert sorted(set(fits["model"])) == ["hybrid/myopic", "ipe/myopic"]
+    assert (fits.loc[fits["family"] == "hybrid", "switch"] == 3).all()
+    assert fits.loc[fits["family"] == "ipe", "switch"].isna().all()
+    assert set(fits["percept"]) <= {0.0, 0.03} and (fits["k"] == 3).all()  # beta, lapse and the percept
+    settings = (out / "marginal.json").read_text()
+    assert '"checkpoint_sha256"' in settings and '"percepts": 2' in settings
+    # a stated subsample: the first participant by id, fitted into its own directory from the parts kept
+    first = tmp_path / "first"
+    (first / "parts").mkdir(parents=True)
+    for part in (out / "parts").glob("*.csv"):
+        (first / "parts" / part.name).write_bytes(part.read_bytes())
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(first),
+                           "--sigma", "0.03", "--K", "10", "--depths", "1", "--switch", "0,3", "--percept", "0,0.03",
+                           "--percepts", "2", "--draws", "20", "--bank", "20", "--first", "1"], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0 and "fitted 0 participants" in proc.stdout, proc.stderr
+    sub = pd.read_csv(first / "fits.csv")
+    assert set(sub["participant"]) == {sorted(set(fits["participant"]))[0]} and '"first": 1' in (
+        first / "marginal.json").read_text()
+    bad = subprocess.run([sys.executable, "-m", "overhang_framework.fit.marginal", str(log), "--out", str(out),
+                          "--switch=-1"], capture_output=True, text=True, cwd=REPO)
+    assert bad.returncode == 2 and "switch points must be whole numbers >= 0" in bad.stderr
 
 
 @pytest.mark.parametrize("module", ["overhang_framework.fit.marginal", "overhang_framework.fit.agreement",

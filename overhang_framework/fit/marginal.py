@@ -18,10 +18,14 @@ directory is refused). ``fits.csv`` has the fit's columns and ``K``;
 drawn from a generator seeded by the state and the run's seed, the same for every model (common random numbers
 between models).
 
-This is the IPE family's likelihood on the world's grid, without a call budget (a budgeted participant's
-search completes depth 1 when the budget is below what depth 2 needs, so its depth-1 model is its own), and
-without a percept (docs/fitting.md, "The participant's own noise"); ``--hand`` fits the hand the planner plans
-for on a grid. ``--motor-sd`` scores each placement's x with the executed placement's motor noise
+The families are the IPE alone (``ipe``) and, with ``--switch N``, the stage-switch hybrid that sends towers of
+``N`` blocks and more to the shipped CNN (``hybrid``; deterministic answers, the same under every draw; the switch
+fitted on the grid's), on the world's grid, without a call budget (a budgeted participant's search completes depth
+1 when the budget is below what depth 2 needs, so its depth-1 model is its own). ``--hand`` fits the hand the
+planner plans for on a grid; ``--percept`` the perceptual noise: each state is seen as ``--percepts`` towers
+(standard normal draws that are a function of the state, the same for every model), each with an equal share of
+the draws, and a seen placement is credited to the real placement it becomes (docs/fitting.md, "The participant's
+own noise"). ``--motor-sd`` scores each placement's x with the executed placement's motor noise
 (:mod:`overhang_framework.fit.motor`).
 """
 
@@ -50,6 +54,9 @@ from overhang_framework.interfaces import State
 DRAWS = 500
 #: Towers seen per decision state by a model with a percept (each with an equal share of the ``DRAWS``).
 PERCEPTS = 20
+#: Towers the hybrid's CNN remembers in a fit: every tower of a participant's depth-2 searches under a hand (about
+#: 225,000 for 90 decisions), so that the other switch points and grid points find them.
+CNN_CACHE = 2_000_000
 #: The parts' column of each decision's log-probability of what was done (its grid action, or with a motor model its
 #: x) under the row's model (not in fits.csv).
 LOGP = "choice_logp"
@@ -206,7 +213,7 @@ def fit_participant(world, value, states: Sequence[State], chosen: Sequence[int]
             if "late" not in banks:
                 from overhang_framework.plugins import Registry
 
-                banks["late"] = Registry().create("predictor", {"name": "cnn"}, world=world)
+                banks["late"] = Registry().create("predictor", {"name": "cnn", "cache_size": CNN_CACHE}, world=world)
             late = banks["late"]
         for depth in grid.depths:
             best = None
@@ -254,20 +261,24 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
     from overhang_framework.fit.compare import per_participant
     from overhang_framework.fit.equivalence import with_neutral
 
+    from overhang_framework.fit.equivalence import best_sets
+
     fits = per_participant(with_neutral(fits))
     truth = truth.set_index(truth["id"].astype(str))
     people = [p for p in truth.index if p in set(fits["participant"].astype(str))]
-    best = fits.loc[fits.groupby("participant")["bic"].idxmin()]
+    best = best_sets(fits)  # each participant's best models by BIC, models of equal likelihood as one
     best = best.set_index(best["participant"].astype(str))
     deepest = int(fits["depth"].max())  # a participant planning deeper than the fit's depths: its deepest model
-    at = {p: fits[(fits["participant"].astype(str) == p)
-                  & (fits["depth"] == min(int(truth.loc[p, "depth"]), deepest))].iloc[0] for p in people}
+    # at the true depth, the best of the families (a parameter the tied models do not share left empty)
+    by_depth = {int(d): best_sets(f).set_index(best_sets(f)["participant"].astype(str))
+                for d, f in fits.groupby("depth")}
+    at = {p: by_depth[min(int(truth.loc[p, "depth"]), deepest)].loc[p] for p in people}
     true_risk = {p: float(truth.loc[p, "risk"]) if "risk" in truth.columns and pd.notna(truth.loc[p, "risk"])
                  else 0.0 for p in people}
     averse = [float(at[p]["risk"]) for p in people if true_risk[p] > 0]
     neutral = [float(at[p]["risk"]) for p in people if true_risk[p] == 0]
     out = {"participants": len(people),
-           "depth": int(sum(int(best.loc[p, "depth"]) == int(truth.loc[p, "depth"]) for p in people)),
+           "depth": int(sum(float(best.loc[p, "depth"]) == int(truth.loc[p, "depth"]) for p in people)),
            "risk": int(sum(math.isclose(float(at[p]["risk"]), true_risk[p], abs_tol=1e-9) for p in people)),
            "risk_of_averse": float(np.mean(averse)) if averse else None,
            "averse": len(averse), "neutral": len(neutral),
@@ -284,9 +295,15 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
 
         true_hand = {p: planned(p) for p in people}
         out["hand"] = int(sum(math.isclose(float(at[p]["hand"]), true_hand[p], abs_tol=1e-9) for p in people))
+    if fits["family"].nunique() > 1:  # which family and depth is each participant's best
+        out["best_models"] = {str(m): int(n) for m, n in best.loc[people, "model"].value_counts().sort_index().items()}
+    if "switch" in fits.columns and "switch" in truth.columns:  # the hybrid's switch where the hybrid is best
+        hybrid = [p for p in people if str(at[p]["family"]) == "hybrid"]
+        out["hybrid_at_true_depth"] = len(hybrid)
+        out["switch"] = int(sum(float(at[p]["switch"]) == float(truth.loc[p, "switch"]) for p in hybrid))
     if "K" in fits.columns:
-        out["K"] = [int(at[p]["K"]) for p in people]
-        out["K_counts"] = {f"K{k}": out["K"].count(k) for k in sorted(set(out["K"]))}
+        out["K"] = [int(at[p]["K"]) if pd.notna(at[p]["K"]) else None for p in people]
+        out["K_counts"] = {f"K{k}": out["K"].count(k) for k in sorted({k for k in out["K"] if k is not None})}
         drew = [p for p in people if "K" in truth.columns and pd.notna(truth.loc[p, "K"])]
         if drew:  # the participants who drew their own K
             fitted = {p: k for p, k in zip(people, out["K"])}
@@ -294,7 +311,7 @@ def recovery(fits: pd.DataFrame, truth: pd.DataFrame) -> dict:
             out["K_right"] = int(sum(fitted[p] == true_K[p] for p in drew))
             out["K_drawn"] = len(drew)
             out["K_confusion"] = {f"true{t}": {f"fitted{f}": sum(1 for p in drew if true_K[p] == t and fitted[p] == f)
-                                               for f in sorted(set(fitted.values()))}
+                                               for f in sorted({v for v in fitted.values() if v is not None})}
                                   for t in sorted(set(true_K.values()))}
     return out
 
@@ -359,6 +376,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                              "and more to the shipped CNN (default 0)")
     parser.add_argument("--condition", action="append", default=None,
                         help="fit only the participants of this condition (repeatable; default: all)")
+    parser.add_argument("--first", type=int, default=None, metavar="N",
+                        help="fit only the first N participants (by id, after --condition): a stated subsample")
     parser.add_argument("--draws", type=int, default=DRAWS, help=f"noise samples per state (default {DRAWS})")
     parser.add_argument("--bank", type=int, default=BANK_SIZE, help=f"noise draws per node (default {BANK_SIZE})")
     parser.add_argument("--seed", type=int, default=0)
@@ -416,12 +435,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     conditions = {p.participant: p.condition for p in placements}
     if args.condition:
         people = [p for p in people if conditions[p] in args.condition]
+    if args.first is not None:
+        if args.first < 1:
+            print(f"error: --first must be a whole number >= 1, got {args.first}", file=sys.stderr)
+            return 2
+        people = people[: args.first]
     import json
 
     from overhang_framework.fit.scores import file_sha256
 
     settings = {"logs": [file_sha256(p) for p in args.logs], "grid": grid.settings(), "draws": args.draws,
                 "bank": args.bank, "seed": args.seed, "physics": args.physics}
+    if args.condition:
+        settings["conditions"] = sorted(set(args.condition))
+    if args.first is not None:
+        settings["first"] = args.first
     if motor is not None:  # a fit without one keeps the settings it had
         settings["motor"] = motor.describe()
     if any(grid.percepts):
