@@ -257,14 +257,9 @@ class BankChoice:
         if not actions:
             return np.zeros((0, self.bank.size))
         if p.switch and self.hybrid().route(state) == "late":  # deterministic answers: the same under every draw
-            late = self.late()
-            if p.hand:
-                if getattr(self, "_late_hand", None) is None:
-                    from overhang_builtins.hand import HandPredictor
-
-                    self._late_hand = HandPredictor(self.world, inner=late, sd=p.hand, nodes=p.hand_nodes)
-                late = self._late_hand
-            answers = np.asarray(late.predict(state, list(actions), np.random.default_rng(0)), dtype=float)
+            # the participant's own predictor (the hybrid, within the hand's average when it plans for one)
+            answers = np.asarray(self._agent()[0].predict(state, list(actions), np.random.default_rng(0)),
+                                 dtype=float)
             return np.broadcast_to(answers[:, None], (len(actions), self.bank.size))
         if not p.hand:
             return self.bank.verdicts(state, actions).astype(float)
