@@ -5,8 +5,9 @@ The paper asks how prediction and planning co-adapt "under graded resource const
 assigns each participant one of several time limits per placement (between subjects); its levels are
 ordered by the time they leave, the unlimited one last. From a participant table (one row per
 participant: ``condition``, Table 1's ``avg_overhang`` and ``stable_pct``, ``gamma``, the best model's
-``fitted_depth`` and, where the fit has the axis, ``fitted_risk`` of one model fitted to every participant;
-:func:`overhang_framework.study.participant_table`)
+``fitted_depth`` and, where the fit has the axis, ``fitted_risk`` and ``fitted_K`` of one model fitted to every
+participant; :func:`overhang_framework.study.participant_table`, or :func:`fitted` from a fit's ``fits.csv``
+alone, the own-noise fit's included)
 this module gives:
 
 * **predictions**: each level's mean of each measure, with a 95% percentile bootstrap interval over the
@@ -14,8 +15,8 @@ this module gives:
 * **trends**: Spearman's ρ between each measure and the level's rank (more time, higher rank), its two-sided
   p from permuting the level labels over the participants (:data:`PERMUTATIONS`), and whether it goes the
   expected way (:data:`MEASURES`: more time, larger overhang, larger Γ, placements further from the centre
-  (Fig. 3a's flows, :func:`overhang_framework.behaviour.flows.lateral`), deeper plans, less risk aversion; no
-  trend in the stable proportion);
+  (Fig. 3a's flows, :func:`overhang_framework.behaviour.flows.lateral`), deeper plans, less risk aversion, more
+  mental simulations; no trend in the stable proportion);
 * **power and sample sizes**: for each of :data:`SIZES` participants per level, the share of studies of that
   size, drawn with replacement from the simulated pool, in which the trend holds (p < ``alpha`` in the expected
   direction); the smallest size whose power reaches :data:`TARGET_POWER` (none when no size of the grid does).
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
 import numpy as np
@@ -61,7 +63,10 @@ MEASURES = (
     Measure("vertical", "abs_x_late", "distance of placements from the centre, step 3 on (m)", +1),
     Measure("depth", "fitted_depth", "fitted depth", +1),
     Measure("risk", "fitted_risk", "fitted risk aversion", -1),
+    Measure("K", "fitted_K", "fitted number of mental simulations (K)", +1),
 )
+#: The parameters :func:`fitted` takes from one model fitted to every participant, and their columns.
+FITTED = {"K": "fitted_K", "risk": "fitted_risk"}
 
 
 def levels_of(limits: Mapping[str, Optional[float]]) -> list[str]:
@@ -279,17 +284,181 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
     return "\n".join(lines)
 
 
+def fitted(fits: pd.DataFrame) -> tuple[pd.DataFrame, dict[str, str]]:
+    """The fitted measures of a fit's ``fits.csv`` (the score tables' fit or the own-noise fit,
+    :mod:`overhang_framework.fit.marginal`), one row per participant: ``condition``, the best models' depth
+    (``fitted_depth``: NaN where the models tied for a participant's best differ in depth) and each parameter of
+    :data:`FITTED` the fit has, from one model fitted to every participant, its grid including the neutral value
+    (:func:`overhang_framework.fit.equivalence.one_model`), never from each participant's winner. Also which model
+    each parameter came from."""
+    from overhang_framework.fit.compare import winners
+    from overhang_framework.fit.equivalence import (
+        one_model,
+        per_participant,
+        with_neutral,
+    )
+
+    fits = with_neutral(fits)
+    people = per_participant(fits)
+    best = winners(fits)
+    conditions = people.drop_duplicates("participant").set_index(people.drop_duplicates("participant")
+                                                                  ["participant"].astype(str))["condition"]
+    out = pd.DataFrame({"participant": best["participant"].astype(str)})
+    out["condition"] = out["participant"].map(conditions)
+    out["fitted_depth"] = best["depth"].to_numpy(dtype=float)
+    models = {}
+    for name, column in FITTED.items():
+        model = one_model(fits, name) if name in fits.columns else None
+        if model is None:
+            continue
+        rows = people[people["model"].astype(str) == model].drop_duplicates("participant")
+        out[column] = out["participant"].map(rows.set_index(rows["participant"].astype(str))[name].astype(float))
+        models[name] = model
+    return out.sort_values("participant").reset_index(drop=True), models
+
+
+def limits_of(conditions: Sequence[str]) -> dict[str, Optional[float]]:
+    """Each condition's time limit per placement from its config (``conf/condition``; None: no limit)."""
+    from overhang_framework.config import compose_config, group_options
+    from overhang_framework.errors import OverhangError
+
+    known = group_options("condition")
+    unknown = sorted(set(conditions) - set(known))
+    if unknown:
+        raise OverhangError(f"unknown condition {unknown[0]!r}: the levels are conditions of conf/condition "
+                            f"({', '.join(known)})")
+    out = {}
+    for name in conditions:
+        limit = compose_config([f"condition={name}"]).condition.get("time_limit")
+        out[name] = None if limit is None else float(limit)
+    return out
+
+
+def _truth_lines(truth: pd.DataFrame, people: pd.DataFrame, levels: Sequence[str]) -> list[str]:
+    """The simulated truth beside the fitted values, a row per parameter the truth has."""
+    truth = truth.rename(columns={"id": "participant"}).copy()
+    truth["participant"] = truth["participant"].astype(str)
+    at = people.merge(truth, on="participant", how="left", suffixes=("", "_truth"))
+    rows = []
+    for name, column in (("depth", "fitted_depth"), *FITTED.items()):
+        if name not in at.columns or column not in at.columns:
+            continue
+        cells = []
+        for level in levels:
+            x = at[at["condition"] == level]
+            true, fit = x[name].to_numpy(dtype=float), x[column].to_numpy(dtype=float)
+            both = np.isfinite(true) & np.isfinite(fit)
+            values = ", ".join(f"{v:g}: {int(np.sum(true == v))}" for v in np.unique(true[np.isfinite(true)]))
+            cells.append(f"{values} ({int(np.sum(true[both] == fit[both]))} of {int(both.sum())} fitted at it)")
+        rows.append(f"| {name} | " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    return ["## The simulated truth", "", "| parameter | " + " | ".join(levels) + " |",
+            "|---|" + "---|" * len(levels), *rows, "",
+            "(each level's true values, how many participants have each, and how many are fitted at their own)", ""]
+
+
+def _fitted_study(args) -> int:
+    """``--fits``: a graded study's predictions, trends and sample sizes of the fitted measures of a fit."""
+    import json
+    import sys
+    import time
+
+    from overhang_framework.errors import OverhangError
+    from overhang_framework.progress import progress_bar
+    from overhang_framework.results import atomic_write_text
+
+    started = time.perf_counter()
+    try:
+        fits = pd.read_csv(args.fits)
+        if not {"participant", "condition", "model", "bic", "depth"} <= set(fits.columns):
+            raise ValueError("not a fit's fits.csv: it needs participant, condition, model, depth and bic")
+        people, models = fitted(fits)
+        present = sorted(people["condition"].dropna().astype(str).unique())
+        chosen = args.levels.split(",") if args.levels else present
+        missing = sorted(set(chosen) - set(present))
+        if missing:
+            raise OverhangError(f"no participant of level {missing[0]!r} in {args.fits} (it has {', '.join(present)})")
+        limits = limits_of(chosen)
+        truth = pd.read_csv(args.truth) if args.truth is not None else None
+    except (OSError, ValueError, OverhangError) as err:
+        why = str(getattr(err, "strerror", None) or err).strip().splitlines()[0]
+        print(f"error: {why}", file=sys.stderr)
+        return 2
+    levels = levels_of(limits)
+    people = people[people["condition"].isin(levels)].reset_index(drop=True)
+    measures = [m for m in MEASURES if m.column in people.columns and people[m.column].notna().any()]
+    pred = predictions(people, levels, measures, seed=args.seed)
+    found = trends(people, levels, measures, seed=args.seed)
+    bar = progress_bar(total=len(measures) * len(SIZES) * args.resamples, desc="power", unit="study",
+                       disable=not args.resamples, mininterval=1.0, dynamic_ncols=True)
+    try:
+        table = power(people, levels, measures, resamples=args.resamples, seed=args.seed,
+                      on_study=lambda: bar.update(1)) if args.resamples else \
+            pd.DataFrame(columns=["measure", "per_level", "power", "resamples", "mc_error"])
+    finally:
+        bar.close()
+    pool = {c: int((people["condition"] == c).sum()) for c in levels}
+    text = report(pred, found, table, levels, limits, pool)
+    source = "; ".join(f"{name} of `{model}`" for name, model in models.items())
+    text += ("\n## Where the fitted measures come from\n\n" + f"`{args.fits}`: the depth of each participant's best "
+             "models (by BIC; none where tied best models differ in depth)"
+             + (f", and {source}, the one model fitted to every participant whose summed BIC is lowest (its grid "
+                "includes the neutral value), never each participant's winner" if source else "") + ".\n\n")
+    if truth is not None:
+        text += "\n".join(_truth_lines(truth, people, levels))
+    text += f"\nTotal: {time.perf_counter() - started:.0f} s.\n"
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name, frame in (("participants.csv", people), ("predictions.csv", pred), ("trends.csv", found),
+                        ("power.csv", table)):
+        atomic_write_text(args.out / name, frame.to_csv(index=False))
+    atomic_write_text(args.out / "graded.md", text)
+    print(json.dumps({"levels": levels, "models": models, "sample_sizes": sample_sizes(table),
+                      "trends": {r["measure"]: {"rho": round(float(r["rho"]), 4), "p": round(float(r["p"]), 4),
+                                                "holds": bool(r["holds"])} for _, r in found.iterrows()}},
+                     sort_keys=True))
+    print(f"wrote {args.out / 'graded.md'}", file=sys.stderr)
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """``python -m overhang_framework.graded POWER.csv``: each measure's sample size (the smallest per level whose
-    power reaches 80%) and that power with its Monte Carlo error, as JSON, from a study's ``power.csv``."""
+    power reaches 80%) and that power with its Monte Carlo error, as JSON, from a study's ``power.csv``.
+    ``python -m overhang_framework.graded --fits FITS.csv --out DIR``: the predictions, trends and sample sizes of
+    the fitted measures (depth, risk, ``K``) of any fit of a graded study's participants (:func:`fitted`)."""
     import argparse
     import json
     import sys
 
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.graded",
-                                 description="The sample sizes of a graded study's power.csv, as JSON.")
-    ap.add_argument("power", help="a graded study's power.csv (python -m overhang_framework.study graded_budgets)")
+                                 description="The sample sizes of a graded study's power.csv, as JSON; or, with "
+                                             "--fits, the graded study of a fit's fitted measures.")
+    ap.add_argument("power", nargs="?", default=None,
+                    help="a graded study's power.csv (python -m overhang_framework.study graded_budgets)")
+    ap.add_argument("--fits", type=Path, default=None,
+                    help="a fit's fits.csv (python -m overhang_framework.fit or .fit.marginal) of participants of "
+                         "the levels: their fitted depth, risk and K across the levels")
+    ap.add_argument("--out", type=Path, default=None, help="with --fits: where the tables and graded.md go")
+    ap.add_argument("--levels", default=None,
+                    help="with --fits: the conditions compared, comma-separated (default: every one in the fit); "
+                         "ordered by their time limits")
+    ap.add_argument("--truth", type=Path, default=None,
+                    help="with --fits: the simulated participants' participants.csv, shown beside the fitted values")
+    ap.add_argument("--resamples", type=int, default=RESAMPLES,
+                    help=f"redrawn studies behind each power figure (default {RESAMPLES:,}; 0: no power)")
+    ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
+    if args.fits is not None:
+        if args.out is None or args.power is not None:
+            print("error: --fits needs --out DIR and no power table", file=sys.stderr)
+            return 2
+        if args.resamples < 0:
+            print(f"error: --resamples must be a whole number >= 0, got {args.resamples}", file=sys.stderr)
+            return 2
+        return _fitted_study(args)
+    if args.power is None:
+        print("error: give a power.csv, or --fits FITS.csv --out DIR", file=sys.stderr)
+        return 2
     try:
         table = pd.read_csv(args.power)
     except (OSError, ValueError) as err:

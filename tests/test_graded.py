@@ -70,7 +70,7 @@ def test_power_grows_with_the_size_and_the_sample_size_is_the_first_to_reach_80_
     assert sizes["overhang"] == first and sizes["stable"] is None  # no trend is expected of the stable proportion
     text = graded.report(graded.predictions(cohort(40, 0.03), levels), graded.trends(cohort(40, 0.03), levels),
                          table, levels, LEVELS, {lv: 40 for lv in levels})
-    assert f"**average overhang** grows with the time allowed, as expected" in text
+    assert "**average overhang** grows with the time allowed, as expected" in text
     assert f"{first} participants per level give 80% power" in text
     # each power with its Monte Carlo error, from the redrawn studies it counts
     at = table[(table["measure"] == "overhang") & (table["per_level"] == first)].iloc[0]
@@ -156,3 +156,78 @@ def test_the_sample_sizes_of_a_kept_power_table_are_printed_with_their_error(tmp
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
     assert graded.main([str(tmp_path / "bad.csv")]) == 2
     assert "no column 'measure'" in capsys.readouterr().err
+
+
+def fit_rows(per_level: int, K_by_level: dict, seed: int = 0) -> pd.DataFrame:
+    """A fit's fits.csv of a graded cohort: ``ipe/myopic`` with K and risk on grids and ``ipe/D2`` with its own
+    K, the D2 model better for every third participant (so the winners' K are not the myopic model's)."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for level, K in K_by_level.items():
+        for i in range(per_level):
+            pid = f"sim-{level}-{i:03d}"
+            ll = -100.0 + rng.normal(0, 1)
+            for model, depth, k, loglik in (("ipe/myopic", 1, K, ll), ("ipe/D2", 2, 77, ll + (3 if i % 3 == 0 else -3))):
+                rows.append({"participant": pid, "condition": level, "model": model, "family": "ipe",
+                             "depth": depth, "sigma": 0.02, "K": k, "risk": 0.45 if i % 2 else 0.0, "hand": 0.13,
+                             "percept": 0.0, "beta": 5.0, "lapse": 0.02, "loglik": loglik, "k": 4, "n": 90,
+                             "bic": -2 * loglik + 4 * np.log(90), "aic": -2 * loglik + 8, "unmapped": 0})
+    return pd.DataFrame(rows)
+
+
+def test_fitted_measures_come_from_one_model_fitted_to_everyone_not_from_each_winner():
+    fits = fit_rows(6, {"limit_2_5s": 1, "time_limited": 10, "limit_10s": 50})
+    people, models = graded.fitted(fits)
+    assert models == {"K": "ipe/myopic", "risk": "ipe/myopic"}
+    # every third participant's winner is ipe/D2 (K 77), yet the K compared is the myopic model's
+    assert set(people["fitted_K"]) == {1.0, 10.0, 50.0}
+    assert people.loc[people["participant"].str.endswith("-000"), "fitted_depth"].eq(2).all()
+    assert people.groupby("condition")["fitted_K"].first().to_dict() == {"limit_10s": 50, "limit_2_5s": 1,
+                                                                         "time_limited": 10}
+    # a model tied with the best at another depth leaves the depth empty
+    tied = fits.copy()
+    first = tied["participant"] == "sim-limit_2_5s-001"
+    tied.loc[first & (tied["model"] == "ipe/D2"), ["loglik", "bic", "aic"]] = \
+        tied.loc[first & (tied["model"] == "ipe/myopic"), ["loglik", "bic", "aic"]].to_numpy()
+    people, _ = graded.fitted(tied)
+    assert np.isnan(people.set_index("participant").loc["sim-limit_2_5s-001", "fitted_depth"])
+
+
+def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where_K_is_fixed(tmp_path, capsys):
+    import json
+
+    grows = fit_rows(8, {"limit_2_5s": 1, "time_limited": 10, "limit_10s": 50})
+    flat = fit_rows(8, {"limit_2_5s": 10, "time_limited": 10, "limit_10s": 10})
+    flat.loc[flat["participant"].str.endswith("-001"), "K"] = 50  # a spread, the same at every level
+    truth = pd.DataFrame({"id": grows["participant"].unique()})
+    truth["condition"] = truth["id"].str.split("-").str[1]
+    truth["K"] = truth["condition"].map({"limit_2_5s": 1, "time_limited": 10, "limit_10s": 50})
+    truth["depth"] = 1
+    for name, fits in (("grows", grows), ("flat", flat)):
+        fits.to_csv(tmp_path / f"{name}.csv", index=False)
+    truth.to_csv(tmp_path / "truth.csv", index=False)
+    assert graded.main(["--fits", str(tmp_path / "grows.csv"), "--out", str(tmp_path / "g"), "--resamples", "20",
+                        "--truth", str(tmp_path / "truth.csv")]) == 0
+    found = json.loads(capsys.readouterr().out)
+    assert found["levels"] == ["limit_2_5s", "time_limited", "limit_10s"]
+    assert found["trends"]["K"]["holds"] and found["trends"]["K"]["rho"] > 0.8
+    assert found["sample_sizes"]["K"] == 4  # a perfect trend: 4 a level, the grid's smallest
+    power = pd.read_csv(tmp_path / "g" / "power.csv")
+    assert set(power["measure"]) == {"depth", "risk", "K"} and (power["resamples"] == 20).all()
+    text = (tmp_path / "g" / "graded.md").read_text()
+    assert "| fitted number of mental simulations (K) |" in text and "K of `ipe/myopic`" in text
+    assert "| K | 1: 8 (8 of 8 fitted at it) | 10: 8 (8 of 8 fitted at it) | 50: 8 (8 of 8 fitted at it) |" in text
+    assert graded.main(["--fits", str(tmp_path / "flat.csv"), "--out", str(tmp_path / "f"), "--resamples", "0"]) == 0
+    found = json.loads(capsys.readouterr().out)
+    assert not found["trends"]["K"]["holds"] and abs(found["trends"]["K"]["rho"]) < 0.2
+    assert found["sample_sizes"] == {}
+    # bad input: one line naming what is wrong and what is allowed
+    assert graded.main(["--fits", str(tmp_path / "grows.csv"), "--out", str(tmp_path / "x"),
+                        "--levels", "limit_2_5s,limit_3s"]) == 2
+    err = capsys.readouterr().err
+    assert "no participant of level 'limit_3s'" in err and "limit_10s" in err and len(err.splitlines()) == 1
+    (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
+    assert graded.main(["--fits", str(tmp_path / "bad.csv"), "--out", str(tmp_path / "x")]) == 2
+    assert "not a fit's fits.csv" in capsys.readouterr().err
+    assert graded.main(["--fits", str(tmp_path / "grows.csv")]) == 2
+    assert not (tmp_path / "x").exists()
