@@ -248,6 +248,12 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
     for _, r in found.iterrows():
         what = label.get(r["measure"], r["measure"])
         n = sizes.get(r["measure"])
+        if not np.isfinite(r["rho"]):
+            values = pred.loc[(pred["measure"] == r["measure"]) & np.isfinite(pred["mean"]), "mean"]
+            lines.append(f"- **{what}**: the same for every participant"
+                         + (f" ({float(values.iloc[0]):g})" if len(values) and values.nunique() == 1 else "")
+                         + ", so no trend can be tested.")
+            continue
         if r["direction"] == 0:
             lines.append(f"- **{what}**: no trend expected; ρ = {r['rho']:+.2f}, p = {r['p']:.3f} "
                          f"({'none found' if r['holds'] else 'a trend found'}){_extremes(pred, r['measure'])}.")
@@ -266,6 +272,8 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
             size += f" (optimistic: drawn from a pool of {pool_n} per level)"
         lines.append(f"- **{what}** {way} with the time allowed, as expected: ρ = {r['rho']:+.2f}, p = "
                      f"{r['p']:.3g}; the simulated pool {found_text} it. {size}.")
+    if not len(power_table):
+        return "\n".join(lines + ["", "(power not estimated)", ""])
     lines += ["", "| measure | " + " | ".join(str(s) for s in sorted(power_table["per_level"].unique())) + " |",
               "|---|" + "---|" * power_table["per_level"].nunique()]
     for measure, at in power_table.groupby("measure", sort=False):
@@ -390,10 +398,12 @@ def _fitted_study(args) -> int:
     measures = [m for m in MEASURES if m.column in people.columns and people[m.column].notna().any()]
     pred = predictions(people, levels, measures, seed=args.seed)
     found = trends(people, levels, measures, seed=args.seed)
-    bar = progress_bar(total=len(measures) * len(SIZES) * args.resamples, desc="power", unit="study",
+    # a measure the same for everyone has no trend in any redrawn study either
+    spread = [m for m in measures if people[m.column].dropna().nunique() > 1]
+    bar = progress_bar(total=len(spread) * len(SIZES) * args.resamples, desc="power", unit="study",
                        disable=not args.resamples, mininterval=1.0, dynamic_ncols=True)
     try:
-        table = power(people, levels, measures, resamples=args.resamples, seed=args.seed,
+        table = power(people, levels, spread, resamples=args.resamples, seed=args.seed,
                       on_study=lambda: bar.update(1)) if args.resamples else \
             pd.DataFrame(columns=["measure", "per_level", "power", "resamples", "mc_error"])
     finally:
@@ -408,23 +418,31 @@ def _fitted_study(args) -> int:
     if truth is not None:
         text += "\n".join(_truth_lines(truth, people, levels))
     text += f"\nTotal: {time.perf_counter() - started:.0f} s.\n"
-    args.out.mkdir(parents=True, exist_ok=True)
-    for name, frame in (("participants.csv", people), ("predictions.csv", pred), ("trends.csv", found),
-                        ("power.csv", table)):
-        atomic_write_text(args.out / name, frame.to_csv(index=False))
-    atomic_write_text(args.out / "graded.md", text)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        for name, frame in (("participants.csv", people), ("predictions.csv", pred), ("trends.csv", found),
+                            ("power.csv", table)):
+            atomic_write_text(args.out / name, frame.to_csv(index=False))
+        atomic_write_text(args.out / "graded.md", text)
+    means = {m: {r["level"]: round(float(r["mean"]), 4) for _, r in at.iterrows()}
+             for m, at in pred.groupby("measure", sort=True)}
+    counts = {m.name: {level: {f"{v:g}": int(n) for v, n in
+                               people.loc[people["condition"] == level, m.column].value_counts().sort_index().items()}
+                       for level in levels} for m in measures if m.name in ("K", "depth", "risk")}
     print(json.dumps({"levels": levels, "models": models, "sample_sizes": sample_sizes(table),
+                      "means": means, "counts": counts, "resamples": int(args.resamples),
                       "trends": {r["measure"]: {"rho": round(float(r["rho"]), 4), "p": round(float(r["p"]), 4),
                                                 "holds": bool(r["holds"])} for _, r in found.iterrows()}},
                      sort_keys=True))
-    print(f"wrote {args.out / 'graded.md'}", file=sys.stderr)
+    if args.out is not None:
+        print(f"wrote {args.out / 'graded.md'}", file=sys.stderr)
     return 0
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """``python -m overhang_framework.graded POWER.csv``: each measure's sample size (the smallest per level whose
     power reaches 80%) and that power with its Monte Carlo error, as JSON, from a study's ``power.csv``.
-    ``python -m overhang_framework.graded --fits FITS.csv --out DIR``: the predictions, trends and sample sizes of
+    ``python -m overhang_framework.graded --fits FITS.csv [--out DIR]``: the predictions, trends and sample sizes of
     the fitted measures (depth, risk, ``K``) of any fit of a graded study's participants (:func:`fitted`)."""
     import argparse
     import json
@@ -438,7 +456,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--fits", type=Path, default=None,
                     help="a fit's fits.csv (python -m overhang_framework.fit or .fit.marginal) of participants of "
                          "the levels: their fitted depth, risk and K across the levels")
-    ap.add_argument("--out", type=Path, default=None, help="with --fits: where the tables and graded.md go")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="with --fits: where the tables and graded.md go (default: the summary on stdout only)")
     ap.add_argument("--levels", default=None,
                     help="with --fits: the conditions compared, comma-separated (default: every one in the fit); "
                          "ordered by their time limits")
@@ -449,15 +468,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     if args.fits is not None:
-        if args.out is None or args.power is not None:
-            print("error: --fits needs --out DIR and no power table", file=sys.stderr)
+        if args.power is not None:
+            print("error: give a power table or --fits, not both", file=sys.stderr)
             return 2
         if args.resamples < 0:
             print(f"error: --resamples must be a whole number >= 0, got {args.resamples}", file=sys.stderr)
             return 2
         return _fitted_study(args)
     if args.power is None:
-        print("error: give a power.csv, or --fits FITS.csv --out DIR", file=sys.stderr)
+        print("error: give a power.csv, or --fits FITS.csv", file=sys.stderr)
         return 2
     try:
         table = pd.read_csv(args.power)

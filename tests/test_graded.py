@@ -193,6 +193,19 @@ def test_fitted_measures_come_from_one_model_fitted_to_everyone_not_from_each_wi
     assert np.isnan(people.set_index("participant").loc["sim-limit_2_5s-001", "fitted_depth"])
 
 
+def test_a_fitted_measure_the_same_for_everyone_is_said_to_have_no_testable_trend_and_gets_no_power(tmp_path,
+                                                                                                    capsys):
+    fits = fit_rows(6, {"limit_2_5s": 1, "time_limited": 10, "limit_10s": 50})
+    fits.loc[fits["model"] == "ipe/D2", "bic"] += 100  # every best model at depth 1
+    fits.to_csv(tmp_path / "fits.csv", index=False)
+    assert graded.main(["--fits", str(tmp_path / "fits.csv"), "--out", str(tmp_path / "o"), "--resamples", "3"]) == 0
+    capsys.readouterr()
+    text = (tmp_path / "o" / "graded.md").read_text()
+    assert "- **fitted depth**: the same for every participant (1), so no trend can be tested." in text
+    assert "nan" not in text
+    assert set(pd.read_csv(tmp_path / "o" / "power.csv")["measure"]) == {"risk", "K"}
+
+
 def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where_K_is_fixed(tmp_path, capsys):
     import json
 
@@ -212,6 +225,9 @@ def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where
     assert found["levels"] == ["limit_2_5s", "time_limited", "limit_10s"]
     assert found["trends"]["K"]["holds"] and found["trends"]["K"]["rho"] > 0.8
     assert found["sample_sizes"]["K"] == 4  # a perfect trend: 4 a level, the grid's smallest
+    assert found["means"]["K"] == {"limit_2_5s": 1.0, "time_limited": 10.0, "limit_10s": 50.0}
+    assert found["counts"]["K"]["time_limited"] == {"10": 8} and found["counts"]["depth"]["limit_10s"] == {"1": 5,
+                                                                                                        "2": 3}
     power = pd.read_csv(tmp_path / "g" / "power.csv")
     assert set(power["measure"]) == {"depth", "risk", "K"} and (power["resamples"] == 20).all()
     text = (tmp_path / "g" / "graded.md").read_text()
@@ -229,5 +245,9 @@ def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
     assert graded.main(["--fits", str(tmp_path / "bad.csv"), "--out", str(tmp_path / "x")]) == 2
     assert "not a fit's fits.csv" in capsys.readouterr().err
-    assert graded.main(["--fits", str(tmp_path / "grows.csv")]) == 2
+    assert graded.main(["--fits", str(tmp_path / "grows.csv"), str(tmp_path / "g" / "power.csv")]) == 2
+    assert "not both" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+    # without --out: the summary alone, nothing written
+    assert graded.main(["--fits", str(tmp_path / "grows.csv"), "--resamples", "0"]) == 0
+    assert json.loads(capsys.readouterr().out)["trends"]["K"]["holds"]
