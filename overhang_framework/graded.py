@@ -366,6 +366,26 @@ def _truth_lines(truth: pd.DataFrame, people: pd.DataFrame, levels: Sequence[str
             "(each level's true values, how many participants have each, and how many are fitted at their own)", ""]
 
 
+def _fit_file(path: Path) -> pd.DataFrame:
+    fits = pd.read_csv(path)
+    if not {"participant", "condition", "model", "bic", "depth"} <= set(fits.columns):
+        raise ValueError(f"{path} is not a fit's fits.csv: it needs participant, condition, model, depth and bic")
+    return fits
+
+
+def _together(frames: Sequence[pd.DataFrame]) -> pd.DataFrame:
+    """Several fits (or truths) of separately simulated cohorts as one, each participant named by its file's
+    number (``2:sim-tl-001``) when there is more than one file."""
+    if len(frames) == 1:
+        return frames[0]
+    out = []
+    for k, frame in enumerate(frames, start=1):
+        frame = frame.copy()
+        frame["participant"] = f"{k}:" + frame["participant"].astype(str)
+        out.append(frame)
+    return pd.concat(out, ignore_index=True)
+
+
 def _fitted_study(args) -> int:
     """``--fits``: a graded study's predictions, trends and sample sizes of the fitted measures of a fit."""
     import json
@@ -378,17 +398,19 @@ def _fitted_study(args) -> int:
 
     started = time.perf_counter()
     try:
-        fits = pd.read_csv(args.fits)
-        if not {"participant", "condition", "model", "bic", "depth"} <= set(fits.columns):
-            raise ValueError("not a fit's fits.csv: it needs participant, condition, model, depth and bic")
+        if args.truth and len(args.truth) != len(args.fits):
+            raise ValueError(f"give one --truth for each --fits ({len(args.fits)}), in the same order")
+        fits = _together([_fit_file(path) for path in args.fits])
         people, models = fitted(fits)
         present = sorted(people["condition"].dropna().astype(str).unique())
         chosen = args.levels.split(",") if args.levels else present
         missing = sorted(set(chosen) - set(present))
         if missing:
-            raise OverhangError(f"no participant of level {missing[0]!r} in {args.fits} (it has {', '.join(present)})")
+            raise OverhangError(f"no participant of level {missing[0]!r} in {', '.join(map(str, args.fits))} (it has "
+                                f"{', '.join(present)})")
         limits = limits_of(chosen)
-        truth = pd.read_csv(args.truth) if args.truth is not None else None
+        truth = _together([pd.read_csv(path).rename(columns={"id": "participant"}) for path in args.truth]) \
+            if args.truth else None
     except (OSError, ValueError, OverhangError) as err:
         why = str(getattr(err, "strerror", None) or err).strip().splitlines()[0]
         print(f"error: {why}", file=sys.stderr)
@@ -411,7 +433,9 @@ def _fitted_study(args) -> int:
     pool = {c: int((people["condition"] == c).sum()) for c in levels}
     text = report(pred, found, table, levels, limits, pool)
     source = "; ".join(f"{name} of `{model}`" for name, model in models.items())
-    text += ("\n## Where the fitted measures come from\n\n" + f"`{args.fits}`: the depth of each participant's best "
+    files = " and ".join(f"`{path}`" for path in args.fits) + (
+        " (their participants told apart by the file's number, `1:`, `2:`, ...)" if len(args.fits) > 1 else "")
+    text += ("\n## Where the fitted measures come from\n\n" + f"{files}: the depth of each participant's best "
              "models (by BIC; none where tied best models differ in depth)"
              + (f", and {source}, the one model fitted to every participant whose summed BIC is lowest (its grid "
                 "includes the neutral value), never each participant's winner" if source else "") + ".\n\n")
@@ -453,16 +477,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                              "--fits, the graded study of a fit's fitted measures.")
     ap.add_argument("power", nargs="?", default=None,
                     help="a graded study's power.csv (python -m overhang_framework.study graded_budgets)")
-    ap.add_argument("--fits", type=Path, default=None,
+    ap.add_argument("--fits", type=Path, action="append", default=None,
                     help="a fit's fits.csv (python -m overhang_framework.fit or .fit.marginal) of participants of "
-                         "the levels: their fitted depth, risk and K across the levels")
+                         "the levels: their fitted depth, risk and K across the levels (repeatable: separately "
+                         "simulated cohorts pooled, their participants told apart by the file's number)")
     ap.add_argument("--out", type=Path, default=None,
                     help="with --fits: where the tables and graded.md go (default: the summary on stdout only)")
     ap.add_argument("--levels", default=None,
                     help="with --fits: the conditions compared, comma-separated (default: every one in the fit); "
                          "ordered by their time limits")
-    ap.add_argument("--truth", type=Path, default=None,
-                    help="with --fits: the simulated participants' participants.csv, shown beside the fitted values")
+    ap.add_argument("--truth", type=Path, action="append", default=None,
+                    help="with --fits: the simulated participants' participants.csv, shown beside the fitted values "
+                         "(one for each --fits, in the same order)")
     ap.add_argument("--resamples", type=int, default=RESAMPLES,
                     help=f"redrawn studies behind each power figure (default {RESAMPLES:,}; 0: no power)")
     ap.add_argument("--seed", type=int, default=0)

@@ -248,6 +248,18 @@ def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where
     assert graded.main(["--fits", str(tmp_path / "grows.csv"), str(tmp_path / "g" / "power.csv")]) == 2
     assert "not both" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+    # two separately simulated cohorts pooled: their participants told apart by the file's number
+    assert graded.main(["--fits", str(tmp_path / "grows.csv"), "--fits", str(tmp_path / "flat.csv"),
+                        "--truth", str(tmp_path / "truth.csv"), "--truth", str(tmp_path / "truth.csv"),
+                        "--out", str(tmp_path / "both"), "--resamples", "0"]) == 0
+    both = json.loads(capsys.readouterr().out)
+    assert both["counts"]["K"]["limit_2_5s"] == {"1": 8, "10": 7, "50": 1}
+    people = pd.read_csv(tmp_path / "both" / "participants.csv")
+    assert len(people) == 48 and people["participant"].str.match(r"^[12]:sim-").all()
+    assert "(their participants told apart by the file's number" in (tmp_path / "both" / "graded.md").read_text()
+    assert graded.main(["--fits", str(tmp_path / "grows.csv"), "--fits", str(tmp_path / "flat.csv"),
+                        "--truth", str(tmp_path / "truth.csv")]) == 2
+    assert "give one --truth for each --fits (2)" in capsys.readouterr().err
     # without --out: the summary alone, nothing written
     assert graded.main(["--fits", str(tmp_path / "grows.csv"), "--resamples", "0"]) == 0
     assert json.loads(capsys.readouterr().out)["trends"]["K"]["holds"]
