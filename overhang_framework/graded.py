@@ -450,7 +450,7 @@ def _fitted_study(args) -> int:
         atomic_write_text(args.out / "graded.md", text)
     means = {m: {r["level"]: round(float(r["mean"]), 4) for _, r in at.iterrows()}
              for m, at in pred.groupby("measure", sort=True)}
-    counts = {m.name: {level: {f"{v:g}": int(n) for v, n in
+    counts = {m.name: {level: {f"{m.name}={v:g}": int(n) for v, n in
                                people.loc[people["condition"] == level, m.column].value_counts().sort_index().items()}
                        for level in levels} for m in measures if m.name in ("K", "depth", "risk")}
     print(json.dumps({"levels": levels, "models": models, "sample_sizes": sample_sizes(table),
@@ -520,7 +520,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         out[measure] = {"per_level": n, "power": float(row["power"].iloc[0]) if len(row) else None,
                         "mc_error": float(row["mc_error"].iloc[0]) if len(row) and "mc_error" in row.columns else None,
                         "resamples": int(row["resamples"].iloc[0]) if len(row) else None,
-                        "smallest_tried": int(table["per_level"].min())}
+                        "smallest_tried": int(table["per_level"].min()),
+                        "by_size": {f"n{int(r['per_level'])}": float(r["power"])
+                                    for _, r in table[table["measure"] == measure].iterrows()}}
     print(json.dumps(out, sort_keys=True))
     return 0
 

@@ -21,7 +21,8 @@ KEPT = ["fitting-paper-comparison", "fitting-own-noise-pilot", "fitting-own-nois
         "fitting-risk-recovery-own-noise", "fitting-risk-recovery-fixed-k50", "fitting-risk-recovery-fixed-k10",
         "fitting-k-recovery", "people-risk-own-noise", "people-risk-fixed-k50", "people-risk-fixed-k10",
         "people-k-own-noise", "fidelity-table2-40",
-        "people-paper-own-noise", "people-paper-like-own-noise"]
+        "people-paper-own-noise", "people-paper-like-own-noise", "people-graded-k-adapt", "people-graded-k-fixed",
+        "people-graded-k-adapt-power", "people-graded-k-fixed-power"]
 
 
 def test_every_figure_from_a_kept_file_is_what_the_file_gives_today():

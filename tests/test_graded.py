@@ -151,6 +151,7 @@ def test_the_sample_sizes_of_a_kept_power_table_are_printed_with_their_error(tmp
     assert graded.main([str(tmp_path / "power.csv")]) == 0
     out = json.loads(capsys.readouterr().out)["overhang"]
     assert out["per_level"] == graded.sample_sizes(table)["overhang"] and out["resamples"] == 40
+    assert out["by_size"] == {f"n{n}": p for n, p in zip(table["per_level"], table["power"])}
     assert out["smallest_tried"] == 4 and out["mc_error"] == pytest.approx(
         np.sqrt(out["power"] * (1 - out["power"]) / 40))
     (tmp_path / "bad.csv").write_text("a,b\n1,2\n")
@@ -226,8 +227,8 @@ def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where
     assert found["trends"]["K"]["holds"] and found["trends"]["K"]["rho"] > 0.8
     assert found["sample_sizes"]["K"] == 4  # a perfect trend: 4 a level, the grid's smallest
     assert found["means"]["K"] == {"limit_2_5s": 1.0, "time_limited": 10.0, "limit_10s": 50.0}
-    assert found["counts"]["K"]["time_limited"] == {"10": 8} and found["counts"]["depth"]["limit_10s"] == {"1": 5,
-                                                                                                        "2": 3}
+    assert found["counts"]["K"]["time_limited"] == {"K=10": 8} and found["counts"]["depth"]["limit_10s"] == {"depth=1": 5,
+                                                                                                           "depth=2": 3}
     power = pd.read_csv(tmp_path / "g" / "power.csv")
     assert set(power["measure"]) == {"depth", "risk", "K"} and (power["resamples"] == 20).all()
     text = (tmp_path / "g" / "graded.md").read_text()
@@ -253,7 +254,7 @@ def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where
                         "--truth", str(tmp_path / "truth.csv"), "--truth", str(tmp_path / "truth.csv"),
                         "--out", str(tmp_path / "both"), "--resamples", "0"]) == 0
     both = json.loads(capsys.readouterr().out)
-    assert both["counts"]["K"]["limit_2_5s"] == {"1": 8, "10": 7, "50": 1}
+    assert both["counts"]["K"]["limit_2_5s"] == {"K=1": 8, "K=10": 7, "K=50": 1}
     people = pd.read_csv(tmp_path / "both" / "participants.csv")
     assert len(people) == 48 and people["participant"].str.match(r"^[12]:sim-").all()
     assert "(their participants told apart by the file's number" in (tmp_path / "both" / "graded.md").read_text()
