@@ -373,6 +373,17 @@ def _fit_file(path: Path) -> pd.DataFrame:
     return fits
 
 
+def _truth_file(path: Path) -> pd.DataFrame:
+    truth = pd.read_csv(path).rename(columns={"id": "participant"})
+    if "participant" not in truth.columns:
+        raise ValueError(f"{path} is not a participants.csv: it has no id (or participant) column")
+    return truth
+
+
+def _number(x: float) -> Optional[float]:
+    return round(float(x), 4) if np.isfinite(x) else None
+
+
 def _together(frames: Sequence[pd.DataFrame]) -> pd.DataFrame:
     """Several fits (or truths) of separately simulated cohorts as one, each participant named by its file's
     number (``2:sim-tl-001``) when there is more than one file."""
@@ -409,8 +420,7 @@ def _fitted_study(args) -> int:
             raise OverhangError(f"no participant of level {missing[0]!r} in {', '.join(map(str, args.fits))} (it has "
                                 f"{', '.join(present)})")
         limits = limits_of(chosen)
-        truth = _together([pd.read_csv(path).rename(columns={"id": "participant"}) for path in args.truth]) \
-            if args.truth else None
+        truth = _together([_truth_file(path) for path in args.truth]) if args.truth else None
     except (OSError, ValueError, OverhangError) as err:
         why = str(getattr(err, "strerror", None) or err).strip().splitlines()[0]
         print(f"error: {why}", file=sys.stderr)
@@ -455,7 +465,7 @@ def _fitted_study(args) -> int:
                        for level in levels} for m in measures if m.name in ("K", "depth", "risk")}
     print(json.dumps({"levels": levels, "models": models, "sample_sizes": sample_sizes(table),
                       "means": means, "counts": counts, "resamples": int(args.resamples),
-                      "trends": {r["measure"]: {"rho": round(float(r["rho"]), 4), "p": round(float(r["p"]), 4),
+                      "trends": {r["measure"]: {"rho": _number(r["rho"]), "p": _number(r["p"]),
                                                 "holds": bool(r["holds"])} for _, r in found.iterrows()}},
                      sort_keys=True))
     if args.out is not None:

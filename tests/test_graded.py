@@ -203,6 +203,14 @@ def test_a_fitted_measure_the_same_for_everyone_is_said_to_have_no_testable_tren
     capsys.readouterr()
     text = (tmp_path / "o" / "graded.md").read_text()
     assert "- **fitted depth**: the same for every participant (1), so no trend can be tested." in text
+    assert graded.main(["--fits", str(tmp_path / "fits.csv"), "--resamples", "0"]) == 0
+    import json
+
+    strict = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"{c} is not JSON"))
+    assert strict["trends"]["depth"] == {"rho": None, "p": None, "holds": False}
+    (tmp_path / "truth.csv").write_text("name,K\na,1\n")
+    assert graded.main(["--fits", str(tmp_path / "fits.csv"), "--truth", str(tmp_path / "truth.csv")]) == 2
+    assert "has no id (or participant) column" in capsys.readouterr().err
     assert "nan" not in text
     assert set(pd.read_csv(tmp_path / "o" / "power.csv")["measure"]) == {"risk", "K"}
 
