@@ -199,9 +199,9 @@ def rerun(board_file: Path, out: Path, split: Optional[str] = None, agents: Sequ
           verdicts: Optional[str] = None, add: bool = False, dry_run: bool = False, show_report: bool = False,
           untimed: bool = False) -> int:
     """The ``rerun`` subcommand: 0 when every chosen row is done, 1 when one failed."""
-    from overhang_framework.benchmark import leaderboard
+    from overhang_framework.benchmark.board import load
 
-    board = leaderboard.load(board_file)
+    board = load(board_file)
     rows = plan(board, out, split, agents, untimed)
     if not rows:
         raise ValueError(f"no leaderboard rows to run in {board_file}" + (f" on split {split}" if split else ""))
@@ -247,7 +247,7 @@ def _stop(signum, frame):
 
 def _run_rows(rows, out, timing, jobs, verdicts, board_file, add, failed) -> None:
     """Run every row not yet done, in order; a failed one goes into ``failed`` and the next runs."""
-    from overhang_framework.benchmark import leaderboard
+    from overhang_framework.benchmark.board import add as add_rows, row_of
 
     for k, row in enumerate(rows, 1):
         name = f"[{k}/{len(rows)}] {row['agent']} ({row['split']}{', ladder' if row['ladder'] else ''})"
@@ -266,8 +266,8 @@ def _run_rows(rows, out, timing, jobs, verdicts, board_file, add, failed) -> Non
             try:
                 segments = [s for s in timing["segments"] if s["dir"] == row["dir"]]
                 used = {s["jobs"] for s in segments}
-                leaderboard.add([leaderboard.row_of(Path(row["dir"]), row["agent"], sum(s["wall"] for s in segments),
-                                                    used.pop() if len(used) == 1 else None)], board_file)
+                add_rows([row_of(Path(row["dir"]), row["agent"], sum(s["wall"] for s in segments),
+                                 used.pop() if len(used) == 1 else None)], board_file)
             except (FileNotFoundError, KeyError, ValueError) as err:
                 failed.append(row)
                 print(f"{name}: finished, but not put into the leaderboard: {err}", flush=True)

@@ -32,6 +32,8 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
+from overhang_framework.experiment.settings import SETTINGS_ENV
+
 
 #: What each command does, for its --help.
 DESCRIPTIONS = {
@@ -68,8 +70,6 @@ SUMMARIES = {
 #: The exit status of a server that cannot reach its database (EX_TEMPFAIL): unlike 2 (a refusal that needs the
 #: operator), the systemd unit restarts it.
 UNAVAILABLE = 75
-#: How the server's worker processes get the command line's settings.
-SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
 
 
 def _serve(overrides: Sequence[str]) -> int:

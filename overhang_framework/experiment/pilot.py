@@ -146,8 +146,7 @@ class Server:
     """The experiment's API in a uvicorn process of its own (the app the ``serve`` command's workers run)."""
 
     def __init__(self, overrides: Sequence[str], port: int, log_path: Path, workers: int):
-        from overhang_framework.experiment.__main__ import SETTINGS_ENV
-        from overhang_framework.experiment.settings import ADMIN_ENV
+        from overhang_framework.experiment.settings import ADMIN_ENV, SETTINGS_ENV
 
         self.url = f"http://127.0.0.1:{port}"
         self.admin_token = secrets.token_urlsafe(18)

@@ -38,35 +38,20 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from overhang_framework.errors import ConfigError
+from overhang_framework.experiment.towers import (  # noqa: F401  (the towers file's terms, shared with the server)
+    COMMAND,
+    DATA_FILE,
+    MAX_TOLERANCE,
+    check_tolerance,
+    load_towers,
+    tower_key,
+)
 from overhang_framework.geometry import EPS, Action, Block, Geometry, overlap_length
 from overhang_framework.interfaces import State, Task, World
-from overhang_framework.optimum import OptimumSearch, load_keyed, physics_id, sequence_key
+from overhang_framework.optimum import OptimumSearch, physics_id
 from overhang_framework.search import TIE, lookahead_value
 
-DATA_FILE = Path(__file__).resolve().parents[1] / "data" / "practice_towers.json"
-#: Tolerances from 0 up to (not including) this: below it no two blocks (at least 0.6 wide each) can pass
-#: through one another between two corners of the check.
-MAX_TOLERANCE = 0.3
-COMMAND = "python -m overhang_framework.experiment.practice"
-
 Judge = Callable[[list], np.ndarray]
-
-
-def check_tolerance(value, key: str = "practice.tolerance") -> float:
-    """``value`` as a tolerance in units, or :class:`ConfigError` naming ``key`` and the allowed range."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < MAX_TOLERANCE:
-        raise ConfigError(f"{key} must be a number of units in [0, {MAX_TOLERANCE:g}), got {value!r}")
-    return float(value)
-
-
-def tower_key(task: Task, world: World, tolerance: float) -> str:
-    """The key of a task's buildable tower under a world's physics and resolution, for ``tolerance``."""
-    return sequence_key(task.sequence, {**physics_id(world), "tolerance": round(float(tolerance), 9)})
-
-
-def load_towers(path: Path | str | None = None) -> dict:
-    """The buildable towers kept in ``path`` (default: the project's file), by :func:`tower_key`."""
-    return load_keyed(DATA_FILE if path is None else path, "towers")
 
 
 def corner_offsets(placements: int, tolerance: float) -> list[tuple[float, ...]]:

@@ -19,6 +19,8 @@ from overhang_framework.errors import ConfigError
 from overhang_framework.interfaces import Task
 
 ADMIN_ENV = "OVERHANG_ADMIN_TOKEN"
+#: How the server's worker processes get the command line's settings.
+SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
 #: The environment variable that names the study's database when ``database=`` does not (the systemd unit's
 #: environment file: a password there stays out of the unit and of ``ps``).
 DATABASE_ENV = "OVERHANG_DATABASE_URL"
@@ -152,7 +154,7 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
     """
     from omegaconf import OmegaConf
 
-    from overhang_framework.experiment.practice import COMMAND, check_tolerance, load_towers, tower_key
+    from overhang_framework.experiment.towers import COMMAND, check_tolerance, load_towers, tower_key
     from overhang_framework.geometry import Action
     from overhang_framework.optimum import load_optima, optimum_key, DATA_FILE
     from overhang_framework.tasks import parse_tasks
