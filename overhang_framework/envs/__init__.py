@@ -13,17 +13,7 @@ observation that Stable-Baselines3 takes. See docs/rl.md.
 
 from __future__ import annotations
 
-ENV_ID = "overhang_framework/OverhangTower-v0"
-
-
-def register() -> None:
-    """Register :data:`ENV_ID` with Gymnasium (once; nothing when Gymnasium is not installed)."""
-    try:
-        import gymnasium
-    except ImportError:
-        return
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="overhang_framework.envs.tower:OverhangTowerEnv")
+from overhang_framework.envs.registration import ENV_ID, register  # noqa: F401
 
 
 def __getattr__(name):

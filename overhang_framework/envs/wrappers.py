@@ -27,7 +27,7 @@ class FlattenAction(gym.ActionWrapper, gym.utils.RecordConstructorArgs):
 def flat_env(env_id_or_env: Any = None, **kwargs) -> gym.Env:
     """``OverhangTower-v0`` (made with ``kwargs``, or the env given) with a flat ``Box`` action and a flat
     ``Box`` observation: the form a Stable-Baselines3 ``MlpPolicy`` takes."""
-    from overhang_framework.envs import ENV_ID
+    from overhang_framework.envs.registration import ENV_ID
 
     env = env_id_or_env if isinstance(env_id_or_env, gym.Env) else gym.make(env_id_or_env or ENV_ID, **kwargs)
     return gym.wrappers.FlattenObservation(FlattenAction(env))

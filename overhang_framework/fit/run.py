@@ -316,7 +316,7 @@ class Predictors:
         names, params = getattr(predictor, "names", None), getattr(predictor, "params", None)
         if not isinstance(names, dict) or not isinstance(params, dict):
             return
-        from overhang_framework.fit.space import _predictor_config
+        from overhang_framework.fit.scores import predictor_config as _predictor_config
 
         for part in ("early", "late"):
             if part not in names:

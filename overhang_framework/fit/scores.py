@@ -353,11 +353,29 @@ def _stage_switch(config: Mapping[str, Any]) -> bool:
     return all(k in config for k in ("early", "late", "early_params"))
 
 
+def predictor_config(name: str, overrides: Mapping[str, Any]) -> dict:
+    """The config of installed predictor ``name`` (``conf/predictor``) with ``overrides`` over its defaults;
+    :class:`ConfigError` naming an unknown predictor or setting and what is allowed."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.config import compose_config, group_options
+    from overhang_framework.errors import ConfigError
+
+    options = group_options("predictor")
+    if name not in options:
+        raise ConfigError(f"fit.models: unknown predictor {name!r}; installed predictors: {', '.join(options)}")
+    base = OmegaConf.to_container(compose_config([f"predictor={name}"]).predictor, resolve=True)
+    unknown = [k for k in overrides if k not in base]
+    if unknown:
+        raise ConfigError(f"fit.models.{name}: predictor {name!r} has no setting {unknown[0]!r}; "
+                          f"settings: {', '.join(sorted(base))}")
+    base.update(overrides)
+    return base
+
+
 @functools.lru_cache(maxsize=64)
 def _composed_part(name: str, params: str) -> str:
-    from overhang_framework.fit.space import _predictor_config
-
-    return json.dumps(_predictor_config(name, json.loads(params)), sort_keys=True, default=str)
+    return json.dumps(predictor_config(name, json.loads(params)), sort_keys=True, default=str)
 
 
 def _part_config(name: str, params: Mapping[str, Any]) -> dict:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
 from overhang_framework.errors import ConfigError
-from overhang_framework.fit.scores import HAND, Model, with_hand
+from overhang_framework.fit.scores import HAND, Model, predictor_config as _predictor_config, with_hand
 
 #: Depths a model may have (1: myopic).
 MAX_DEPTH = 5
@@ -27,23 +27,6 @@ class ModelIndex:
     @property
     def label(self) -> str:
         return self.variants[0].label
-
-
-def _predictor_config(name: str, overrides: Mapping[str, Any]) -> dict:
-    from omegaconf import OmegaConf
-
-    from overhang_framework.config import compose_config, group_options
-
-    options = group_options("predictor")
-    if name not in options:
-        raise ConfigError(f"fit.models: unknown predictor {name!r}; installed predictors: {', '.join(options)}")
-    base = OmegaConf.to_container(compose_config([f"predictor={name}"]).predictor, resolve=True)
-    unknown = [k for k in overrides if k not in base]
-    if unknown:
-        raise ConfigError(f"fit.models.{name}: predictor {name!r} has no setting {unknown[0]!r}; "
-                          f"settings: {', '.join(sorted(base))}")
-    base.update(overrides)
-    return base
 
 
 def risk_grid(grid: Any, form: Any, family: str) -> tuple[list[float], str]:
