@@ -17,8 +17,6 @@ KNOWN = [
     {"overhang_builtins.values", "overhang_framework.advice", "overhang_framework.app", "overhang_framework.optimum",
      "overhang_framework.parallel", "overhang_framework.physics.factory", "overhang_framework.physics.pool",
      "overhang_framework.physics.tiered"},
-    {"overhang_framework.behaviour.analysis", "overhang_framework.behaviour.flows", "overhang_framework.behaviour.gamma",
-     "overhang_framework.behaviour.prediction", "overhang_framework.behaviour.table1"},
     {"overhang_framework.behaviour.log", "overhang_framework.behaviour.psychds"},
 ]
 

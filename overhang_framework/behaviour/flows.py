@@ -30,8 +30,8 @@ from typing import Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from overhang_framework.behaviour.analysis import (Section, colour, finding, fmt_ms, markdown_table, mean_sem, p_is,
-                                                  permutation_p, save_figure, write_csv)
+from overhang_framework.behaviour.shared import (Section, colour, finding, fmt_ms, markdown_table, mean_sem, p_is,
+                                                permutation_p, save_figure, write_csv)
 from overhang_framework.behaviour.log import in_step_order, last_records
 
 EXAMPLE_SEQUENCE = (0.6, 1.8, 1.2, 1.8, 0.6, 1.8)

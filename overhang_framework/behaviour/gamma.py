@@ -24,9 +24,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from overhang_framework.behaviour.analysis import (GAMMA_TOWERS, Section, colour, finding, fmt_ms, markdown_table,
-                                                   mean_sem, p_is, paper_pair, permutation_p, save_figure,
-                                                   write_csv)
+from overhang_framework.behaviour.shared import (GAMMA_TOWERS, Section, colour, finding, fmt_ms, markdown_table,
+                                                 mean_sem, p_is, paper_pair, permutation_p, save_figure,
+                                                 write_csv)
 from overhang_framework.behaviour.log import in_step_order, last_records
 from overhang_framework.geometry import Block, Geometry, check_width
 

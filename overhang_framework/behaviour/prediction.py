@@ -38,8 +38,8 @@ from typing import Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from overhang_framework.behaviour.analysis import (Section, bootstrap_ci, colour, markdown_table, save_figure,
-                                                   write_csv)
+from overhang_framework.behaviour.shared import (Section, bootstrap_ci, colour, markdown_table, save_figure,
+                                                 write_csv)
 from overhang_framework.geometry import Action, Block, Geometry, check_width
 from overhang_framework.interfaces import State
 

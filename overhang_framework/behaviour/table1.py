@@ -25,8 +25,8 @@ from typing import Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from overhang_framework.behaviour.analysis import (Section, finding, fmt_ms, fmt_p, is_paper_comparison,
-                                                   markdown_table, mean_sem, paper_pair, permutation_p, write_csv)
+from overhang_framework.behaviour.shared import (Section, finding, fmt_ms, fmt_p, is_paper_comparison,
+                                                 markdown_table, mean_sem, paper_pair, permutation_p, write_csv)
 from overhang_framework.behaviour.log import in_step_order, last_records
 
 #: The number of tasks (trials per participant) of the paper's study.
