@@ -309,8 +309,8 @@ def fitted(fits: pd.DataFrame) -> tuple[pd.DataFrame, dict[str, str]]:
     fits = with_neutral(fits)
     people = per_participant(fits)
     best = winners(fits)
-    conditions = people.drop_duplicates("participant").set_index(people.drop_duplicates("participant")
-                                                                  ["participant"].astype(str))["condition"]
+    first = people.drop_duplicates("participant")
+    conditions = first.set_index(first["participant"].astype(str))["condition"]
     out = pd.DataFrame({"participant": best["participant"].astype(str)})
     out["condition"] = out["participant"].map(conditions)
     out["fitted_depth"] = best["depth"].to_numpy(dtype=float)
@@ -343,9 +343,9 @@ def limits_of(conditions: Sequence[str]) -> dict[str, Optional[float]]:
 
 
 def _truth_lines(truth: pd.DataFrame, people: pd.DataFrame, levels: Sequence[str]) -> list[str]:
-    """The simulated truth beside the fitted values, a row per parameter the truth has."""
-    truth = truth.rename(columns={"id": "participant"}).copy()
-    truth["participant"] = truth["participant"].astype(str)
+    """The simulated truth (:func:`_truth_file`'s, ids as ``participant``) beside the fitted values, a row per
+    parameter the truth has."""
+    truth = truth.assign(participant=truth["participant"].astype(str))
     at = people.merge(truth, on="participant", how="left", suffixes=("", "_truth"))
     rows = []
     for name, column in (("depth", "fitted_depth"), *FITTED.items()):
@@ -462,7 +462,7 @@ def _fitted_study(args) -> int:
              for m, at in pred.groupby("measure", sort=True)}
     counts = {m.name: {level: {f"{m.name}={v:g}": int(n) for v, n in
                                people.loc[people["condition"] == level, m.column].value_counts().sort_index().items()}
-                       for level in levels} for m in measures if m.name in ("K", "depth", "risk")}
+                       for level in levels} for m in measures if m.name in ("depth", *FITTED)}
     print(json.dumps({"levels": levels, "models": models, "sample_sizes": sample_sizes(table),
                       "means": means, "counts": counts, "resamples": int(args.resamples),
                       "trends": {r["measure"]: {"rho": _number(r["rho"]), "p": _number(r["p"]),
