@@ -7,13 +7,14 @@ import logging
 import signal
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Optional
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from overhang_framework.advice import run_notes
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs, in_sweep
@@ -21,8 +22,9 @@ from overhang_framework.episode import play_run_episode
 from overhang_framework.errors import ConfigError, OverhangError, first_line
 from overhang_framework.interrupts import raising, stop_if_ctrl_c
 from overhang_framework.parallel import merge_stats
+from overhang_framework.episode import play_episodes
 from overhang_framework.physics.pool import PoolCrashed
-from overhang_framework.plugins import Registry
+from overhang_framework import plugins
 from overhang_framework.progress import progress_bar
 from overhang_framework.results import EpisodeLog, atomic_write_json, readable, summarize
 from overhang_framework.rundir import RunDir, finished_jobs, result_config
@@ -32,20 +34,16 @@ enable_plugin_configs()
 log = logging.getLogger("overhang_framework")
 
 
-def _params(cfg: DictConfig) -> dict[str, Any]:
-    return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+_params = plugins.plain
 
 
-def build_models(cfg: DictConfig, registry: Registry | None = None) -> dict[str, Any]:
-    """World, value, predictor and planner named by ``cfg``, built through the registry."""
-    registry = registry or Registry()
-    world = registry.create("world", _params(cfg.world))
-    return {
-        "world": world,
-        "value": registry.create("value", _params(cfg.value), world=world),
-        "predictor": registry.create("predictor", _params(cfg.predictor), world=world),
-        "planner": registry.create("planner", _params(cfg.planner), world=world),
-    }
+def __getattr__(name: str) -> Any:
+    if name == "build_models":
+        warnings.warn("overhang_framework.app.build_models moved to overhang_framework.build_models "
+                      "(overhang_framework.plugins.build_models); the old name goes in the next release",
+                      DeprecationWarning, stacklevel=2)
+        return plugins.build_models
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _whole(cfg: DictConfig, key: str, minimum: int) -> int:
@@ -161,7 +159,7 @@ def check_config(cfg: DictConfig, keep: bool = False) -> Checked:
         tasks=tasks_from_config(cfg.tasks))
     key = _models_key(cfg)
     kept = _kept_models.get(key)
-    models = kept.pop() if kept and not keep else build_models(cfg)
+    models = kept.pop() if kept and not keep else plugins.build_models(cfg)
     if keep:
         _kept_models.setdefault(key, []).append(models)
     return Checked(**checked, models=models)
@@ -320,8 +318,6 @@ def run_unlocked(cfg: DictConfig, out_dir: Path) -> dict:
                                    on_step=watch.placed, on_charge=watch.charged)
 
     if checked.jobs > 1 and len(todo) > 1:
-        from overhang_framework.parallel import play_episodes
-
         bar.set_postfix_str(f"{min(checked.jobs, len(todo))} processes")
         records = play_episodes(_params(cfg), todo, seed, time_limit, call_limit, checked.jobs,
                                 on_step=lambda: bar.update(1), counters=worker_counters)

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, Optional
+from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
 
 import numpy as np
 
 from overhang_framework.interfaces import Budget, Planner, Predictor, Task, Value, World
+from overhang_framework.parallel import pool_map, tick
+from overhang_framework.plugins import build_models
+from overhang_framework.tasks import tasks_from_config
 
 
 def episode_rng(seed: int, task_index: int, repeat: int) -> np.random.Generator:
@@ -80,3 +83,37 @@ def play_run_episode(models: dict, task: Task, index: int, repeat: int, seed: in
                          on_charge=on_charge)
     record.update({"seed": seed, "repeat": repeat, "task_index": index})
     return record
+
+
+def _episode_setup(config: Mapping[str, Any]) -> tuple[dict, list]:
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create(dict(config))
+    return build_models(cfg), tasks_from_config(cfg.tasks)
+
+
+def _episode_play(state: tuple[dict, list], job: tuple) -> tuple[dict, dict]:
+    models, tasks = state
+    index, repeat, seed, time_limit, call_limit = job
+    record = play_run_episode(models, tasks[index], index, repeat, seed, time_limit, call_limit,
+                              on_step=lambda step: tick())
+    models["episodes_played"] = models.get("episodes_played", 0) + 1
+    counters = {"world": models["world"].stats(), "predictor": getattr(models["predictor"], "stats", dict)(),
+                "episodes_played": models["episodes_played"]}
+    return record, counters
+
+
+def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], seed: int,
+                  time_limit: Optional[float], call_limit: Optional[int], workers: int,
+                  on_step: Callable[[], None], counters: Optional[dict] = None) -> Iterator[dict]:
+    """Yield the record of every ``(task index, repeat)`` in ``todo`` as it finishes, played on
+    ``workers`` processes; ``on_step`` is called once per placement made anywhere. ``counters``, when
+    given, receives each worker's latest world and predictor stats by process id (see
+    :func:`merge_stats`)."""
+    jobs = [(index, repeat, seed, time_limit, call_limit) for index, repeat in todo]
+    for _, (record, latest), pid in pool_map(_episode_setup, (dict(config),), _episode_play, jobs, workers, on_step):
+        # a worker's counters only grow; results that finish together come in any order, so keep its latest
+        played = latest.pop("episodes_played")
+        if counters is not None and played >= counters.get(pid, {}).get("_played", 0):
+            counters[pid] = {**latest, "_played": played}
+        yield record

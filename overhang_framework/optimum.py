@@ -32,6 +32,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from overhang_framework.interfaces import Budget, Predictor, State, Task, World
+from overhang_framework.plugins import Registry
 from overhang_framework.results import atomic_write_json
 from overhang_framework.physics.factory import SOLVER_SETTINGS  # noqa: F401  (result keys leave these out)
 from overhang_framework.physics.factory import identity as _ident
@@ -52,10 +53,8 @@ class _FinalOverhang:
     """
 
     def __init__(self, world: World, lattice: bool = False):
-        from overhang_builtins.values import OverhangValue
-
         self.world = world
-        self.inner = OverhangValue(world)
+        self.inner = Registry().create("value", {"name": "overhang"}, world=world)
         self.lattice = lattice
         self._steps: dict = {}
 
@@ -209,8 +208,6 @@ def task_optimum(task: Task, world: World, predictor: Optional[Predictor] = None
     if cached is not None:
         return cached
     if predictor is None:
-        from overhang_framework.plugins import Registry
-
         predictor = Registry().create("predictor", {"name": "veridical"}, world=world)
     started = time.perf_counter()
     search = OptimumSearch(world, predictor)
@@ -223,7 +220,7 @@ def task_optimum(task: Task, world: World, predictor: Optional[Predictor] = None
 
 def _solve(overrides: Sequence[str], index: int) -> tuple[str, dict]:
     """Worker: the optimum of task ``index`` of the config ``overrides`` compose to."""
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.tasks import tasks_from_config
 
@@ -271,7 +268,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     from overhang_framework.progress import progress_bar
 
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.errors import OverhangError
     from overhang_framework.preflight import check_command_line

@@ -1,7 +1,7 @@
 """Work spread over worker processes (``jobs=N``), with the results of a serial run.
 
 :func:`pool_map` runs any function over items on spawned workers, each of which
-builds what it needs once; :func:`play_episodes` plays a run's episodes with it.
+builds what it needs once (:func:`overhang_framework.episode.play_episodes` plays a run's episodes with it).
 
 Every episode draws its generator from ``(seed, task index, repeat)`` and the
 physics answers do not depend on what ran before (a cache only remembers
@@ -26,7 +26,7 @@ import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, Callable, Iterable, Iterator, Mapping, Optional, Sequence
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 _STATE: Any = None
 _TICKS = None
@@ -126,45 +126,6 @@ def pool_map(setup: Callable[..., Any], args: tuple, work: Callable[[Any, Any], 
         for process in processes:
             if process.is_alive():
                 process.terminate()
-
-
-def _episode_setup(config: Mapping[str, Any]) -> tuple[dict, list]:
-    from omegaconf import OmegaConf
-
-    from overhang_framework.app import build_models
-    from overhang_framework.tasks import tasks_from_config
-
-    cfg = OmegaConf.create(dict(config))
-    return build_models(cfg), tasks_from_config(cfg.tasks)
-
-
-def _episode_play(state: tuple[dict, list], job: tuple) -> tuple[dict, dict]:
-    from overhang_framework.episode import play_run_episode
-
-    models, tasks = state
-    index, repeat, seed, time_limit, call_limit = job
-    record = play_run_episode(models, tasks[index], index, repeat, seed, time_limit, call_limit,
-                              on_step=lambda step: tick())
-    models["episodes_played"] = models.get("episodes_played", 0) + 1
-    counters = {"world": models["world"].stats(), "predictor": getattr(models["predictor"], "stats", dict)(),
-                "episodes_played": models["episodes_played"]}
-    return record, counters
-
-
-def play_episodes(config: Mapping[str, Any], todo: Sequence[tuple[int, int]], seed: int,
-                  time_limit: Optional[float], call_limit: Optional[int], workers: int,
-                  on_step: Callable[[], None], counters: Optional[dict] = None) -> Iterator[dict]:
-    """Yield the record of every ``(task index, repeat)`` in ``todo`` as it finishes, played on
-    ``workers`` processes; ``on_step`` is called once per placement made anywhere. ``counters``, when
-    given, receives each worker's latest world and predictor stats by process id (see
-    :func:`merge_stats`)."""
-    jobs = [(index, repeat, seed, time_limit, call_limit) for index, repeat in todo]
-    for _, (record, latest), pid in pool_map(_episode_setup, (dict(config),), _episode_play, jobs, workers, on_step):
-        # a worker's counters only grow; results that finish together come in any order, so keep its latest
-        played = latest.pop("episodes_played")
-        if counters is not None and played >= counters.get(pid, {}).get("_played", 0):
-            counters[pid] = {**latest, "_played": played}
-        yield record
 
 
 def merge_stats(parts: Sequence[Any]) -> Any:

@@ -1,4 +1,4 @@
-"""The plugin manager and the registry of named implementations."""
+"""The plugin manager, the registry of named implementations, and the models a config names built through it."""
 
 from __future__ import annotations
 
@@ -159,3 +159,22 @@ def _impls_of(pm: pluggy.PluginManager, plugin: object):
 def _paths_of(plugin: object) -> list[str]:
     fn = getattr(plugin, "config_search_paths", None)
     return list(fn() or []) if fn else []
+
+
+def plain(cfg: Any) -> dict[str, Any]:
+    """A config group (an OmegaConf node) as plain data, interpolations resolved; plain data as it is."""
+    from omegaconf import DictConfig, OmegaConf
+
+    return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)  # type: ignore[return-value]
+
+
+def build_models(cfg: Any, registry: Optional[Registry] = None) -> dict[str, Any]:
+    """World, value, predictor and planner named by ``cfg`` (a composed config), built through the registry."""
+    registry = registry or Registry()
+    world = registry.create("world", plain(cfg.world))
+    return {
+        "world": world,
+        "value": registry.create("value", plain(cfg.value), world=world),
+        "predictor": registry.create("predictor", plain(cfg.predictor), world=world),
+        "planner": registry.create("planner", plain(cfg.planner), world=world),
+    }

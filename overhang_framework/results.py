@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import math
 import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping
+from typing import Any, Iterable, Iterator, Mapping, Optional
 
 import numpy as np
 
@@ -208,3 +209,28 @@ def without_timing(record: Any) -> Any:
     if isinstance(record, list):
         return [without_timing(v) for v in record]
     return record
+
+
+_FILE_DIGESTS: dict[tuple, str] = {}
+
+
+def file_sha256(path: str | Path) -> Optional[str]:
+    """The SHA-256 of the bytes of the file at ``path`` (hex), computed once per file and remembered while its
+    size and change times stay the same; None when there is no such file."""
+    try:
+        path = Path(path).expanduser().resolve()
+        st = path.stat()
+    except OSError:
+        return None
+    mark = (str(path), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+    known = _FILE_DIGESTS.get(mark)
+    if known is None:
+        made = hashlib.sha256()
+        try:
+            with open(path, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    made.update(chunk)
+        except OSError:
+            return None
+        known = _FILE_DIGESTS[mark] = made.hexdigest()
+    return known

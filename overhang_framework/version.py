@@ -8,9 +8,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Optional
 
-import overhang_framework
-
-PACKAGE_DIR = Path(overhang_framework.__file__).resolve().parent
+#: The release (pyproject.toml's ``version``).
+__version__ = "0.1.0"
+PACKAGE_DIR = Path(__file__).resolve().parent
 
 
 def _checkout_top(directory: Path) -> Optional[Path]:
@@ -63,7 +63,7 @@ def commit() -> str:
 
 def version() -> str:
     """The framework's version number."""
-    return overhang_framework.__version__
+    return __version__
 
 
 def versions() -> dict:

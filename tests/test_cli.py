@@ -461,15 +461,16 @@ def test_a_model_failing_mid_run_is_one_line_and_keeps_finished_episodes(tmp_pat
 @pytest.mark.parametrize("launch", ["run", "basic sweep", "joblib sweep"])
 def test_each_job_builds_its_models_once(tmp_path, monkeypatch, launch):
     import overhang_framework.app as app
+    import overhang_framework.plugins as plugins
     from overhang_framework.cli import main
 
-    real, built = app.build_models, []
+    real, built = plugins.build_models, []
 
     def counting(cfg, *args, **kwargs):
         built.append(cfg.seed)
         return real(cfg, *args, **kwargs)
 
-    monkeypatch.setattr(app, "build_models", counting)
+    monkeypatch.setattr(plugins, "build_models", counting)
     if launch == "run":
         main([*QUICK, "world.physics=static", f"hydra.run.dir={tmp_path}"])
         assert len(built) == 1  # the check's models run
@@ -496,7 +497,7 @@ def test_each_job_builds_its_models_once(tmp_path, monkeypatch, launch):
 ])
 def test_settings_known_to_be_slow_or_to_mean_less_are_said_before_the_run(overrides, said):
     from overhang_framework.advice import run_notes
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.tasks import tasks_from_config
 
@@ -510,7 +511,7 @@ def test_settings_known_to_be_slow_or_to_mean_less_are_said_before_the_run(overr
     ["predictor=hybrid", "planner=lookahead", "planner.depth=3"]])
 def test_ordinary_settings_get_no_note(overrides):
     from overhang_framework.advice import run_notes
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.tasks import tasks_from_config
 

@@ -446,7 +446,7 @@ def unfused_and_fused():
 def test_the_fused_network_gives_the_trained_networks_probabilities(unfused_and_fused):
     import torch
 
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
 
     unfused, folded, onnx = unfused_and_fused
     assert unfused.runtime == folded.runtime == "torch" and onnx.runtime == "onnxruntime"
@@ -488,7 +488,7 @@ def test_folding_keeps_any_timm_networks_output_and_needs_eval_mode():
 
 
 def test_mirrored_images_equal_the_images_of_mirrored_towers():
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
     from overhang_framework.render import RasterRenderer, block_arrays
 
     widths, xs, layers, mask = block_arrays(random_towers(200, seed=2))
@@ -699,7 +699,7 @@ def test_the_cnn_runs_on_one_torch_thread_by_default(overrides):
     """Two threads collapse when another job holds a core; the default must be the setting that never does."""
     import torch
 
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
 
     before = torch.get_num_threads()

@@ -26,7 +26,7 @@ def test_every_option_composes_and_names_itself(group):
 
 
 def test_default_config_builds_every_model():
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
 
     cfg = compose_config(["world.physics=pybullet"])
     models = build_models(cfg)

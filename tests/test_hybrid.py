@@ -121,7 +121,7 @@ def test_bad_hybrid_settings_are_refused():
 
 def test_the_hybrid_config_builds_ipe_then_cnn():
     cfg = compose_config(["predictor=hybrid", "world.physics=static"])
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
 
     predictor = build_models(cfg)["predictor"]
     assert type(predictor.early).__name__ == "IPEPredictor" and predictor.early.K == 50

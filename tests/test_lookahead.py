@@ -272,7 +272,7 @@ def test_the_myopic_reward_can_be_the_gain_or_the_final_reward(world, veridical,
 
 def test_the_reach_bound_from_placement_arrays_equals_the_one_from_actions():
     """max_reach takes a world's placements as arrays when it offers them (legal_xs), else its actions."""
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
     from overhang_framework.interfaces import State
     from overhang_framework.search import max_reach, reach_bound
 

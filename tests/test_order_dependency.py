@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from overhang_framework.behaviour.order_dependency import OrderCounts, order_counts, order_counts_many
-from overhang_framework.bench.towers import episode_questions, family_towers, random_towers
+from overhang_framework.physics.towers import episode_questions, family_towers, random_towers
 from overhang_framework.check import build_world
 from overhang_framework.geometry import Action, Geometry
 from overhang_framework.rules import illegal_reason

@@ -82,7 +82,7 @@ def test_batch_sends_each_distinct_miss_once():
 
 
 def test_verdicts_match_the_wrapped_backend():
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
 
     towers = random_towers(50, seed=1)
     static = StaticBackend()

@@ -10,7 +10,7 @@ pytest.importorskip("pybullet")
 
 from overhang_framework.physics.pool import PoolCrashed, PyBulletPool
 from overhang_framework.physics.pybullet_backend import PyBulletBackend
-from overhang_framework.bench.towers import random_towers
+from overhang_framework.physics.towers import random_towers
 
 
 def test_pool_verdicts_equal_serial():

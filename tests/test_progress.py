@@ -54,7 +54,8 @@ def test_the_stream_decides_the_kind_of_progress(monkeypatch):
 
 def test_a_long_decision_shows_its_predictor_calls_as_it_goes():
     """The budget's observer sees every charge; the run's watch puts the calls on the bar."""
-    from overhang_framework.app import DecisionWatch, build_models
+    from overhang_framework.app import DecisionWatch
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.episode import episode_rng, run_episode
     from overhang_framework.interfaces import Task

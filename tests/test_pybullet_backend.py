@@ -9,7 +9,7 @@ from overhang_framework.physics.pybullet_backend import (
     PyBulletParams,
     PyBulletSimulator,
 )
-from overhang_framework.bench.towers import random_towers
+from overhang_framework.physics.towers import random_towers
 
 
 @pytest.fixture(scope="module")

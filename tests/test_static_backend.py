@@ -5,7 +5,7 @@ import pytest
 
 from overhang_framework.geometry import Geometry
 from overhang_framework.physics.static_backend import StaticBackend, StaticParams
-from overhang_framework.bench.towers import random_towers
+from overhang_framework.physics.towers import random_towers
 
 
 def G(*rows):

@@ -5,7 +5,7 @@ thousands of scenes including near-critical ones."""
 import numpy as np
 import pytest
 
-from overhang_framework.bench.towers import family_towers, random_towers, with_last_x
+from overhang_framework.physics.towers import family_towers, random_towers, with_last_x
 from overhang_framework.geometry import Geometry
 from overhang_framework.physics import static_backend as sb
 from overhang_framework.physics.static_backend import StaticBackend, StaticParams

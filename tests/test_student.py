@@ -33,7 +33,7 @@ def test_a_student_is_built_by_name_and_its_onnx_answers_equal_torchs(tmp_path):
 
     from overhang_framework.cnn.model import build_model, save_checkpoint
     from overhang_framework.cnn.student import STUDENT_RENDERER
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
 
     torch.manual_seed(0)
     net = build_model("layerconv_s", 1, 2, (8, 160))
@@ -75,7 +75,7 @@ def test_shipped_names_resolve_and_an_unknown_one_is_a_path():
 
 
 def test_keys_of_the_predictor_cache_round_trip_to_the_towers():
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
     from overhang_framework.cnn.data import from_arrays
     from overhang_framework.cnn.distill import keys_to_arrays
 

@@ -5,7 +5,7 @@ import pytest
 
 pytest.importorskip("pybullet")
 
-from overhang_framework.bench.towers import FAMILIES, family_towers, find_flips, last_block_interval, with_last_x
+from overhang_framework.physics.towers import FAMILIES, family_towers, find_flips, last_block_interval, with_last_x
 from overhang_framework.geometry import Geometry
 from overhang_framework.physics.factory import make_backend
 from overhang_framework.physics.pybullet_backend import PyBulletParams, PyBulletSimulator

@@ -6,7 +6,7 @@ import pytest
 from overhang_framework.geometry import WIDTHS
 from overhang_framework.physics.static_backend import StaticBackend
 from overhang_framework.rules import is_legal
-from overhang_framework.bench.towers import (
+from overhang_framework.physics.towers import (
     FAMILIES,
     family_towers,
     Geometry,

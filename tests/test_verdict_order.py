@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("pybullet")
 
 from overhang_framework.bench.physics import ipe_scenes
-from overhang_framework.bench.towers import family_towers, find_flips, last_block_interval, with_last_x
+from overhang_framework.physics.towers import family_towers, find_flips, last_block_interval, with_last_x
 from overhang_framework.geometry import Block, Geometry, canonical_key, canonical_order
 from overhang_framework.physics.cache import CachedBackend, DiskCachedBackend, VerdictCache, verdict_key
 from overhang_framework.physics.pybullet_backend import PyBulletBackend, PyBulletParams, PyBulletSimulator

@@ -45,7 +45,7 @@ from overhang_framework.bench.physics import machine
 from overhang_framework.geometry import Action, Geometry
 from overhang_framework.interfaces import State
 from overhang_framework.physics.factory import make_backend
-from overhang_framework.bench.towers import episode_questions, near_critical_towers, random_towers
+from overhang_framework.physics.towers import episode_questions, near_critical_towers, random_towers
 
 
 def as_question(tower: Geometry) -> tuple[State, Action]:

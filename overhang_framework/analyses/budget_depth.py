@@ -43,7 +43,7 @@ def run(overrides: Sequence[str], budgets: Sequence[Optional[int]], depth: int, 
     """One row per budget, from every task of the composed config played once with that budget."""
     from overhang_framework.progress import progress_bar
 
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.episode import episode_rng, run_episode
     from overhang_framework.tasks import tasks_from_config

@@ -43,7 +43,7 @@ import numpy as np
 from overhang_framework.analyses.plots import plot_by_blocks
 from overhang_framework.physics.factory import make_backend
 from overhang_framework.results import atomic_write_json, atomic_write_text, mean_sem
-from overhang_framework.bench.towers import Verdicts, episode_questions
+from overhang_framework.physics.towers import Verdicts, episode_questions
 
 
 def binary_entropy(p: np.ndarray) -> np.ndarray:

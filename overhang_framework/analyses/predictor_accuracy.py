@@ -1,6 +1,6 @@
 """Accuracy of predictors against the reference physics by number of blocks: where should the hybrid switch?
 
-Questions are episode-like (:func:`overhang_framework.bench.towers.episode_questions`):
+Questions are episode-like (:func:`overhang_framework.physics.towers.episode_questions`):
 a tower whose every prefix stands by the reference, plus one more block of a
 random width at a uniformly random legal action on the world's 0.1 grid, as a
 planner scores it. For ``n`` = 2 to 7 blocks after the action, ``--towers``
@@ -32,7 +32,7 @@ import numpy as np
 
 from overhang_framework.analyses.ipe_mechanism import chunked, to_csv
 from overhang_framework.analyses.plots import plot_by_blocks
-from overhang_framework.bench.towers import episode_questions
+from overhang_framework.physics.towers import episode_questions
 from overhang_framework.physics.factory import make_backend
 from overhang_framework.results import atomic_write_json, atomic_write_text, mean_sem
 

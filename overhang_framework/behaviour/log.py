@@ -43,6 +43,7 @@ from typing import Any, Iterable, Mapping, Optional, Sequence, Union
 import numpy as np
 import pandas as pd
 
+from overhang_framework.behaviour.dataset_rules import data_files
 from overhang_framework.check import BadTower, parse_tower
 from overhang_framework.errors import OverhangError
 from overhang_framework.geometry import MAX_LAYER, WIDTHS, Block, Geometry, IllegalWidth, check_width, overhang
@@ -535,8 +536,6 @@ def read_log(paths: Union[PathLike, Sequence[PathLike]]) -> pd.DataFrame:
     the file, the line and the field."""
     files = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     if any(Path(name).is_dir() for name in files):
-        from overhang_framework.behaviour.psychds import data_files
-
         files = [f for name in files for f in (data_files(name) if Path(name).is_dir() else [name])]
     entries: list[tuple[str, dict]] = []
     for name in files:

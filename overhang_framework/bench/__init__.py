@@ -1,6 +1,6 @@
 """Benchmarks and their data: how fast and how right the physics is.
 
-* :mod:`~overhang_framework.bench.towers` -- seeded random, near-critical and
+* :mod:`~overhang_framework.physics.towers` -- seeded random, near-critical and
   episode-like towers (benchmark data).
 * :mod:`~overhang_framework.bench.physics` -- ``python -m overhang_framework.bench``:
   the PyBullet reference, early stopping, the static backend, pool and cache.

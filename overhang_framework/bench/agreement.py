@@ -3,7 +3,7 @@
 Measures, against the reference verdict (full-window PyBullet of the exact
 geometry, :mod:`overhang_framework.physics.pybullet_backend`):
 
-* **near-critical families** (:data:`~overhang_framework.bench.towers.FAMILIES`):
+* **near-critical families** (:data:`~overhang_framework.physics.towers.FAMILIES`):
   for every family but ``edge``, seeded towers whose last block is moved to
   ``--offsets`` uniform offsets within ``--window`` of the x where the
   reference flips (found by bisection with the reference, to 3 mm); ``edge``
@@ -50,7 +50,7 @@ from typing import Optional, Sequence
 import numpy as np
 from overhang_framework.progress import progress_bar
 
-from overhang_framework.bench.towers import FAMILIES, family_towers, find_flips, last_block_interval, with_last_x
+from overhang_framework.physics.towers import FAMILIES, family_towers, find_flips, last_block_interval, with_last_x
 from overhang_framework.bench.workload import planner_workload
 from overhang_framework.geometry import Geometry
 from overhang_framework.physics.pool import PyBulletPool

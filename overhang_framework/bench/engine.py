@@ -29,7 +29,7 @@ SETTINGS = {"now": "true", "before": "false"}
 
 
 def _world(overrides: Sequence[str], lp_nnls: str):
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
 
     cfg = compose_config([*overrides, "predictor=veridical", "planner=myopic", f"+world.static.lp_nnls={lp_nnls}",

@@ -112,7 +112,7 @@ def _orders(n: int, rng: np.random.Generator, k: int = 3) -> list[tuple]:
 def permutations(n: int = 100, seed: int = 1, quiet: bool = False) -> dict:
     """``n`` towers of the ``edge`` family (``seed``), each in its listed order and three shuffles: in each
     engine order, how many towers get more than one verdict."""
-    from overhang_framework.bench.towers import family_towers
+    from overhang_framework.physics.towers import family_towers
 
     towers = family_towers("edge", n, seed=seed)
     rng = np.random.default_rng([seed, 7])
@@ -195,7 +195,7 @@ def log_candidates(path: str, quiet: bool = False) -> dict:
 def speed(n: int = 200, seed: int = 0, quiet: bool = False) -> dict:
     """Full-window checks of ``n`` random towers and ``n // 4`` each of the edge and indeterminate families,
     their block lists shuffled, each checked in both orders (which first alternates at random)."""
-    from overhang_framework.bench.towers import family_towers, random_towers
+    from overhang_framework.physics.towers import family_towers, random_towers
 
     rng = np.random.default_rng(seed)
     towers = random_towers(n, seed=seed) + family_towers("edge", n // 4, seed=seed) \

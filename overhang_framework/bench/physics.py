@@ -48,7 +48,7 @@ from overhang_framework.physics.pybullet_backend import (
 )
 from overhang_framework.physics.static_backend import StaticBackend, StaticParams
 from overhang_framework.results import atomic_write_json
-from overhang_framework.bench.towers import near_critical_towers, random_towers, with_last_x
+from overhang_framework.physics.towers import near_critical_towers, random_towers, with_last_x
 
 THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2)
 COMBINE_RULES = ("product", "min", "mean")

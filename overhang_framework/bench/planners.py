@@ -29,7 +29,7 @@ import numpy as np
 
 def mid_episode_states(overrides: Sequence[str], n: int, placed: int = 2) -> list:
     """States with ``placed`` blocks put down by the myopic planner, one per task (first ``n`` tasks)."""
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.interfaces import Budget
     from overhang_framework.tasks import tasks_from_config
@@ -52,7 +52,7 @@ def decisions(overrides: Sequence[str], states: list, predictor: str, depth: int
     """Time one cold-cache decision per state; count what pruning saved."""
     from overhang_framework.progress import progress_bar
 
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.interfaces import Budget
 

@@ -30,7 +30,7 @@ import numpy as np
 
 def decide(overrides: Sequence[str], state, depth: int, lazy: bool) -> dict:
     """One decision from a cold cache: the best root actions, their score, seconds and reference runs."""
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.interfaces import Budget
     from overhang_framework.search import Expander, root_scores, ties

@@ -36,7 +36,7 @@ def speed(checkpoints: Sequence[str], threads: int = 1, batch: int = 64, towers:
     """Per-image and per-tower microseconds of each checkpoint, the forward pass alone and with rendering."""
     import torch
 
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
     from overhang_framework.cnn.model import StabilityModel
     from overhang_framework.render import block_arrays
 
@@ -106,7 +106,7 @@ def task_list(name: str, limit: Optional[int] = None):
 
 
 def models_with(checkpoint: str, depth: int, extra: Sequence[str] = ()) -> dict:
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
 
     return build_models(compose_config(["predictor=hybrid", "planner=lookahead", f"planner.depth={depth}",
@@ -267,7 +267,7 @@ def headline(versions: Sequence[str], tasks: str = "paper20", limit: Optional[in
 
 
 def models_with_overrides(depth: int, overrides: Sequence[str]) -> dict:
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
 
     return build_models(compose_config(["predictor=hybrid", "planner=lookahead", f"planner.depth={depth}",

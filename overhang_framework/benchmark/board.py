@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 from typing import Optional, Sequence
 
-from overhang_framework.version import commit
+from overhang_framework.version import __version__, commit
 
 DATA_FILE = Path(__file__).resolve().parent.parent / "data" / "leaderboard.csv"
 NO_CALLS = 0.5
@@ -35,8 +35,6 @@ def command_of(run_dir: Path) -> str:
 def row_of(run_dir: Path, agent: Optional[str] = None, wall: Optional[float] = None, jobs: Optional[int] = None) -> dict:
     """The leaderboard row of the finished run in ``run_dir``; ``wall`` (seconds, every sitting of the run added up)
     and ``jobs`` (episodes played at once) when known, as ``rerun`` knows them."""
-    import overhang_framework
-
     path = run_dir / "summary.json"
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} has no summary.json; is it a finished benchmark run?")
@@ -53,7 +51,7 @@ def row_of(run_dir: Path, agent: Optional[str] = None, wall: Optional[float] = N
             "calls_per_decision": s.get("calls_per_decision"), "seconds_per_decision": s.get("seconds_per_decision"),
             "wall_seconds": None if wall is None else round(float(wall), 1), "jobs": jobs,
             "curve": json.dumps(s["curve"]) if s.get("curve") else "", "physics": s.get("physics"),
-            "command": command_of(run_dir), "config": json.dumps(s.get("config", {}), sort_keys=True), "version": overhang_framework.__version__, "commit": commit(),
+            "command": command_of(run_dir), "config": json.dumps(s.get("config", {}), sort_keys=True), "version": __version__, "commit": commit(),
             "date": _dt.date.today().isoformat()}
 
 

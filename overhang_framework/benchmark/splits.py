@@ -94,7 +94,7 @@ def paper20_sequences() -> list[list[float]]:
 def measure(ids: Iterable[str], progress: bool = True) -> dict[str, dict]:
     """The difficulty measures of the tasks ``ids``: myopic and depth-2 rewards under the static
     physics (veridical predictor, argmax, seed 0), and the myopic gap ``1 - myopic / depth2``."""
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
     from overhang_framework.episode import episode_rng, run_episode
     from overhang_framework.progress import progress_bar

@@ -78,7 +78,7 @@ def thread_settings(text: str) -> list[tuple[str, int]]:
 
 
 def main(argv=None) -> dict:
-    from overhang_framework.bench.towers import random_towers
+    from overhang_framework.physics.towers import random_towers
     from overhang_framework.cnn.model import parse_mirror
     from overhang_framework.interfaces import State
     from overhang_framework.plugins import Registry

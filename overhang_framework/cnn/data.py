@@ -125,7 +125,7 @@ def standing_prefixes(rng: np.random.Generator, sizes: Sequence[int], static, re
 
 def sample_questions(rng: np.random.Generator, n: int, spec: DataSpec, static) -> tuple[list[Geometry], np.ndarray]:
     """``n`` question towers and whether each is near-critical (before labelling and balancing)."""
-    from overhang_framework.bench.towers import find_flips, last_block_interval, with_last_x
+    from overhang_framework.physics.towers import find_flips, last_block_interval, with_last_x
 
     sizes = rng.integers(spec.min_blocks, spec.max_blocks + 1, size=n)
     prefixes = standing_prefixes(rng, sizes - 1, static, spec.resolution)

@@ -101,7 +101,7 @@ def question_part(cfg, index: int) -> dict:
 def headline_models(teacher: str, depth: int):
     """The headline model with ``teacher`` as the hybrid's late predictor, its cache large enough to
     remember every tower of an episode."""
-    from overhang_framework.app import build_models
+    from overhang_framework.plugins import build_models
     from overhang_framework.config import compose_config
 
     cfg = compose_config(["predictor=hybrid", "planner=lookahead", f"planner.depth={depth}",

@@ -36,7 +36,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from overhang_framework import __version__, rules
+from overhang_framework import rules
+from overhang_framework.version import __version__
 from overhang_framework.experiment.forwarded import ForwardedHeaders
 from overhang_framework.experiment.outcome import Outcomes
 from overhang_framework.experiment.provenance import digest as settings_digest, study_settings

@@ -225,7 +225,7 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
     ``need_admin_token=False`` is for commands that read the database directly (the export, reissuing a
     token): they answer to whoever can read the database, not to the HTTP API's admin token.
     """
-    from overhang_framework.app import _params
+    from overhang_framework.plugins import plain as _params
     from overhang_framework.plugins import Registry
     from overhang_framework.tasks import tasks_from_config
 

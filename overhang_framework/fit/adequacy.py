@@ -259,7 +259,7 @@ def read_table(path: Path) -> pd.DataFrame:
 
 def fits_digest(fitdir: Path) -> Optional[str]:
     """The SHA-256 of ``fitdir/fits.csv``: which fits a check describes."""
-    from overhang_framework.fit.scores import file_sha256
+    from overhang_framework.results import file_sha256
 
     return file_sha256(Path(fitdir) / "fits.csv")
 

@@ -639,7 +639,7 @@ def run(fitdir: Path, out: Optional[Path] = None, replicas: int = REPLICAS, mode
     except OSError as err:
         raise CheckError(f"the fit's log cannot be read: {err}") from None
     which = f"the {model} model" if model else "each participant's best model (BIC)"
-    from overhang_framework.fit.scores import file_sha256
+    from overhang_framework.results import file_sha256
 
     fitted_digest = file_sha256(fitdir / "fits.csv")
     settings = {"fit": str(fitdir.resolve()), "fits": fitted_digest, "replicas": replicas, "model": model,

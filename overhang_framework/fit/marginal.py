@@ -442,7 +442,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         people = people[: args.first]
     import json
 
-    from overhang_framework.fit.scores import file_sha256
+    from overhang_framework.results import file_sha256
 
     settings = {"logs": [file_sha256(p) for p in args.logs], "grid": grid.settings(), "draws": args.draws,
                 "bank": args.bank, "seed": args.seed, "physics": args.physics}

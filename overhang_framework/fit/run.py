@@ -94,7 +94,7 @@ class JobResult:
 def log_hashes(paths: Sequence[str | Path]) -> list[Optional[str]]:
     """The SHA-256 of each log's bytes, in the order of ``paths`` (None for a file that cannot be read, which
     reading the logs then reports)."""
-    from overhang_framework.fit.scores import file_sha256
+    from overhang_framework.results import file_sha256
 
     return [file_sha256(p) for p in paths]
 

@@ -58,6 +58,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
+from overhang_framework.results import file_sha256  # noqa: F401  (the fit's keys use it)
 from overhang_framework.errors import OverhangError
 from overhang_framework.interfaces import Budget, State, World
 from overhang_framework.search import Expander, root_scores, state_key
@@ -308,31 +309,6 @@ def physics_identity(context: Mapping[str, Any]) -> dict:
     world = context.get("world") if isinstance(context, Mapping) else None
     world = dict(world) if isinstance(world, Mapping) else {}
     return _physics(json.dumps(_plain(world), sort_keys=True, default=str))
-
-
-_FILE_DIGESTS: dict[tuple, str] = {}
-
-
-def file_sha256(path: str | Path) -> Optional[str]:
-    """The SHA-256 of the bytes of the file at ``path`` (hex), computed once per file and remembered while its
-    size and change times stay the same; None when there is no such file."""
-    try:
-        path = Path(path).expanduser().resolve()
-        st = path.stat()
-    except OSError:
-        return None
-    mark = (str(path), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
-    known = _FILE_DIGESTS.get(mark)
-    if known is None:
-        made = hashlib.sha256()
-        try:
-            with open(path, "rb") as fh:
-                for chunk in iter(lambda: fh.read(1 << 20), b""):
-                    made.update(chunk)
-        except OSError:
-            return None
-        known = _FILE_DIGESTS[mark] = made.hexdigest()
-    return known
 
 
 def content_identity(predictor: Mapping[str, Any]) -> list:

@@ -80,7 +80,7 @@ class CNNPredictor(Predictor):
         checkpoint file it loads (``checkpoint``, a shipped network's name or a path), so that score tables are
         keyed by the weights, not by the checkpoint's name (:func:`overhang_framework.fit.scores.content_identity`)."""
         from overhang_framework.cnn.model import resolve_checkpoint
-        from overhang_framework.fit.scores import file_sha256
+        from overhang_framework.results import file_sha256
 
         try:
             path = resolve_checkpoint(params.get("checkpoint", "default"))
