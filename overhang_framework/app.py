@@ -7,7 +7,6 @@ import logging
 import signal
 import sys
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Optional
@@ -25,6 +24,7 @@ from overhang_framework.parallel import merge_stats
 from overhang_framework.episode import play_episodes
 from overhang_framework.physics.pool import PoolCrashed
 from overhang_framework import plugins
+from overhang_framework.moved import forwarder
 from overhang_framework.progress import progress_bar
 from overhang_framework.results import EpisodeLog, atomic_write_json, readable, summarize
 from overhang_framework.rundir import RunDir, finished_jobs, result_config
@@ -37,13 +37,7 @@ log = logging.getLogger("overhang_framework")
 _params = plugins.plain
 
 
-def __getattr__(name: str) -> Any:
-    if name == "build_models":
-        warnings.warn("overhang_framework.app.build_models moved to overhang_framework.build_models "
-                      "(overhang_framework.plugins.build_models); the old name goes in the next release",
-                      DeprecationWarning, stacklevel=2)
-        return plugins.build_models
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = forwarder(__name__, [plugins], only=("build_models",))
 
 
 def _whole(cfg: DictConfig, key: str, minimum: int) -> int:

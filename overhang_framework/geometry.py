@@ -20,6 +20,9 @@ GRID_HEIGHT = 8.0  # z in [0, 8]
 MAX_LAYER = int(round(GRID_HEIGHT / BLOCK_HEIGHT, 9)) - 1  # top layer whose block fits the grid
 EPS = 1e-9  # geometric tolerance for contact and overlap lengths
 KEY_DECIMALS = 6  # coordinates are rounded to this many decimals in canonical keys
+#: Decimals a person's x is kept to: a logged or placed x, and one seen or moved by noise (so a log's tower is the one
+#: simulated, and a hand's shifted x the one the participant would place).
+X_DECIMALS = 6
 
 
 class IllegalWidth(ValueError):

@@ -34,7 +34,7 @@ def simulated_log(out: Path, sequences: str) -> Path:
     """A simulated log of 2 + 2 participants doing every task of ``sequences`` (a Hydra list of width lists),
     static physics, the IPE with K = 10: small enough for a fit in seconds."""
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     run(compose_config(["tasks=custom", f"tasks.sequences={sequences}", "world.physics=static", "predictor.K=10",
                         "progress=false", "cohort.participants.time_limited=2", "cohort.participants.unconstrained=2",
@@ -49,7 +49,7 @@ def fixed_cohort(out: Path, parameters: dict, participants: int, n_tasks: int, *
     from omegaconf import OmegaConf
 
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config(["world.physics=static", "progress=false", "cohort.participants.time_limited=0",
                           f"cohort.participants.unconstrained={participants}", f"cohort.n_tasks={n_tasks}",

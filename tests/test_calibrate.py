@@ -116,7 +116,7 @@ def test_a_library_with_timeouts_or_without_drawn_parameters_is_refused(library,
 
 def test_the_library_of_a_participants_run(tmp_path):
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config(["cohort=proposal", "predictor=hybrid", "world.physics=static", "progress=false",
                           "conditions.time_limited.time_limit=null", "cohort.participants.time_limited=3",
@@ -140,7 +140,7 @@ def test_the_fit_writes_a_cohort_config_that_the_participants_command_accepts(tm
 
     from overhang_framework.behaviour.participants import cohort_from_config
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME
+    from overhang_framework.behaviour.simulation import CONFIG_NAME
 
     rng = np.random.default_rng(5)
     trials = pd.concat([synthetic_trials(synthetic_people(PROPOSAL, 60, rng, condition), rng, trials=5)
@@ -169,7 +169,7 @@ def test_the_shipped_cohort_is_the_shipped_library_fit_and_plans_deeper_without_
     import yaml
 
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME
+    from overhang_framework.behaviour.simulation import CONFIG_NAME
 
     data = Path(calibrate.__file__).resolve().parents[1] / "data" / "calibration"
     shipped = json.loads((data / "calibration.json").read_text())
@@ -210,7 +210,7 @@ def test_a_small_draw_of_the_calibrated_cohort_under_time_pressure_has_the_paper
     from overhang_framework.behaviour import table1
     from overhang_framework.behaviour.log import read_log
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config(["cohort=paper_calibrated", "predictor=hybrid", "progress=false", "seed=3",
                           "cohort.participants.time_limited=8", "cohort.participants.unconstrained=0"],
@@ -282,7 +282,7 @@ def test_measure_takes_a_run_a_running_run_and_several_runs_and_gives_each_dista
     from overhang_framework.behaviour import read_log, table1
     from overhang_framework.behaviour.log import write_log
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config(["cohort=proposal", "predictor=hybrid", "world.physics=static", "progress=false",
                           "cohort.participants.time_limited=3", "cohort.participants.unconstrained=2", "tasks=custom",

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from overhang_framework import docfigures
+from overhang_framework.report import docfigures
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The registry's entries whose figures come from kept files, recomputed in seconds.

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from overhang_framework import fidelity
+from overhang_framework.report import fidelity
 from overhang_framework.errors import ConfigError
 
 

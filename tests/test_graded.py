@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 
-from overhang_framework import graded
+from overhang_framework.studies import graded
 
 LEVELS = {"limit_2_5s": 2.5, "time_limited": 5.0, "limit_10s": 10.0, "unconstrained": None}
 
@@ -105,7 +108,7 @@ def test_a_measure_without_spread_has_no_trend(values):
 @pytest.mark.slow
 def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
     """Two participants a level, two tasks each, static physics: every step, and every file of the report."""
-    from overhang_framework.study import main
+    from overhang_framework.studies.command import main
 
     out = tmp_path / "graded"
     assert main(["graded_budgets", "--out", str(out), "--scale", "0.05", "--pool", "1", "--tasks", "2",
@@ -114,7 +117,7 @@ def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
                  "--fit", "+models.hybrid.risk=[0.0,0.9]"]) == 0
     pred = pd.read_csv(out / "predictions.csv")
     assert set(pred["level"]) == {"limit_2_5s", "time_limited", "limit_10s", "unconstrained"}
-    assert {"overhang", "gamma", "vertical", "depth", "risk"} <= set(pred["measure"])
+    assert {"overhang", "gamma", "lateral", "depth", "risk"} <= set(pred["measure"])
     people = pd.read_csv(out / "participants.csv")
     assert {"true_risk", "true_hand", "true_percept", "fitted_risk"} <= set(people.columns)
     assert (people.loc[people["condition"] == "time_limited", "true_risk"] == 0.9).all()
@@ -272,3 +275,15 @@ def test_the_graded_study_of_a_fit_finds_a_K_that_grows_with_time_and_none_where
     # without --out: the summary alone, nothing written
     assert graded.main(["--fits", str(tmp_path / "grows.csv"), "--resamples", "0"]) == 0
     assert json.loads(capsys.readouterr().out)["trends"]["K"]["holds"]
+
+
+def test_a_table_kept_under_the_old_name_of_the_lateral_reach_reads_under_the_new_one(tmp_path, capsys):
+    """The lateral reach was kept as "vertical" (what Fig. 3a calls its opposite); kept tables read as "lateral"."""
+    kept = Path(__file__).resolve().parents[1] / "docs" / "figures" / "graded_budgets_power_behaviour.csv"
+    assert "vertical" in set(pd.read_csv(kept)["measure"])
+    table = graded.read_table(kept)
+    assert "lateral" in set(table["measure"]) and "vertical" not in set(table["measure"])
+    assert graded.main([str(kept)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert "lateral" in out and "vertical" not in out
+    assert out["lateral"]["per_level"] == graded.sample_sizes(table)["lateral"]

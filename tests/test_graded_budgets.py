@@ -58,7 +58,7 @@ def test_a_participant_gets_their_levels_limit_from_the_server(tmp_path):
 
 def test_the_simulated_twin_has_each_levels_budget_and_the_pilot_passes_each_limit_to_its_server(tmp_path):
     from overhang_framework.experiment.pilot import plan, server_overrides
-    from overhang_framework.participants import CONFIG_NAME, check_config
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, check_config
 
     checked = check_config(compose_config(["cohort=graded_budgets", "world.physics=static"],
                                           config_name=CONFIG_NAME))

@@ -26,7 +26,7 @@ def replace(key: str, spec: str) -> list[str]:
 
 
 def simulate_into(tmp_path: Path, *overrides: str, name: str = "run") -> Path:
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config([*TINY, *overrides], config_name=CONFIG_NAME)
     out = tmp_path / name
@@ -181,9 +181,9 @@ def test_a_bad_config_is_one_line_and_exit_2_before_anything_runs(tmp_path, over
 
 def test_every_cohort_composes_and_checks():
     from overhang_framework.config import group_options
-    from overhang_framework.participants import CONFIG_NAME, check_config
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, check_config
 
-    from overhang_framework.study import STUDIES
+    from overhang_framework.studies.findings import STUDIES
 
     cohorts = group_options("cohort")
     assert {"small", "paper", "dual_transition", "null_effect"} <= set(cohorts)
@@ -207,7 +207,7 @@ def test_participants_spread_over_processes_give_the_same_files(tmp_path, defaul
 
 
 def test_a_stopped_run_continues_from_its_finished_participants(tmp_path, default_run, monkeypatch):
-    import overhang_framework.participants as app
+    import overhang_framework.behaviour.simulation as app
 
     real = app.simulate_participant
     calls = []
@@ -277,7 +277,7 @@ def test_a_cohort_can_draw_each_participants_number_of_mental_simulations(tmp_pa
     import pandas as pd
 
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     base = ["world.physics=static", "progress=false", "cohort.participants.time_limited=0",
             "cohort.participants.unconstrained=6", "cohort.n_tasks=1"]

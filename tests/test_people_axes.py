@@ -371,7 +371,7 @@ def test_steadiness_scales_the_hand_a_participant_has_and_the_one_it_plans_for(t
 def test_a_bad_axis_in_a_cohort_is_one_line(overrides, words):
     from overhang_framework.config import compose_config
     from overhang_framework.errors import ConfigError
-    from overhang_framework.participants import CONFIG_NAME, check_config
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, check_config
 
     from test_participants import TINY
 
@@ -646,7 +646,7 @@ def test_a_small_draw_of_paper_people_under_time_pressure_aims_low_and_still_fal
     from overhang_framework.behaviour import table1
     from overhang_framework.behaviour.log import read_log
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config(["cohort=paper_people", "world.physics=static", "progress=false", "seed=1",
                           "cohort.participants.time_limited=10", "cohort.participants.unconstrained=0"],
@@ -678,7 +678,7 @@ def test_a_small_draw_of_paper_people_aims_further_out_without_time_pressure(tmp
     from overhang_framework.behaviour import table1
     from overhang_framework.behaviour.log import read_log
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config(["cohort=paper_people", "world.physics=static", "progress=false", "seed=0",
                           "cohort.n_tasks=8", "cohort.participants.time_limited=10",

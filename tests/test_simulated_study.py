@@ -30,7 +30,7 @@ STUDY = ["world.physics=static", "predictor.K=10", "progress=false", "jobs=2", "
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     from overhang_framework.analyze import main
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     root = tmp_path_factory.mktemp("study")
     run(compose_config(STUDY, config_name=CONFIG_NAME), root / "sim")

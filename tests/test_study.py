@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from overhang_framework.study import FINDINGS, evaluate, power, resample
+from overhang_framework.studies.findings import FINDINGS, evaluate, power
+from overhang_framework.studies.power import resample
 
 
 def _people(effect: bool, n: int = 40, seed: int = 0) -> pd.DataFrame:
@@ -51,7 +52,9 @@ def test_every_finding_holds_where_it_was_built_in_and_none_where_it_was_not():
 def test_the_report_names_what_was_not_found_and_what_the_cohort_says_about_it():
     from pathlib import Path
 
-    from overhang_framework.study import Steps, diagnostics, report
+    from overhang_framework.studies.findings import diagnostics
+    from overhang_framework.studies.report import report
+    from overhang_framework.studies.steps import Steps
 
     people = _people(True, n=20)
     people["true_depth"] = np.where(np.arange(len(people)) % 2, 1, 2)
@@ -96,7 +99,7 @@ def test_the_report_names_what_was_not_found_and_what_the_cohort_says_about_it()
 
 
 def test_power_redraws_studies_of_the_given_size_from_the_participants():
-    from overhang_framework.study import replaced
+    from overhang_framework.studies.power import replaced
 
     people = _people(True, n=30)
     people["who"] = people["participant"]
@@ -116,7 +119,8 @@ def test_power_redraws_studies_of_the_given_size_from_the_participants():
 def test_a_fit_of_one_family_leaves_the_family_finding_untested_and_says_so():
     from pathlib import Path
 
-    from overhang_framework.study import Steps, report
+    from overhang_framework.studies.report import report
+    from overhang_framework.studies.steps import Steps
 
     people = _people(True, n=20).drop(columns=["evidence_ipe", "evidence_cnn"])
     found = evaluate(people, permutations=500)
@@ -244,8 +248,8 @@ def _fake_run(where, cohort_words, conditions):
 
     from omegaconf import OmegaConf
 
-    from overhang_framework.participants import CONFIG_NAME
-    from overhang_framework.study import _compose
+    from overhang_framework.behaviour.simulation import CONFIG_NAME
+    from overhang_framework.studies.run import _compose
 
     from overhang_framework.results import readable
 
@@ -267,8 +271,8 @@ def test_a_graded_study_takes_paper_people_runs_for_the_levels_whose_people_they
 
     from overhang_framework.config import compose_config
     from overhang_framework.errors import ConfigError
-    from overhang_framework.participants import CONFIG_NAME
-    from overhang_framework.study import _differences, gather, population
+    from overhang_framework.behaviour.simulation import CONFIG_NAME
+    from overhang_framework.studies.gather import _differences, gather, population
 
     graded = OmegaConf.to_container(compose_config(["cohort=graded_budgets"], config_name=CONFIG_NAME), resolve=True)
     people = OmegaConf.to_container(compose_config(["cohort=paper_people"], config_name=CONFIG_NAME), resolve=True)

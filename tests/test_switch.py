@@ -182,7 +182,7 @@ def test_the_switch_point_of_simulated_hybrid_participants_is_recovered_within_o
     from omegaconf import OmegaConf
 
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, run
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, run
 
     cfg = compose_config(["predictor=hybrid", "world.physics=static", "progress=false",
                           "cohort.participants.time_limited=0", "cohort.participants.unconstrained=5",

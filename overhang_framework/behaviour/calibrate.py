@@ -336,7 +336,7 @@ def run_log(run_dir: Path) -> tuple[pd.DataFrame, Optional[int]]:
     (``parts/``) with their number; :class:`ConfigError` when the directory has neither."""
     from overhang_framework.behaviour import read_log
     from overhang_framework.behaviour.log import to_frame
-    from overhang_framework.participants import LOG, PARTS, _read_part
+    from overhang_framework.behaviour.simulation import LOG, PARTS, _read_part
 
     run_dir = Path(run_dir)
     if (run_dir / LOG).exists():
@@ -551,7 +551,7 @@ def fit_condition(library: Library, targets: Optional[Mapping[str, tuple[float, 
 def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Optional[Distribution]]:
     """The proposal's distributions, from the shipped cohort config."""
     from overhang_framework.config import compose_config
-    from overhang_framework.participants import CONFIG_NAME, check_config
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, check_config
 
     checked = check_config(compose_config([f"cohort={cohort_name}", "world.physics=static", "predictor=hybrid",
                                            "conditions.time_limited.time_limit=null"], config_name=CONFIG_NAME))

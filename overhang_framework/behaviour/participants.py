@@ -69,7 +69,8 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 import numpy as np
 
 from overhang_framework.errors import ConfigError
-from overhang_framework.geometry import Action
+from overhang_framework.geometry import X_DECIMALS, Action
+from overhang_framework.perception import nearest_legal, perceive, perceive_with  # noqa: F401  (perceive_with: the fit's, here as before)
 from overhang_framework.interfaces import Budget, Task, World
 from overhang_framework.plugins import Registry, accepted_parameters
 
@@ -95,8 +96,6 @@ DISTRIBUTIONS = {
 }
 #: Short names of the paper's conditions in participant ids (``sim-tl-001``); other conditions use their name.
 CONDITION_CODES = {"time_limited": "tl", "unconstrained": "un"}
-#: Decimals a logged x is rounded to before the block is placed (so the log's tower is the simulated one).
-X_DECIMALS = 6
 
 
 def _number(value: Any) -> bool:
@@ -543,45 +542,6 @@ def _nested_ipe(config: Mapping[str, Any]) -> Optional[str]:
         if config.get(side) == "ipe" and f"{side}_params" in config:
             return f"{side}_params"
     return None
-
-
-def perceive(state, sd: float, rng: np.random.Generator):
-    """``state`` as a participant with perceptual noise ``sd`` (metres) sees it: every block placed after the
-    first (which stands fixed at the ground centre) seen at its x plus ``N(0, sd^2)``, one draw per block, in
-    placement order; blocks of a layer that would then overlap are moved apart by the least displacement
-    that makes them touch (as the IPE's perturbed scenes are). The layers, widths and blocks still to come
-    are seen as they are."""
-    if sd <= 0 or len(state.geometry.blocks) < 2:
-        return state
-    return perceive_with(state, sd, rng.standard_normal(len(state.geometry.blocks) - 1))
-
-
-def perceive_with(state, sd: float, z: np.ndarray):
-    """:func:`perceive` with the standard normal draws ``z`` given, one per block after the first: the percepts
-    of every ``sd`` from one set of draws (the fit's common random numbers)."""
-    from overhang_framework.geometry import Block, Geometry, separate_overlaps
-    from overhang_framework.interfaces import State
-
-    blocks = state.geometry.blocks
-    if sd <= 0 or len(blocks) < 2:
-        return state
-    xs = np.array([b.x for b in blocks], dtype=float)
-    seen = xs.copy()
-    seen[1:] = xs[1:] + sd * np.asarray(z, dtype=float)[: len(blocks) - 1]
-    widths = np.array([b.width for b in blocks], dtype=float)
-    layers = np.array([b.layer for b in blocks], dtype=int)
-    seen = separate_overlaps(seen[None, :], widths, layers, xs)[0]
-    seen = np.round(seen, X_DECIMALS) + 0.0
-    return State(Geometry(tuple(Block(b.width, float(x), b.layer) for b, x in zip(blocks, seen))), state.remaining)
-
-
-def nearest_legal(world: World, state, action: Action) -> Action:
-    """The legal grid action of ``state`` nearest ``action`` (same layer first, then by |x|), for a choice made
-    on a misperceived tower that the real one does not allow."""
-    if world.is_legal(state, action):
-        return action
-    legal = world.legal_actions(state)
-    return min(legal, key=lambda a: (a.layer != action.layer, abs(a.x - action.x), abs(a.layer - action.layer), a.x))
 
 
 def _legal_x(world: World, state, action: Action, sd: float, retries: int, rng: np.random.Generator) -> float:

@@ -75,7 +75,7 @@ def sampled_answers(world, inner, state, actions, sd: float, z: np.ndarray, seed
     """The inner answers at every action shifted by every draw ``sd * z`` (rows: draws, columns: actions), by
     the HandPredictor's own :meth:`shifted` (6 decimals, a forbidden shift the action itself); each chunk of
     draws asked with a generator in the state ``seed`` gives it, as every hand's call of the state is."""
-    from overhang_builtins.hand import X_DECIMALS
+    from overhang_framework.geometry import X_DECIMALS
 
     probe = rule_hand(world, inner, sd, "gauss-hermite", 1)
     chunk = max(1, CHUNK_SCENES // max(1, len(actions) * K))

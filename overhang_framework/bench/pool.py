@@ -54,7 +54,7 @@ def run_once(items: int, seconds: float, workers: int, in_flight: Optional[int])
 
 
 def main(argv: Optional[Sequence[str]] = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m overhang_framework.bench.pool", description=__doc__.splitlines()[0])
     parser.add_argument("--items", type=int, default=20000, help="items in each run (default 20000)")
     parser.add_argument("--seconds", type=float, default=0.002,
                         help="CPU seconds of work an item (default 0.002)")

@@ -80,7 +80,7 @@ class Plan:
     """What the pilot runs: the checked participants config, the cohort's participants and tasks."""
 
     cfg: Any  # the composed participants config (no hydra node)
-    checked: Any  # overhang_framework.participants.Checked
+    checked: Any  # overhang_framework.behaviour.simulation.Checked
     participants: list
     tasks: list
 
@@ -88,7 +88,7 @@ class Plan:
 def plan(overrides: Sequence[str]) -> Plan:
     """The participants config of ``overrides``, checked; one :class:`OverhangError` line otherwise."""
     from overhang_framework.behaviour.participants import cohort_tasks, draw_participants
-    from overhang_framework.participants import CONFIG_NAME, check_config
+    from overhang_framework.behaviour.simulation import CONFIG_NAME, check_config
     from overhang_framework.preflight import compose_checked
 
     cfg = compose_checked(list(overrides), config_name=CONFIG_NAME)

@@ -284,7 +284,7 @@ def replicate(tables, world, trials: Sequence[tuple[str, tuple]], fitted: Fitted
 def _perceived_choice(tables, world, state, fitted: Fitted, rng: np.random.Generator) -> int:
     """The index in ``world.legal_actions(state)`` of a choice of a participant with perceptual noise: a lapse,
     or a softmax choice on the tower it sees, placed at the nearest placement the real tower allows."""
-    from overhang_framework.behaviour.participants import perceive
+    from overhang_framework.perception import perceive
     from overhang_framework.fit.likelihood import choice_probabilities
     from overhang_framework.fit.percept import seen_to_real
 

@@ -376,7 +376,7 @@ class BankChoice:
     def _perceived(self, state: State, m: int, rng: np.random.Generator) -> np.ndarray:
         """``(m, n)``: for each draw a percept of ``state`` and the softmax over its actions, mapped onto the
         real state's actions (a seen placement the real tower does not allow becomes its nearest legal one)."""
-        from overhang_framework.behaviour.participants import perceive
+        from overhang_framework.perception import perceive
         from overhang_framework.fit.percept import seen_to_real
 
         n = len(self.world.legal_actions(state))
@@ -436,7 +436,7 @@ def fixed_draw_prob(choice: BankChoice, state: State, seed: int = 0, percepts: i
     n = len(choice.world.legal_actions(state))
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xF1BED, *_words(state_key(state))]))
     if p.percept:
-        from overhang_framework.behaviour.participants import perceive
+        from overhang_framework.perception import perceive
         from overhang_framework.fit.percept import seen_to_real
 
         out = np.zeros(n)

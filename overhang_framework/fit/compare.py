@@ -69,7 +69,7 @@ def read_truth(paths: Sequence[Path], families: Mapping[str, str],
                records: Optional[pd.DataFrame] = None) -> Optional[pd.DataFrame]:
     """The true models and parameters of simulated participants, one row per participant (:data:`TRUTH_COLUMNS`).
 
-    ``paths`` are ``participants.csv`` files of :mod:`overhang_framework.participants`; the ``run.json``
+    ``paths`` are ``participants.csv`` files of :mod:`overhang_framework.behaviour.simulation`; the ``run.json``
     beside each gives the generating predictor and planner (a parameter the cohort did not draw is the
     model's own setting). ``families`` maps each fitted family to its predictor's name: the true family is
     the fitted family of the generating predictor. ``records`` (the behaviour log) give ``depth_reached``,

@@ -40,7 +40,7 @@ def percept_draws(state: State, draws: int) -> np.ndarray:
 
 def percepts(state: State, percept: float, draws: int = DRAWS) -> list[State]:
     """The ``draws`` towers a participant with perceptual noise ``percept`` (metres) may see in ``state``."""
-    from overhang_framework.behaviour.participants import perceive_with
+    from overhang_framework.perception import perceive_with
 
     if percept <= 0 or len(state.geometry.blocks) < 2:
         return [state] * int(draws)
@@ -50,7 +50,7 @@ def percepts(state: State, percept: float, draws: int = DRAWS) -> list[State]:
 def seen_to_real(world: World, state: State, seen: State) -> np.ndarray:
     """For each legal action of ``seen`` (in ``world.legal_actions(seen)``'s order), the index in
     ``world.legal_actions(state)`` of the placement it becomes in the real tower."""
-    from overhang_framework.behaviour.participants import nearest_legal
+    from overhang_framework.perception import nearest_legal
 
     real = world.legal_actions(state)
     index = {(a.x, a.layer): i for i, a in enumerate(real)}

@@ -1,7 +1,7 @@
 """Parameter and model recovery: ``python -m overhang_framework.fit.recovery --out DIR [OVERRIDES ...]``.
 
 Simulates participants whose models and parameters are known (the simulated
-participants of :mod:`overhang_framework.participants`, one group per
+participants of :mod:`overhang_framework.behaviour.simulation`, one group per
 *generating model* of ``conf/recovery.yaml``), fits the model space to them
 (:mod:`overhang_framework.fit`), and reports in ``DIR``:
 
@@ -164,7 +164,7 @@ def simulate(cfg: DictConfig, out: Path, generators: Mapping[str, Mapping[str, A
              families: Mapping[str, str]) -> tuple[Path, pd.DataFrame]:
     """Simulate every generator's participants; one log with them all, and the truth (one row each;
     ``family``: the fitted family of the generator's predictor)."""
-    from overhang_framework import participants as sim
+    from overhang_framework.behaviour import simulation as sim
 
     lines, truth = [], []
     for index, (name, spec) in enumerate(generators.items()):

@@ -26,12 +26,10 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import Action
+from overhang_framework.geometry import X_DECIMALS, Action
 from overhang_framework.interfaces import Predictor, State, World
 from overhang_framework.rules import legal_mask
 
-#: Decimals of a shifted x (as a participant's placed x).
-X_DECIMALS = 6
 
 
 class HandPredictor(Predictor):
