@@ -353,3 +353,24 @@ def test_measure_takes_a_run_a_running_run_and_several_runs_and_gives_each_dista
         assert err.count("\n") == 1 and words in err, err
     assert calibrate.main(["measure", str(saved), "--world", "world.physics=static"]) == 2
     assert "keeps Γ already computed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("column, value, words", [
+    ("stable_pct", 7000.0, "stable_pct on line 3 is 7000, which no participant can have: it is from 0 to 100"),
+    ("avg_overhang", -0.5, "avg_overhang on line 3 is -0.5, which no participant can have: it is from 0 to 4"),
+    ("gamma", 5.0, "gamma on line 3 is 5, which no participant can have: it is from 0 to 1"),
+    ("decision_time", -1.0, "decision_time on line 3 is -1, which no participant can have: it is at least 0"),
+    ("reward_per_trial", 9.0, "reward_per_trial on line 3 is 9, which no participant can have"),
+])
+def test_measure_refuses_a_table_with_a_value_no_participant_can_have(tmp_path, capsys, column, value, words):
+    rows = pd.DataFrame([{"participant": f"p{i}", "condition": c, "reward_per_trial": 1.1, "stable_pct": 70.0,
+                          "avg_overhang": 1.3, "decision_time": 3.0, "gamma": 0.2}
+                         for i, c in enumerate(["time_limited", "unconstrained"] * 2)])
+    rows.to_csv(tmp_path / "fine.csv", index=False)
+    assert calibrate.main(["measure", str(tmp_path / "fine.csv")]) == 0
+    capsys.readouterr()
+    rows.loc[1, column] = value
+    rows.to_csv(tmp_path / "bad.csv", index=False)
+    assert calibrate.main(["measure", str(tmp_path / "bad.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err, err

@@ -720,3 +720,73 @@ def test_two_server_processes_taking_newcomers_at_once_keep_the_conditions_balan
     finally:
         first.close()
         second.close()
+
+
+@pytest.mark.parametrize("change", ["drop the level", "change its limit", "change the tasks"])
+def test_a_participant_in_progress_keeps_what_they_started_with_through_every_allowed_change(make_client, base_settings,
+                                                                                            change):
+    """A lab changes a running study (allow_settings_change=true) while someone plays a level: their level, its
+    limit and their tasks stay theirs; every placement is stored, exported, and carries a settings hash that
+    resolves to the settings they played under."""
+    from overhang_framework.experiment.export import export_jsonl
+
+    clock = FakeClock()
+    level = {"conditions": ["limit_2_5s"], "time_limits": {"limit_2_5s": 2.5}}
+    first = make_client(clock=clock, **level)
+    s = start(first).json()
+    assert s["condition"] == "limit_2_5s" and s["time_limit"] == 2.5
+    pass_practice(first, s)
+    trials = trials_of(first, s)
+    assert place(first, s, "main", 1, 1, 0.0, 1).status_code == 200  # one block placed, then the change
+    changed = {"drop the level": {"conditions": ["unconstrained"], "time_limits": {}},
+               "change its limit": {**level, "time_limits": {"limit_2_5s": 4.0}},
+               "change the tasks": {**level, "tasks": load_settings(
+                   [f"run_dir={base_settings.run_dir}", f"admin_token={ADMIN}", "tasks.only=[paper01,paper02]",
+                    "physics_processes=0"]).tasks}}[change]
+    later = make_client(clock=clock, allow_settings_change=True, **changed)
+    session = later.get("/api/session", headers=auth(s))
+    assert session.status_code == 200, session.text
+    resumed = session.json()
+    assert resumed["condition"] == "limit_2_5s" and resumed["time_limit"] == 2.5
+    assert resumed["position"]["phase"] == "main" and resumed["position"]["step"] == 2
+    assert begin(later, s, "main", 1, 2).json()["clock"]["time_left"] == 2.5
+    for trial in trials:
+        for step in range(2 if trial["trial"] == 1 else 1, len(trial["sequence"])):
+            reply = place(later, s, "main", trial["trial"], step, 0.0, step)
+            assert reply.status_code == 200, reply.text
+    assert reply.json()["position"]["phase"] == "done"
+    log = read_log_text(export_jsonl(later.store)[0])
+    main = log[log.participant == "P1"]
+    assert len(main) == sum(len(t["sequence"]) - 1 for t in trials)
+    assert set(main.condition) == {"limit_2_5s"} and set(main.task_id) == {t["task_id"] for t in trials}
+    kept = later.store.played_settings()
+    after = main[(main.trial > 1) | (main.step > 1)]
+    assert after.settings_hash.nunique() == 1 and after.settings_hash.iloc[0] in kept
+    played = kept[after.settings_hash.iloc[0]]
+    assert "limit_2_5s" in played["conditions"] and played["time_limits"]["limit_2_5s"] == 2.5
+    assert sorted(i for i, _ in played["tasks"]) == sorted(t["task_id"] for t in trials)
+    assert later.store.study().settings["conditions"] == changed["conditions"]  # the study's own did change
+
+
+def test_guessing_the_admin_token_is_refused_after_ten_wrong_tokens_a_minute(make_client):
+    """Wrong admin tokens from one address, at /api/admin/* or in a simulated session's request, count together; the
+    eleventh try in a minute is refused (429), the right token too, until the first wrong one is a minute old."""
+    from overhang_framework.experiment.api import ADMIN_GUESSES, ADMIN_WINDOW
+
+    clock = FakeClock()
+    client = make_client(clock=clock)
+    listed = lambda token: client.get("/api/admin/participants", headers={"X-Admin-Token": token})  # noqa: E731
+    assert listed(ADMIN).status_code == 200
+    for k in range(ADMIN_GUESSES):
+        if k % 2:
+            reply = client.post("/api/sessions", json={"params": {"participant": f"S{k}"}, "simulated": True},
+                                headers={"X-Admin-Token": f"guess-{k}"})
+        else:
+            reply = listed(f"guess-{k}")
+        assert reply.status_code == 403
+        clock.now += 1.0
+    message = error(listed(ADMIN), 429)
+    assert f"{ADMIN_GUESSES} wrong admin tokens from this address in 60 s; try again in" in message
+    assert start(client, "P1").status_code == 201  # participants are not held up
+    clock.now += ADMIN_WINDOW - ADMIN_GUESSES + 0.5  # the first guess is a minute old
+    assert listed(ADMIN).status_code == 200

@@ -32,7 +32,7 @@ from overhang_framework.experiment.settings import load_settings
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--disable-quic"]
-ADMIN = "e2e-admin-token"
+ADMIN = "e2e-admin-token-1"
 TASKS = ["paper03", "paper08"]  # two main trials per participant
 ROBUST = 0.04  # a scripted placement must stand with the block this far to either side (mouse pixels)
 

@@ -7,7 +7,7 @@ import pytest
 
 from overhang_framework.experiment.settings import load_settings
 
-ADMIN = "long-enough"
+ADMIN = "long-enough-token"
 CONTACT = "overhang-lab@uni.example"
 
 

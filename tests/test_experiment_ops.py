@@ -22,7 +22,7 @@ from overhang_framework.experiment.api import create_app
 from overhang_framework.experiment.settings import load_settings
 from overhang_framework.experiment.store import Store
 
-ADMIN = "ops-admin-token"
+ADMIN = "ops-admin-token-1"
 PG_ENV = "OVERHANG_TEST_POSTGRES_URL"
 
 

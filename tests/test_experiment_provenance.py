@@ -12,7 +12,7 @@ import pytest
 
 from overhang_framework.experiment.settings import load_settings
 
-ADMIN = "long-enough"
+ADMIN = "long-enough-token"
 
 
 def _serve_app(overrides, clock=None):

@@ -23,17 +23,18 @@ def no_admin_env(monkeypatch):
 
 @pytest.mark.parametrize("overrides, words", [
     ([], "no admin token"),
-    (["admin_token=short"], "at least 8"),
-    (["admin_token=long-enough", "database=experiment.sqlite"], "SQLAlchemy URL"),
-    (["admin_token=long-enough", "conditions=[time_limited,fast]"], "conditions must be"),
-    (["admin_token=long-enough", "practice.threshold=2"], "practice.threshold"),
-    (["admin_token=long-enough", "time_limit=0"], "time_limit"),
-    (["admin_token=long-enough", "port=-1"], "port"),
-    (["admin_token=long-enough", "workers=0"], "workers must be"),
-    (["admin_token=long-enough", "physics_processes=-1"], "physics_processes must be"),
-    (["admin_token=long-enough", "practice.ids=[paper00,practice2,practice3]"], "also main tasks"),
-    (["admin_token=long-enough", "world.physics=static"], "python -m overhang_framework.optimum"),
-    (["admin_token=long-enough", "predictor=ipe"], "predictor"),
+    (["admin_token=short"], "at least 16 characters, got 5"),
+    (["admin_token=fifteen-chars-x"], "at least 16 characters, got 15"),
+    (["admin_token=long-enough-token", "database=experiment.sqlite"], "SQLAlchemy URL"),
+    (["admin_token=long-enough-token", "conditions=[time_limited,fast]"], "conditions must be"),
+    (["admin_token=long-enough-token", "practice.threshold=2"], "practice.threshold"),
+    (["admin_token=long-enough-token", "time_limit=0"], "time_limit"),
+    (["admin_token=long-enough-token", "port=-1"], "port"),
+    (["admin_token=long-enough-token", "workers=0"], "workers must be"),
+    (["admin_token=long-enough-token", "physics_processes=-1"], "physics_processes must be"),
+    (["admin_token=long-enough-token", "practice.ids=[paper00,practice2,practice3]"], "also main tasks"),
+    (["admin_token=long-enough-token", "world.physics=static"], "python -m overhang_framework.optimum"),
+    (["admin_token=long-enough-token", "predictor=ipe"], "predictor"),
 ])
 def test_bad_settings_fail_in_one_line(tmp_path, overrides, words):
     with pytest.raises(ConfigError) as err:
@@ -47,7 +48,7 @@ def test_the_admin_token_can_come_from_the_environment(tmp_path, monkeypatch):
 
 
 def test_practice_optima_stand_step_by_step_under_the_reference(tmp_path):
-    settings = load_settings([f"run_dir={tmp_path}", "admin_token=long-enough"])
+    settings = load_settings([f"run_dir={tmp_path}", "admin_token=long-enough-token"])
     reference = Registry().create("world", {**settings.world, "physics": "pybullet"})
     assert len(settings.practice) == 3
     for practice in settings.practice:
@@ -74,7 +75,7 @@ def _played(tmp_path):
     from overhang_framework.experiment.api import create_app
 
     overrides = [f"run_dir={tmp_path}", "tasks.only=[paper03]"]
-    settings = load_settings([*overrides, "admin_token=long-enough"])
+    settings = load_settings([*overrides, "admin_token=long-enough-token"])
     client = TestClient(create_app(settings))
     s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
     h = {"Authorization": f"Bearer {s['token']}"}
@@ -145,7 +146,7 @@ def test_the_command_serves_the_page_and_the_api_with_its_default_processes(tmp_
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     server = subprocess.Popen([sys.executable, "-m", "overhang_framework.experiment", f"run_dir={tmp_path}",
-                               "admin_token=long-enough", f"port={port}"],
+                               "admin_token=long-enough-token", f"port={port}"],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     url = f"http://127.0.0.1:{port}"
     try:
@@ -161,7 +162,7 @@ def test_the_command_serves_the_page_and_the_api_with_its_default_processes(tmp_
         conditions = [httpx.post(url + "/api/sessions", json={"params": {"participant": f"S{i}"}}, timeout=30).json()
                       ["condition"] for i in range(4)]
         assert sorted(conditions) == ["time_limited"] * 2 + ["unconstrained"] * 2
-        listed = httpx.get(url + "/api/admin/participants", headers={"X-Admin-Token": "long-enough"}, timeout=30)
+        listed = httpx.get(url + "/api/admin/participants", headers={"X-Admin-Token": "long-enough-token"}, timeout=30)
         assert [r["participant"] for r in listed.json()] == ["S0", "S1", "S2", "S3"]
     finally:
         server.terminate()
@@ -188,7 +189,7 @@ def test_the_command_checks_run_dir_and_port_before_it_prints_or_writes_anything
 
     from overhang_framework.experiment.__main__ import main
 
-    serve = ["admin_token=long-enough", f"web_dir={_built_front_end(tmp_path)}"]
+    serve = ["admin_token=long-enough-token", f"web_dir={_built_front_end(tmp_path)}"]
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     assert main([f"run_dir={blocker / 'run'}", *serve]) == 2
@@ -212,7 +213,7 @@ def test_a_second_server_on_the_same_run_dir_is_refused(tmp_path, capsys, monkey
     from overhang_framework.experiment.__main__ import SETTINGS_ENV, main
 
     monkeypatch.setenv(SETTINGS_ENV, "")
-    serve = ["admin_token=long-enough", f"web_dir={_built_front_end(tmp_path)}", "workers=2"]
+    serve = ["admin_token=long-enough-token", f"web_dir={_built_front_end(tmp_path)}", "workers=2"]
     seen = []
 
     def listening(*args, **kwargs):  # while the first server runs, a second is started
@@ -245,7 +246,7 @@ def test_a_second_server_on_the_same_database_is_refused_whatever_its_run_dir(tm
 
         database, drop = fresh_postgres_database()
     monkeypatch.setenv(SETTINGS_ENV, "")
-    serve = ["admin_token=long-enough", f"web_dir={_built_front_end(tmp_path)}", "workers=2", f"database={database}"]
+    serve = ["admin_token=long-enough-token", f"web_dir={_built_front_end(tmp_path)}", "workers=2", f"database={database}"]
     seen = []
 
     def listening(*args, **kwargs):  # while the first server runs, a second starts from another run_dir
@@ -279,7 +280,7 @@ def test_export_counts_placements_and_timeouts_apart_and_refuses_an_unwritable_o
 
     overrides = [f"run_dir={tmp_path}", "tasks.only=[paper03,paper00]", "conditions=[time_limited]",
                  "physics_processes=0"]
-    settings = load_settings([*overrides, "admin_token=long-enough"])
+    settings = load_settings([*overrides, "admin_token=long-enough-token"])
     now = [1_000_000.0]
     client = TestClient(create_app(settings, clock=lambda: now[0]))
     s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
@@ -338,7 +339,7 @@ def test_a_database_url_is_taken_as_written(url, tmp_path):
 def test_a_server_that_cannot_reach_its_database_exits_for_the_service_to_retry(tmp_path, capsys):
     from overhang_framework.experiment.__main__ import UNAVAILABLE, main
 
-    code = main([f"run_dir={tmp_path / 'run'}", f"port={_free_port()}", "admin_token=long-enough",
+    code = main([f"run_dir={tmp_path / 'run'}", f"port={_free_port()}", "admin_token=long-enough-token",
                  "database=postgresql+psycopg://nobody:wrong@127.0.0.1:1/overhang"])
     err = capsys.readouterr().err
     assert code == UNAVAILABLE != 2  # the unit's RestartPreventExitStatus=2 keeps only refusals down

@@ -8,7 +8,7 @@ import pytest
 from overhang_framework.config import compose_config
 from overhang_framework.errors import ConfigError
 
-TOKEN = ["admin_token=abcdefghij"]
+TOKEN = ["admin_token=abcdefghijklmnop"]
 
 
 def test_the_study_serves_four_levels_each_with_its_own_limit(tmp_path):

@@ -34,7 +34,7 @@ def no_admin_env(monkeypatch):
 
 @pytest.fixture(scope="module")
 def settings(tmp_path_factory):
-    return load_settings([f"run_dir={tmp_path_factory.mktemp('run')}", "admin_token=long-enough"])
+    return load_settings([f"run_dir={tmp_path_factory.mktemp('run')}", "admin_token=long-enough-token"])
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +151,7 @@ def test_legality_is_checked_for_every_offset_within_the_tolerance():
 
 def test_the_server_needs_the_towers_of_its_tolerance(tmp_path):
     with pytest.raises(ConfigError) as err:
-        load_settings([f"run_dir={tmp_path}", "admin_token=long-enough", "practice.tolerance=0.03"])
+        load_settings([f"run_dir={tmp_path}", "admin_token=long-enough-token", "practice.tolerance=0.03"])
     message = str(err.value)
     assert "\n" not in message and f"{COMMAND} world.physics=tiered practice.tolerance=0.03" in message
 
@@ -159,7 +159,7 @@ def test_the_server_needs_the_towers_of_its_tolerance(tmp_path):
 @pytest.mark.parametrize("value", [-0.01, 0.3, "'two pixels'"])
 def test_a_bad_tolerance_is_one_line(tmp_path, value):
     with pytest.raises(ConfigError) as err:
-        load_settings([f"run_dir={tmp_path}", "admin_token=long-enough", f"practice.tolerance={value}"])
+        load_settings([f"run_dir={tmp_path}", "admin_token=long-enough-token", f"practice.tolerance={value}"])
     assert str(err.value).startswith("practice.tolerance must be a number of units in [0, 0.3)")
 
 

@@ -46,6 +46,7 @@ from scipy.stats import norm
 
 from overhang_framework.behaviour.participants import Distribution, TimeModel
 from overhang_framework.errors import ConfigError, first_line
+from overhang_framework.geometry import GRID_HALF_WIDTH
 
 #: The measures the fit matches, per condition: the paper's (mean, SEM) (Table 1; Γ from Fig. 3b).
 TARGETS = {
@@ -141,6 +142,10 @@ class Candidate:
 
 PEOPLE_COLUMNS = ("participant", "condition", *METRICS)
 """The columns of a saved table of per-participant measures (``measure --save``)."""
+#: Each measure's possible values, and what they are: a reward and an overhang reach at most the grid's half width.
+RANGES = {"reward_per_trial": (0.0, GRID_HALF_WIDTH, "task units"), "stable_pct": (0.0, 100.0, "a percentage"),
+          "avg_overhang": (0.0, GRID_HALF_WIDTH, "task units"), "decision_time": (0.0, math.inf, "seconds"),
+          "gamma": (0.0, 1.0, "a share of the orders")}
 
 
 def people_measures(df: pd.DataFrame, world) -> pd.DataFrame:
@@ -209,6 +214,13 @@ def read_people(path: Path) -> pd.DataFrame:
         if bad.any():
             raise ConfigError(f"{path}: {column} on line {int(bad.to_numpy().argmax()) + 2} is "
                               f"{people[column][bad].iloc[0]!r}, not a number")
+        low, high, what = RANGES[column]
+        outside = (values < low) | (values > high)
+        if outside.any():
+            line = int(outside.to_numpy().argmax())
+            allowed = f"at least {low:g}" if math.isinf(high) else f"from {low:g} to {high:g}"
+            raise ConfigError(f"{path}: {column} on line {line + 2} is {values.iloc[line]:g}, which no participant "
+                              f"can have: it is {allowed} ({what})")
         people[column] = values
     return people
 

@@ -17,8 +17,10 @@ timeout.
 
 from __future__ import annotations
 
+import datetime as dt
 import hmac
 import json
+import math
 import os
 import re
 import secrets
@@ -26,7 +28,7 @@ import time
 from contextlib import asynccontextmanager
 from urllib.parse import urlencode
 from dataclasses import asdict, dataclass
-from typing import Annotated, Callable, Literal, Optional
+from typing import Annotated, Callable, Literal, Mapping, Optional, Sequence
 
 import numpy as np
 from fastapi import Depends, FastAPI, Header, Request
@@ -45,8 +47,13 @@ from overhang_framework.experiment.settings import Settings
 from overhang_framework.experiment.store import (Conflict, Participant, Placement, SettingsChanged, Store,
                                                  database_reason, request_hash, token_hash, utc_iso)
 from overhang_framework.geometry import MAX_LAYER, Action, Geometry, overhang
+from overhang_framework.interfaces import Task
 
 PARTICIPANT_ID = re.compile(r"^[A-Za-z0-9_.@:-]{1,200}$")
+#: Wrong admin tokens one address may send within ``ADMIN_WINDOW`` seconds before it is refused (429) for the rest of
+#: the window: with a token of at least 16 characters (``MIN_ADMIN_TOKEN``) guessing is hopeless. Each server process
+#: counts its own.
+ADMIN_GUESSES, ADMIN_WINDOW = 10, 60.0
 #: The longest STUDY_ID or SESSION_ID a link may carry (the database's columns).
 MAX_PARAM = 200
 #: The largest request body the server reads, in bytes (a placement's 36,000 mouse samples fit in about 2 MB).
@@ -151,12 +158,14 @@ def total_reward(last_steps) -> float:
     return round(sum(r.reward or 0.0 for r in last_steps if r.trial_over), 9)
 
 
-def position(settings: Settings, participant: Participant, rows: list[Placement]) -> Position:
+def position(settings: Settings, participant: Participant, rows: list[Placement],
+             tasks: Optional[Sequence[Task]] = None) -> Position:
     """The position after ``rows`` (the participant's placements).
 
     ``phase`` is ``practice``, ``main``, ``done``, or ``screened_out`` once the participant was screened
     out (recorded when a practice attempt used up ``practice_max_attempts``: a later change of that setting
-    moves nobody in or out; ``trial`` and ``attempt`` then name the last attempt).
+    moves nobody in or out; ``trial`` and ``attempt`` then name the last attempt). ``tasks``: the participant's
+    main tasks (default :func:`main_tasks`).
     """
     groups: dict[tuple, list[Placement]] = {}
     for r in sorted(rows, key=lambda r: (r.phase, r.trial, r.attempt, r.step)):
@@ -175,7 +184,7 @@ def position(settings: Settings, participant: Participant, rows: list[Placement]
                 attempt += 1
                 continue
             return Position("practice", k, attempt, len(done) + 1, _tower_after(practice.task.sequence, done), total)
-    tasks = main_tasks(settings, participant)
+    tasks = main_tasks(settings, participant) if tasks is None else tasks
     for t, task in enumerate(tasks, 1):
         done = groups.get(("main", t, 1), [])
         if not (done and done[-1].trial_over):
@@ -183,13 +192,34 @@ def position(settings: Settings, participant: Participant, rows: list[Placement]
     return Position("done", len(tasks), 1, 0, [], total)
 
 
-def main_tasks(settings: Settings, participant: Participant):
-    by_id = {t.id: t for t in settings.tasks}
+def main_tasks(settings: Settings, participant: Participant, started: Optional[Mapping] = None) -> list[Task]:
+    """The participant's main tasks in their order: those of ``started`` (the study's settings when they started,
+    :func:`started_under`) when given, else of ``settings``."""
+    if started is not None:
+        by_id = {i: Task(i, tuple(float(w) for w in widths)) for i, widths in started.get("tasks", [])}
+    else:
+        by_id = {t.id: t for t in settings.tasks}
     missing = [i for i in participant.order if i not in by_id]
     if missing:
         raise Refused(500, f"participant {participant.id}'s trials name tasks the server no longer has "
                            f"({', '.join(missing)}); serve with the tasks the study started with")
     return [by_id[i] for i in participant.order]
+
+
+def _utc(when) -> dt.datetime:
+    """A stored time as an aware UTC datetime (SQLite gives them back naive)."""
+    when = dt.datetime.fromisoformat(when) if isinstance(when, str) else when
+    return when if when.tzinfo is not None else when.replace(tzinfo=dt.timezone.utc)
+
+
+def started_under(study, participant: Participant) -> dict:
+    """The study's settings when ``participant`` started: those the first settings change after their start
+    replaced (kept in the study's history), else the study's settings now."""
+    began = _utc(participant.created_at)
+    for event in study.history or []:
+        if event.get("what") == "settings" and _utc(event["at"]) > began:
+            return event["previous"]["settings"]
+    return study.settings
 
 
 def public_base(settings: Settings, request: Optional[Request] = None, store: Optional[Store] = None) -> str:
@@ -284,16 +314,43 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     in_force = json.loads(json.dumps(study_settings(settings)))  # as the study stores them
     kept: set[str] = set()
 
+    first_settings: dict[str, dict] = {}
+    first_tasks: dict[str, list[Task]] = {}
+
+    def started(p: Participant) -> dict:
+        """The study's settings when ``p`` started (:func:`started_under`; the same whatever changes later)."""
+        if p.id not in first_settings:
+            first_settings[p.id] = started_under(store.study(), p)
+        return first_settings[p.id]
+
+    def tasks_of(p: Participant) -> list[Task]:
+        """``p``'s main tasks, those of the settings they started under: an allowed change of the tasks moves
+        nobody already playing."""
+        if p.id not in first_tasks:
+            first_tasks[p.id] = main_tasks(settings, p, started(p))
+        return first_tasks[p.id]
+
     def played_hash(p: Participant) -> str:
-        """The hash of the settings ``p`` plays under: the study's, with the time limit they started with (kept
-        through an allowed change); settings other than the study's are kept in the store under it."""
-        if p.time_limit == settings.limit_of(p.condition) or p.condition == "unconstrained":
+        """The hash of the settings ``p`` plays under: the study's, with what they started with kept through an
+        allowed change (their level, even when it was dropped since; its time limit; their tasks); settings other
+        than the study's are kept in the store under it."""
+        level = p.condition
+        now = (settings.time_limit if level == "time_limited" else None if level == "unconstrained"
+               else settings.time_limits.get(level))
+        in_study = level in settings.conditions and (level in ("time_limited", "unconstrained")
+                                                     or level in settings.time_limits)
+        same_tasks = started(p).get("tasks") == in_force.get("tasks")
+        if in_study and same_tasks and (level == "unconstrained" or p.time_limit == now):
             return provenance["settings_hash"]
         played = json.loads(json.dumps(in_force))
-        if p.condition == "time_limited":
+        if level not in played["conditions"]:
+            played["conditions"] = [*played["conditions"], level]
+        if level == "time_limited":
             played["time_limit"] = p.time_limit
-        else:
-            played["time_limits"] = {**played.get("time_limits", {}), p.condition: p.time_limit}
+        elif level != "unconstrained":
+            played["time_limits"] = {**played.get("time_limits", {}), level: p.time_limit}
+        if not same_tasks:
+            played["tasks"] = started(p)["tasks"]
         h = settings_digest(played)
         if h not in kept:
             store.keep_settings(h, played)
@@ -384,10 +441,27 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             raise Refused(403, "unknown session token")
         return found
 
-    def admin(x_admin_token: Annotated[Optional[str], Header()] = None) -> None:
+    wrong_tokens: dict[str, list[float]] = {}
+
+    def admin_token_is(token: str, request: Request) -> bool:
+        """Whether ``token`` is the admin token; an address that sent :data:`ADMIN_GUESSES` wrong ones within
+        :data:`ADMIN_WINDOW` seconds is refused (429) until the first of them is that old, whatever it sends."""
+        who = request.client.host if request.client else "?"
+        now = clock()
+        recent = [t for t in wrong_tokens.get(who, []) if now - t < ADMIN_WINDOW]
+        if len(recent) >= ADMIN_GUESSES:
+            wait = ADMIN_WINDOW - (now - recent[0])
+            raise Refused(429, f"{len(recent)} wrong admin tokens from this address in {ADMIN_WINDOW:.0f} s; try again "
+                               f"in {math.ceil(wait)} s")
+        if hmac.compare_digest(token.encode(), settings.admin_token.encode()):
+            return True
+        wrong_tokens[who] = [*recent, now]
+        return False
+
+    def admin(request: Request, x_admin_token: Annotated[Optional[str], Header()] = None) -> None:
         if not x_admin_token:
             raise Refused(401, "no admin token: send X-Admin-Token")
-        if not hmac.compare_digest(x_admin_token.encode(), settings.admin_token.encode()):
+        if not admin_token_is(x_admin_token, request):
             raise Refused(403, "wrong admin token")
 
     def time_limit_of(p: Participant) -> Optional[float]:
@@ -410,7 +484,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         return clock_state(p, pos, store.clock(p.id, pos.phase, pos.trial, pos.attempt, pos.step), clock())
 
     def session_payload(p: Participant, token: Optional[str]) -> dict:
-        pos = position(settings, p, store.steps(p.id))
+        pos = position(settings, p, store.steps(p.id), tasks_of(p))
         out = {
             "participant": p.id, "condition": p.condition, "time_limit": time_limit_of(p),
             "time_grace": settings.time_grace,
@@ -435,11 +509,10 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         return out
 
     @app.post("/api/sessions")
-    def start(body: SessionIn, authorization: Annotated[Optional[str], Header()] = None,
+    def start(body: SessionIn, request: Request, authorization: Annotated[Optional[str], Header()] = None,
               x_admin_token: Annotated[Optional[str], Header()] = None):
         params = body.params
-        if body.simulated and not (x_admin_token and hmac.compare_digest(x_admin_token.encode(),
-                                                                         settings.admin_token.encode())):
+        if body.simulated and not (x_admin_token and admin_token_is(x_admin_token, request)):
             raise Refused(403, "a simulated session needs the study's admin token (X-Admin-Token): only a pilot the "
                                "lab runs marks its participants simulated")
         pid = params.get("PROLIFIC_PID") or params.get("participant")
@@ -520,7 +593,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     @app.post("/api/steps/start")
     def start_step(body: StepIn, p: Participant = Depends(participant_of)):
         consented(p)
-        pos = position(settings, p, store.steps(p.id))
+        pos = position(settings, p, store.steps(p.id), tasks_of(p))
         if pos.phase not in ("practice", "main"):
             raise Refused(409, f"nothing to start: the participant's phase is {pos.phase}")
         if (body.phase, body.trial, body.attempt, body.step) != (pos.phase, pos.trial, pos.attempt, pos.step):
@@ -529,7 +602,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                                f"step {body.step}")
         now = clock()
         issued = store.start_clock(p.id, pos.phase, pos.trial, pos.attempt, pos.step, now)
-        task = settings.practice[pos.trial - 1].task if pos.phase == "practice" else main_tasks(settings, p)[pos.trial - 1]
+        task = settings.practice[pos.trial - 1].task if pos.phase == "practice" else tasks_of(p)[pos.trial - 1]
         return {"position": asdict(pos), "clock": clock_state(p, pos, issued, now),
                 "task": {"task_id": task.id, "sequence": list(task.sequence)}}
 
@@ -545,7 +618,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                                    "different placement")
             return fresh_clock(p, store.find(p.id, *key).response)
         consented(p)
-        pos = position(settings, p, rows)
+        pos = position(settings, p, rows, tasks_of(p))
         if pos.phase == "done":
             raise Refused(409, "every trial is over; nothing more can be placed")
         if pos.phase == "screened_out":
@@ -560,7 +633,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             practice = settings.practice[pos.trial - 1]
             task = practice.task
         else:
-            practice, task = None, main_tasks(settings, p)[pos.trial - 1]
+            practice, task = None, tasks_of(p)[pos.trial - 1]
         width = task.sequence[pos.step]
         limit = time_limit_of(p)
         limited = limit is not None
@@ -617,7 +690,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         if passed is False and attempts is not None and pos.attempt >= attempts:
             after = Position("screened_out", pos.trial, pos.attempt, 0, [], pos.total_reward)
         else:
-            after = position(settings, p, [*rows, record])
+            after = position(settings, p, [*rows, record], tasks_of(p))
         response.update(total_reward=after.total_reward, position=asdict(after), clock=None)
         if after.phase == "screened_out":
             response["screen_out_url"] = settings.screen_out_url
@@ -643,7 +716,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     @app.post("/api/finish")
     def finish(p: Participant = Depends(participant_of)):
-        pos = position(settings, p, store.steps(p.id))
+        pos = position(settings, p, store.steps(p.id), tasks_of(p))
         if pos.phase == "screened_out":
             raise Refused(409, "the participant was screened out in the practice; there is nothing to finish",
                           screen_out_url=settings.screen_out_url)
@@ -680,7 +753,7 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
     def participants():
         rows = []
         for p in store.participants():
-            pos = position(settings, p, store.steps(p.id))
+            pos = position(settings, p, store.steps(p.id), tasks_of(p))
             rows.append({"participant": p.id, "study_id": p.study_id, "session_id": p.session_id,
                          "condition": p.condition, "phase": pos.phase, "trial": pos.trial, "attempt": pos.attempt,
                          "total_reward": pos.total_reward, "screened_out": p.screened_out_at is not None,

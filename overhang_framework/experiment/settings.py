@@ -19,6 +19,9 @@ from overhang_framework.errors import ConfigError
 from overhang_framework.interfaces import Task
 
 ADMIN_ENV = "OVERHANG_ADMIN_TOKEN"
+#: The admin token's least length: with the wrong guesses an address may make (the server's ``ADMIN_GUESSES``), too
+#: many to try.
+MIN_ADMIN_TOKEN = 16
 #: How the server's worker processes get the command line's settings.
 SETTINGS_ENV = "OVERHANG_EXPERIMENT_OVERRIDES"
 #: The environment variable that names the study's database when ``database=`` does not (the systemd unit's
@@ -247,8 +250,9 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
     token = cfg.admin_token or os.environ.get(ADMIN_ENV)
     if not token and need_admin_token:
         raise ConfigError(f"no admin token: set admin_token=... or the environment variable {ADMIN_ENV}")
-    if token and len(str(token)) < 8:
-        raise ConfigError("the admin token must have at least 8 characters")
+    if token and len(str(token)) < MIN_ADMIN_TOKEN:
+        raise ConfigError(f"the admin token must have at least {MIN_ADMIN_TOKEN} characters, got {len(str(token))} "
+                          "(one to use: openssl rand -hex 24)")
     max_attempts = OmegaConf.select(cfg, "practice.max_attempts")
     if max_attempts is not None and (isinstance(max_attempts, bool) or not isinstance(max_attempts, int)
                                      or max_attempts < 1):
