@@ -287,3 +287,21 @@ def test_a_table_kept_under_the_old_name_of_the_lateral_reach_reads_under_the_ne
     out = json.loads(capsys.readouterr().out)
     assert "lateral" in out and "vertical" not in out
     assert out["lateral"]["per_level"] == graded.sample_sizes(table)["lateral"]
+
+
+def test_the_report_says_first_when_the_study_is_too_small_to_conclude_anything():
+    levels = graded.levels_of(LEVELS)
+    table = graded.power(cohort(40, 0.03), levels, [graded.MEASURES[0], graded.MEASURES[1]], sizes=(4, 10, 40),
+                         resamples=40)
+    need = graded.sample_sizes(table)["overhang"]
+    assert need is not None and need > 4
+    tiny = graded.verdict(table, dict.fromkeys(levels, 2), levels)
+    assert tiny.startswith("**Nothing can be concluded from this study:** it has 2 participants in its level")
+    assert "fewer than the 4 a level" in tiny
+    short = graded.verdict(table, {**dict.fromkeys(levels, 40), "limit_10s": need - 1}, levels)
+    assert short.startswith("**Nothing can be concluded") and f"{need - 1} participants in its level `limit_10s`" in short
+    assert f"is {need} a level (the average overhang)" in short
+    assert graded.verdict(table, dict.fromkeys(levels, need), levels) is None
+    text = graded.report(graded.predictions(cohort(3, 0.03), levels), graded.trends(cohort(3, 0.03), levels), table,
+                         levels, LEVELS, dict.fromkeys(levels, 3), study=dict.fromkeys(levels, 3))
+    assert text.splitlines()[2].startswith("**Nothing can be concluded from this study:**")

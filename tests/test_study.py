@@ -310,3 +310,48 @@ def test_a_graded_study_takes_paper_people_runs_for_the_levels_whose_people_they
     _fake_run(tmp_path / "other", ["cohort=dual_transition"], {"switching": "sw"})
     with pytest.raises(ConfigError, match="its switching participants are in none of the study's conditions"):
         gather([tmp_path / "other"], tmp_path / "sim4", "graded_budgets", levels, "tiered", graded)
+
+
+def test_a_graded_study_of_peoples_log_is_analysed_and_says_first_what_its_size_cannot_support(tmp_path):
+    """``study graded_budgets --log``: an export of people, analysed as a simulation's participants are (Table 1, Γ,
+    the flows per level, the trends, power by a bootstrap of them), its report opening with what its size cannot
+    support; a log of a condition the study lacks, or --log with --sim, refused in one line."""
+    from overhang_framework.behaviour.log import read_log, write_log
+
+    sim = tmp_path / "sim"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
+                           "predictor=ipe", "predictor.K=10", "cohort.participants={time_limited: 4, unconstrained: 4}",
+                           "cohort.n_tasks=2", "seed=3", "world.physics=static", "progress=false",
+                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    df = read_log(sim / "log.jsonl")
+    levels = ["limit_2_5s", "time_limited", "limit_10s", "unconstrained"]
+    ids = sorted(df["participant"].unique())
+    df["condition"] = df["participant"].map({p: levels[i % 4] for i, p in enumerate(ids)})  # as an export has them
+    write_log(df, tmp_path / "export.jsonl")
+    out = tmp_path / "study"
+    base = [sys.executable, "-m", "overhang_framework.study", "graded_budgets", "--out", str(out), "--no-progress",
+            "--world", "world.physics=static"]
+    proc = subprocess.run([*base, "--log", str(tmp_path / "export.jsonl"), "--no-fit", "--resamples", "5"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "taking 8 people (2 limit_2_5s, 2 time_limited, 2 limit_10s, 2 unconstrained) from 1 log" in proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "# The graded-budget study: what people did"
+    assert lines[2].startswith("**Nothing can be concluded from this study:** it has 2 participants in its level")
+    assert "2 people" in proc.stdout and "simulated" not in proc.stdout
+    people = pd.read_csv(out / "participants.csv")
+    assert len(people) == 8 and sorted(set(people["condition"])) == sorted(levels)
+    assert not [c for c in people.columns if c.startswith("true_")] and people["avg_overhang"].notna().all()
+    assert (out / "people" / "log.jsonl").exists() and not (out / "sim").exists()
+    trends = pd.read_csv(out / "trends.csv")
+    assert {"overhang", "gamma", "lateral"} <= set(trends["measure"])
+    df.loc[df["participant"] == ids[0], "condition"] = "limit_1s"
+    write_log(df, tmp_path / "other.jsonl")
+    for extra, words in ((["--log", str(tmp_path / "other.jsonl")], "--log: participants in condition 'limit_1s', "
+                          "which the study graded_budgets does not have (its conditions: limit_2_5s, time_limited, "
+                          "limit_10s, unconstrained)"),
+                         (["--log", str(tmp_path / "export.jsonl"), "--sim", str(sim)],
+                          "--log takes people's data and --sim simulated participants; give one of them")):
+        proc = subprocess.run([*base[:5], str(tmp_path / "refused"), *extra], capture_output=True, text=True)
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and words in proc.stderr, proc.stderr

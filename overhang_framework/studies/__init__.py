@@ -52,6 +52,12 @@ its runs serve there, and only the other levels need simulating::
     python -m overhang_framework.study graded_budgets --out runs/graded --sim runs/graded_new \
         --sim runs/pp_tl --sim runs/pp_un        # the paper_people runs at seeds of their own, e.g. 1 and 0
 
+People's data (an export of the study: JSON Lines, CSV or a Psych-DS folder) are analysed the same way with
+``--log LOG``: ``people/`` then holds their log, power is a bootstrap of them, and the report opens with what the
+study's size cannot support (:func:`overhang_framework.studies.graded.verdict`)::
+
+    python -m overhang_framework.study graded_budgets --log runs/graded-export.jsonl --out runs/graded-people
+
 ``--no-fit`` leaves out the fit (and the predictive
 check); the findings of the fit (depth, hybrid, switch) are then reported as not tested::
 

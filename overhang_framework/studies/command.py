@@ -36,6 +36,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                     help="take the participants of this finished simulation of the study's cohort (or of another "
                          "whose participants are the study's people) instead of simulating (repeatable, e.g. one "
                          "run a condition); power is then a bootstrap")
+    ap.add_argument("--log", action="append", default=[], metavar="LOG",
+                    help="analyse people: a behaviour log of the study's participants (an export: JSON Lines, CSV or a "
+                         "Psych-DS folder; repeatable) instead of simulating any; power is then a bootstrap of them")
     ap.add_argument("--no-fit", action="store_true", help="leave out the fit and the findings that need it")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
@@ -48,7 +51,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         summary = run(args.study, Path(args.out), args.scale, args.pool, args.tasks, args.jobs, depths, args.resamples,
                       args.replicas, args.seed, args.world, args.participants, args.fit, not args.no_progress, say,
-                      args.sim, not args.no_fit)
+                      args.sim, not args.no_fit, args.log)
     except OverhangError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2

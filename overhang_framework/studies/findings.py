@@ -63,11 +63,13 @@ NO_FIT = "not tested: no fit (--no-fit)"
 
 # --- per-participant quantities ------------------------------------------------------------------------
 
-def participant_table(out: Path, fitted: bool = True) -> pd.DataFrame:
-    """One row per participant: condition, the true parameters, Table 1's and Γ's values, Fig. 4's log-likelihood
-    differences, the best model by BIC, and each family's evidence (``evidence_<family>``); with ``fitted`` false,
-    the fit's columns empty (a study without a fit)."""
-    truth = pd.read_csv(out / "sim" / "participants.csv").rename(columns={"id": "participant"})
+def participant_table(out: Path, fitted: bool = True, data: str = "sim") -> pd.DataFrame:
+    """One row per participant: condition, the true parameters (none for people), Table 1's and Γ's values, Fig. 4's
+    log-likelihood differences, the best model by BIC, the share of their placements the fit's grid could not map
+    (``unmapped_share``: people do not place on a grid), and each family's evidence (``evidence_<family>``); with
+    ``fitted`` false, the fit's columns empty (a study without a fit). ``data``: the folder of ``out`` that holds
+    the participants (``sim``, simulated; ``people``, from a log)."""
+    truth = pd.read_csv(out / data / "participants.csv", dtype={"id": str}).rename(columns={"id": "participant"})
     truth = truth.rename(columns={c: f"true_{c}" for c in ("sigma", "depth", "beta", "lapse", "switch", "risk",
                                                             "percept", "hand") if c in truth.columns})
     t1 = pd.read_csv(out / "analysis" / "table1_participants.csv")[
@@ -97,8 +99,10 @@ def participant_table(out: Path, fitted: bool = True) -> pd.DataFrame:
             df = df.merge(part, on="participant", how="left")
         return df.sort_values("participant").reset_index(drop=True)
     fits = pd.read_csv(out / "fit" / "fits.csv")
-    best = winners(fits)[["participant", "model", "family", "depth", "switch"]].rename(
+    best = winners(fits)[["participant", "model", "family", "depth", "switch", "n", "unmapped"]].rename(
         columns={"model": "best_model", "family": "best_family", "depth": "fitted_depth", "switch": "fitted_switch"})
+    best["unmapped_share"] = best["unmapped"] / (best["n"] + best["unmapped"])
+    best = best.drop(columns=["n", "unmapped"])
     # the risk of one model fitted to every participant (its grid includes risk-neutral), never the winners' own
     risked = one_model(with_neutral(fits), "risk") if "risk" in fits.columns else None
     if risked is not None:

@@ -222,14 +222,45 @@ def _extremes(pred: pd.DataFrame, measure: str) -> str:
     return f"; lowest at `{low['level']}` ({low['mean']:.3g}), highest at `{high['level']}` ({high['mean']:.3g})"
 
 
+def verdict(power_table: pd.DataFrame, study: Mapping[str, int], levels: Sequence[str]) -> Optional[str]:
+    """The report's first sentence when the study (``study``: its participants a level) is too small for the planned
+    test to conclude anything, saying why; None when it is not. Too small: a level with fewer participants than the
+    smallest study the design considers (:data:`SIZES`), or fewer than the least any expected trend needs for
+    :data:`TARGET_POWER` in ``power_table``."""
+    fewest = min(levels, key=lambda lv: study.get(lv, 0))
+    n = study.get(fewest, 0)
+    who = f"{n} participant{'s' * (n != 1)} in its level `{fewest}`"
+    if n < SIZES[0]:
+        return (f"**Nothing can be concluded from this study:** it has {who}, fewer than the {SIZES[0]} a level of the "
+                "smallest study the design considers, below which the trend test across the levels has next to no "
+                "power; what follows describes these participants, not the effect of the time allowed.")
+    expected = {m.name for m in MEASURES if m.direction}
+    needed = {m: s for m, s in sample_sizes(power_table).items() if m in expected and s is not None}
+    if len(power_table) and n < min(needed.values(), default=math.inf):
+        least = min(needed, key=needed.get) if needed else None
+        why = (f"the least any expected trend needs for {TARGET_POWER:.0%} power is {needed[least]} a level (the "
+               f"{dict((m.name, m.label) for m in MEASURES)[least]})" if least else
+               f"no expected trend reaches {TARGET_POWER:.0%} power at any size up to "
+               f"{int(power_table['per_level'].max())} a level")
+        return (f"**Nothing can be concluded from this study:** it has {who}, and {why}; a trend it does not show may "
+                "be there, and one it shows may be chance.")
+    return None
+
+
 def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, levels: Sequence[str],
-           limits: Mapping[str, Optional[float]], pool: Mapping[str, int]) -> str:
-    """``graded.md``: the per-level predictions, the trends, and the sample sizes, in sentences and tables."""
+           limits: Mapping[str, Optional[float]], pool: Mapping[str, int], people: bool = False,
+           study: Optional[Mapping[str, int]] = None) -> str:
+    """``graded.md``: the per-level predictions, the trends, and the sample sizes, in sentences and tables. ``people``:
+    the participants are people (a log), not simulated; ``study``: the participants a level of the study proper,
+    whose size the first sentence judges (:func:`verdict`)."""
     sizes = sample_sizes(power_table)
     label = {m.name: m.label for m in MEASURES}
-    lines = ["# The graded-budget study: predictions and design", "",
+    kind = "people" if people else "simulated"
+    said = verdict(power_table, study, levels) if study is not None else None
+    lines = ["# The graded-budget study" + (": what people did" if people else ": predictions and design"), "",
+             *([said, ""] if said else []),
              "Levels, by the time they leave per placement: " + ", ".join(
-                 f"`{lv}` ({'no limit' if limits[lv] is None else f'{limits[lv]:g} s'}; {pool.get(lv, 0)} simulated)"
+                 f"`{lv}` ({'no limit' if limits[lv] is None else f'{limits[lv]:g} s'}; {pool.get(lv, 0)} {kind})"
                  for lv in levels) + ".", "", "## Each level", "",
              "| measure | " + " | ".join(levels) + " |", "|---|" + "---|" * len(levels)]
     partial = []
@@ -278,7 +309,7 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
         if n is not None and n > pool_n:
             size += f" (optimistic: drawn from a pool of {pool_n} per level)"
         lines.append(f"- **{what}** {way} with the time allowed, as expected: ρ = {r['rho']:+.2f}, p = "
-                     f"{r['p']:.3g}; the simulated pool {found_text} it. {size}.")
+                     f"{r['p']:.3g}; {'these people' if people else 'the simulated pool'} {found_text} it. {size}.")
     if not len(power_table):
         return "\n".join(lines + ["", "(power not estimated)", ""])
     lines += ["", "| measure | " + " | ".join(str(s) for s in sorted(power_table["per_level"].unique())) + " |",
@@ -290,7 +321,8 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
             if r["direction"] == 0 and r["measure"] in set(power_table["measure"])]
     counts = sorted({int(v) for v in power_table["resamples"]}) if "resamples" in power_table.columns else []
     lines += ["", "(power: the share of studies of that many participants per level, drawn with replacement from "
-              "the simulated pool, in which the trend holds at p < .05 the expected way"
+              + ("these people (a bootstrap: it gives the power of the effect they happen to show)" if people else
+                 "the simulated pool") + ", in which the trend holds at p < .05 the expected way"
               + (f"; {', '.join(f'{c:,}' for c in counts)} redrawn studies a figure, each within about "
                  f"{max(0.5 / np.sqrt(min(counts)), 0.0):.3f} of its limit (one Monte Carlo standard error at most)"
                  if counts else "")
@@ -448,7 +480,7 @@ def _fitted_study(args) -> int:
     finally:
         bar.close()
     pool = {c: int((people["condition"] == c).sum()) for c in levels}
-    text = report(pred, found, table, levels, limits, pool)
+    text = report(pred, found, table, levels, limits, pool, study=pool)
     source = "; ".join(f"{name} of `{model}`" for name, model in models.items())
     files = " and ".join(f"`{path}`" for path in args.fits) + (
         " (their participants told apart by the file's number, `1:`, `2:`, ...)" if len(args.fits) > 1 else "")

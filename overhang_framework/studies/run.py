@@ -42,10 +42,12 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 1000, replicas: int = 39, seed: int = 0,
         world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
         progress: bool = True, say: Callable[[str], None] = lambda s: None, sims: Sequence[str | Path] = (),
-        fit_models: bool = True) -> dict:
+        fit_models: bool = True, logs: Sequence[str | Path] = ()) -> dict:
     """Run ``study`` into ``out``; see the module docstring. ``sims``: finished simulations of the study's cohort
     (``python -m overhang_framework.participants`` run directories) to take as the participants instead of
-    simulating them; ``fit_models`` false leaves out the fit (and the findings that need it)."""
+    simulating them; ``logs``: behaviour logs of people (an export of the study: JSON Lines, CSV or a Psych-DS
+    folder), analysed as the study's participants; ``fit_models`` false leaves out the fit (and the findings that
+    need it)."""
     from omegaconf import OmegaConf
 
     if study not in STUDIES:
@@ -57,6 +59,11 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     for name, value, low in (("--jobs", jobs, 1), ("--resamples", resamples, 0), ("--replicas", replicas, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ConfigError(f"{name} must be a whole number >= {low}, got {value!r}")
+    if logs and sims:
+        raise ConfigError("--log takes people's data and --sim simulated participants; give one of them")
+    if logs and (scale != 1.0 or pool != 2.0 or n_tasks is not None or participants):
+        raise ConfigError("--log takes people's data; --scale, --pool, --tasks and --participants are for simulating "
+                          "participants: leave them out")
     if sims and (scale != 1.0 or pool != 2.0 or n_tasks is not None or participants):
         raise ConfigError("--sim takes participants already simulated; --scale, --pool, --tasks and --participants "
                           "are for simulating them: leave them out")
@@ -84,7 +91,13 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
 
     # 1. the participants
     t0 = time.perf_counter()
-    if sims:
+    data = "people" if logs else "sim"
+    if logs:
+        sizes = take_logs(logs, out / data, study, list(counts))
+        simulated = dict(sizes)
+        say(f"taking {sum(sizes.values())} people ({', '.join(f'{n} {k}' for k, n in sizes.items())}) from "
+            f"{len(logs)} log{'s' * (len(logs) > 1)}")
+    elif sims:
         sizes = gather(sims, out / "sim", str(base.cohort.name), list(counts), str(sim_cfg.world.physics),
                        OmegaConf.to_container(sim_cfg, resolve=True))
         simulated = dict(sizes)
@@ -94,7 +107,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         say(f"simulating {sum(simulated.values())} participants "
             f"({', '.join(f'{n} {k}' for k, n in simulated.items())})")
         simulate(sim_cfg, out / "sim")
-    log = out / "sim" / "log.jsonl"
+    log = out / data / "log.jsonl"
     if not steps.seconds("participants") or not steps.current("participants", _digest(log)):
         steps.finish("participants", _digest(log), time.perf_counter() - t0)
 
@@ -108,7 +121,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         analyse([log], out / "analysis", Settings(world_overrides=tuple(world), seed=seed,
                                                   only=ANALYSES, progress=progress))
         steps.finish("analysis", digest, time.perf_counter() - t0)
-    if sims:  # the tasks each did, as the report says it
+    if sims or logs:  # the tasks each did, as the report says it
         n_tasks = int(pd.read_csv(out / "analysis" / "table1_participants.csv")["trials"].max())
 
     # 3. the fit
@@ -129,11 +142,11 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         steps.finish("fit", digest, time.perf_counter() - t0)
 
     if study in GRADED:
-        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models, progress)
+        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models, progress, data)
 
     # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
-    pool_people, people = _participants(out, sizes, fit_models)
+    pool_people, people = _participants(out, sizes, fit_models, data)
     found = evaluate(people, seed=seed)
     from overhang_framework.progress import progress_bar
 
@@ -205,10 +218,11 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
 
 
 
-def _participants(out: Path, sizes: dict[str, int], fitted: bool = True) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _participants(out: Path, sizes: dict[str, int], fitted: bool = True,
+                  data: str = "sim") -> tuple[pd.DataFrame, pd.DataFrame]:
     """The participant table of the simulated pool (written to ``participants.csv``), and the study proper: the
     first participants of each condition, as many as ``sizes`` says (the rest of the pool only for redrawing)."""
-    df = participant_table(out, fitted)
+    df = participant_table(out, fitted, data)
     atomic_write_text(out / "participants.csv", df.to_csv(index=False))
     pool_people = df[df["condition"].isin(sizes)]
     people = pd.concat([pool_people[pool_people["condition"] == c].sort_values("participant").head(n)
@@ -217,14 +231,14 @@ def _participants(out: Path, sizes: dict[str, int], fitted: bool = True) -> tupl
 
 
 def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples: int, seed: int,
-            started: float, fitted: bool = True, progress: bool = False) -> dict:
+            started: float, fitted: bool = True, progress: bool = False, data: str = "sim") -> dict:
     """A graded study's step 4: each level's figures, the trends and the sample sizes (:mod:`overhang_framework.studies.graded`)."""
     from overhang_framework.studies import graded
 
     t0 = time.perf_counter()
     limits = {name: sim_cfg.conditions[name].get("time_limit") for name in sizes}
     levels = graded.levels_of(limits)
-    pool_people, people = _participants(out, sizes, fitted)
+    pool_people, people = _participants(out, sizes, fitted, data)
     pred = graded.predictions(people, levels, seed=seed)
     found = graded.trends(people, levels, seed=seed)
     from overhang_framework.progress import progress_bar
@@ -241,12 +255,49 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
         atomic_write_text(out / name, frame.to_csv(index=False))
     steps.finish("findings", "", time.perf_counter() - t0)
     text = graded.report(pred, found, table, levels, limits, {c: int((pool_people["condition"] == c).sum())
-                                                              for c in levels})
+                                                              for c in levels}, people=data == "people",
+                         study={c: int((people["condition"] == c).sum()) for c in levels})
+    text += _unmapped_line(people) if fitted else ""
     if not fitted:
         text += ("\nNo fit (`--no-fit`): the fitted depth and risk aversion are neither predicted nor tested; "
                  "run the study again without `--no-fit` to add them.\n")
     text += ("\n## Steps\n\n" + "\n".join(f"- {k}: {v['seconds']:.0f} s" for k, v in steps.done.items())
-             + f"\n\nTotal this run: {time.perf_counter() - started:.0f} s. Files: `sim/`, `analysis/report.md`, "
+             + f"\n\nTotal this run: {time.perf_counter() - started:.0f} s. Files: `{data}/`, `analysis/report.md`, "
              "`fit/comparison.md`, `participants.csv`, `predictions.csv`, `trends.csv`, `power.csv`.\n")
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": found, "report": text}
+
+
+def take_logs(logs: Sequence[str | Path], into: Path, study: str, conditions: Sequence[str]) -> dict[str, int]:
+    """People's behaviour logs (``logs``: exports of the study) as the study's participants: their records written
+    to ``into/log.jsonl`` and their conditions to ``into/participants.csv``; the number a condition, in the order of
+    ``conditions``. A condition the study does not have, or a log without records, is one :class:`ConfigError` line."""
+    from overhang_framework.behaviour.log import LogError, read_log, require_records, write_log
+
+    paths = [str(p) for p in logs]
+    try:
+        df = require_records(read_log(paths), paths)
+    except LogError as err:
+        raise ConfigError(f"--log: {err}") from None
+    people = df.drop_duplicates("participant")[["participant", "condition"]]
+    unknown = sorted(set(people["condition"].astype(str)) - set(conditions))
+    if unknown:
+        raise ConfigError(f"--log: participants in condition {unknown[0]!r}, which the study {study} does not have "
+                          f"(its conditions: {', '.join(conditions)})")
+    into.mkdir(parents=True, exist_ok=True)
+    write_log(df, into / "log.jsonl")
+    table = people.rename(columns={"participant": "id"}).sort_values("id", kind="stable")
+    atomic_write_text(into / "participants.csv", table.to_csv(index=False))
+    return {c: int((people["condition"] == c).sum()) for c in conditions if (people["condition"] == c).any()}
+
+
+def _unmapped_line(people: pd.DataFrame) -> str:
+    """The report's line on the placements the fit's grid could not map (people place anywhere; the fit scores
+    grid actions)."""
+    share = people["unmapped_share"].dropna() if "unmapped_share" in people.columns else pd.Series(dtype=float)
+    if not len(share):
+        return ""
+    worst = people.loc[share.idxmax()]
+    return (f"\nPlacements the fit's grid could not map (left out of each participant's likelihood): "
+            f"{share.mean():.1%} a participant on average, at most {share.max():.1%} "
+            f"({worst['participant']}).\n")
