@@ -822,3 +822,50 @@ def test_the_readmes_cpu_install_pins_a_matching_pair():
     (pair,) = re.findall(r"pip install torch==(\S+) torchvision==(\S+) --index-url URL", readme)
     torch_version, torchvision_version = pair
     assert f"torchvision=={torchvision_version}+cpu" in matching_torchvision(torch_version, None)
+
+
+def test_networks_built_at_once_in_threads_export_one_at_a_time_and_once(tmp_path, monkeypatch):
+    """A pilot's concurrent participants each build the CNN: torch.export is not thread-safe, so exports wait for
+    each other, and the threads that waited take the model the first one exported."""
+    import threading
+    import time
+
+    import torch
+
+    from overhang_framework.cnn import model as cnn_model
+
+    net = torch.nn.Sequential(torch.nn.Conv2d(1, 2, 3), torch.nn.Flatten(), torch.nn.Linear(2 * 6 * 6, 1)).eval()
+    exported = cnn_model.export_onnx(net, (1, 8, 8))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})
+    inside, most, calls = [0], [0], []
+
+    def slow_export(*args):
+        inside[0] += 1
+        most[0] = max(most[0], inside[0])
+        calls.append(1)
+        time.sleep(0.3)
+        inside[0] -= 1
+        return exported
+
+    monkeypatch.setattr(cnn_model, "export_onnx", slow_export)
+    built, errors = [], []
+
+    def build(key):
+        try:
+            built.append(cnn_model.onnx_network(net, (1, 8, 8), 1, key))
+        except Exception as err:  # noqa: BLE001 (a thread's error is the test's)
+            errors.append(err)
+
+    threads = [threading.Thread(target=build, args=("k" if i % 2 else None,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(built) == 8
+    assert most[0] == 1  # never two exports at once
+    assert len(calls) == 1 + 4  # the keyed network once, the four without a key each time
+    images = np.zeros((3, 1, 8, 8), dtype=np.float32)
+    expected = net(torch.from_numpy(images)).detach().numpy()
+    for network in built:
+        np.testing.assert_allclose(np.asarray(network(images)).reshape(expected.shape), expected, rtol=1e-5, atol=1e-6)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import re
+import threading
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
@@ -316,6 +317,9 @@ class OnnxNetwork:
 
 
 _ONNX_MODELS: dict = {}
+#: One export at a time in a process: ``torch.export`` is not thread-safe (a pilot's concurrent participants, each
+#: building a CNN, crashed in it); the threads that wait then find the model the first one exported.
+_EXPORTING = threading.Lock()
 
 
 def onnx_cache_dir() -> Path:
@@ -332,7 +336,12 @@ def onnx_network(net, shape, threads: Optional[int] = None, key: Optional[str] =
     ``threads`` threads. The export takes seconds, so with a ``key`` (a digest of everything that makes
     the network: the checkpoint's bytes, the torch version, the input shape) it is kept, in the process
     and as a file in :func:`onnx_cache_dir` (written atomically; a cache that cannot be written is
-    skipped)."""
+    skipped). Threads wait for each other's export (:data:`_EXPORTING`)."""
+    with _EXPORTING:
+        return _onnx_network(net, shape, threads, key)
+
+
+def _onnx_network(net, shape, threads: Optional[int], key: Optional[str]) -> OnnxNetwork:
     model = _ONNX_MODELS.get(key) if key is not None else None
     path = onnx_cache_dir() / f"{key}.onnx" if key is not None else None
     if model is None and path is not None and path.is_file():
