@@ -67,7 +67,13 @@ def test_a_pilot_through_the_server_stores_what_the_offline_simulation_places(tm
     assert "2 participants (2 finished, 0 screened out" in done.stdout, done.stdout
     summary = json.loads((out / "pilot.json").read_text())
     assert set(summary["conditions"]) == {"time_limited", "unconstrained"}
-    records = export(out)
+    # the export the pilot's last line suggests, run as written, writes its participants' placements
+    import shlex
+
+    suggested = shlex.split(done.stdout.strip().splitlines()[-1].split("the log: ", 1)[1])
+    assert suggested[:2] == ["python", "-m"] and "--include-simulated" in suggested
+    run(*suggested[1:])
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     table = truth(out)
     assert set(table) == {"pilot-001", "pilot-002"} == {r["participant"] for r in records}
     assert {r["condition"] for r in table.values()} == {"time_limited", "unconstrained"}
@@ -140,6 +146,12 @@ def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path, monkeyp
         done = pilot(out, "--url", url, "--time-scale", "0.02", "--timeouts", "server", "cohort=small",
                      "cohort.participants.time_limited=1", "cohort.participants.unconstrained=0",
                      "cohort.decision_time.t0=60", "cohort.decision_time.per_call=0", "cohort.decision_time.noise=0")
+        # a second pilot of the same live study, with the same ids, is told to give its own
+        again = pilot(tmp_path / "pilot2", "--url", url, "--time-scale", "0.02", "cohort=small",
+                      "cohort.participants.time_limited=1", "cohort.participants.unconstrained=0", check=False)
+        assert again.returncode == 1, again.stderr
+        assert ("pilot-001 is in this study already (an earlier pilot's participant): give this pilot ids of its "
+                "own with --prefix (e.g. --prefix pilot2)") in again.stderr, again.stderr
     finally:
         process.terminate()
         process.wait(timeout=30)
@@ -154,8 +166,9 @@ def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path, monkeyp
     log = tmp_path / "log.jsonl"
     where = [w for w in words if w.split("=")[0] in ("run_dir",)]
     # the server's study is a study of people: the pilot's participants are stored as simulated and left out
-    run("-m", "overhang_framework.experiment", "export", *where, "--out", str(log), "--include-screened-out")
+    left = run("-m", "overhang_framework.experiment", "export", *where, "--out", str(log), "--include-screened-out")
     assert log.read_text() == ""
+    assert "1 simulated participant (a pilot's) left out: add --include-simulated to export them" in left.stderr
     assert json.loads(sidecar_of(log).read_text())["participants"]["simulated"] == 1
     run("-m", "overhang_framework.experiment", "export", *where, "--out", str(log), "--include-screened-out",
         "--include-simulated")

@@ -242,6 +242,11 @@ def _export(args) -> int:
     timeouts = sum(bool(r.get("timed_out")) for r in records)
     placements = len(records) - timeouts
     extra = "" if not unfinished else f"; {unfinished} unfinished trial(s) left out"
+    simulated = int((study.get("participants") or {}).get("simulated") or 0)
+    of_people = ((study.get("settings") or {}).get("source") or "human") != "simulated"
+    if simulated and of_people and not args.include_simulated:
+        extra += (f"; {count_noun(simulated, 'simulated participant')} (a pilot's) left out: add --include-simulated "
+                  "to export them")
     print(f"wrote {where}: {count_noun(placements, 'placement')} and {count_noun(timeouts, 'timeout')}{extra}; "
           f"the study's settings and versions in {sidecar}", file=sys.stderr)
     return 0

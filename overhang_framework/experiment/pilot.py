@@ -268,8 +268,14 @@ class Pilot:
             pid = f"{self.prefix}-{k:03d}"
             client = Client(self.url, pid)
             try:
-                session = client.post("/api/sessions", {"params": {"participant": pid}, "simulated": True},
-                                      {"X-Admin-Token": self.admin_token or ""})
+                try:
+                    session = client.post("/api/sessions", {"params": {"participant": pid}, "simulated": True},
+                                          {"X-Admin-Token": self.admin_token or ""})
+                except PilotError as err:
+                    if "already has a session" in str(err) or "has finished the study" in str(err):
+                        raise PilotError(f"{pid} is in this study already (an earlier pilot's participant): give this "
+                                         f"pilot ids of its own with --prefix (e.g. --prefix {self.prefix}2)") from None
+                    raise
                 self.opened.append(pid)
                 client.token = session["token"]
                 if not session["consent"]["given"]:  # "I agree" on the consent page the server sent
@@ -626,5 +632,5 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     where = f"run_dir={args.out}" if not args.url else f"--url {args.url}"
     print(f"{result['participants']} participants ({result['finished']} finished, {result['screened_out']} screened "
           f"out in the practice) in {result['seconds']:.0f} s; the log: python -m overhang_framework.experiment "
-          f"export {where} --out {Path(args.out) / 'log.jsonl'}")
+          f"export {where} --include-simulated --out {Path(args.out) / 'log.jsonl'}")
     return 0
