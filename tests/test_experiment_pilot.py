@@ -152,6 +152,15 @@ def test_a_too_slow_participant_times_out_on_the_servers_clock(tmp_path, monkeyp
         assert again.returncode == 1, again.stderr
         assert ("pilot-001 is in this study already (an earlier pilot's participant): give this pilot ids of its "
                 "own with --prefix (e.g. --prefix pilot2)") in again.stderr, again.stderr
+        # a cohort whose conditions are not the study's is refused before any session is opened
+        other = pilot(tmp_path / "pilot3", "--url", url, "--prefix", "other", "cohort=small",
+                      "cohort.participants.time_limited=1", "cohort.participants.unconstrained=1", check=False)
+        assert other.returncode == 1 and ("the study serves the conditions time_limited, and the cohort has "
+                                          "participants in time_limited, unconstrained") in other.stderr, other.stderr
+        import httpx
+
+        held = httpx.get(url + "/api/admin/participants", headers={"X-Admin-Token": "pilot-test-admin"}).json()
+        assert [p["participant"] for p in held] == ["pilot-001"]
     finally:
         process.terminate()
         process.wait(timeout=30)

@@ -243,7 +243,7 @@ def _export(args) -> int:
     placements = len(records) - timeouts
     extra = "" if not unfinished else f"; {unfinished} unfinished trial(s) left out"
     simulated = int((study.get("participants") or {}).get("simulated") or 0)
-    of_people = ((study.get("settings") or {}).get("source") or "human") != "simulated"
+    of_people = ((((study.get("study") or {}).get("settings")) or {}).get("source") or "human") != "simulated"
     if simulated and of_people and not args.include_simulated:
         extra += (f"; {count_noun(simulated, 'simulated participant')} (a pilot's) left out: add --include-simulated "
                   "to export them")

@@ -258,9 +258,31 @@ class Pilot:
 
     # -- sessions --------------------------------------------------------------------------------------------
 
+    def check_study(self) -> None:
+        """Refuse, before any session is opened, a cohort whose conditions are not the study's: the server assigns
+        every newcomer one of its conditions in turn, so each must have participants in the cohort, and each of
+        the cohort's must be one of the server's."""
+        import httpx
+
+        try:
+            reply = httpx.get(self.url.rstrip("/") + "/api/admin/study", headers={"X-Admin-Token": self.admin_token or ""},
+                              timeout=REQUEST_TIMEOUT)
+        except httpx.HTTPError as err:
+            raise PilotError(f"the server at {self.url} did not answer: {err}") from None
+        if reply.status_code != 200:
+            raise PilotError(f"the server refused to say its study ({reply.status_code}): "
+                             f"{reply.json().get('error') if 'json' in reply.headers.get('content-type', '') else reply.text[:200]}")
+        served = list((((reply.json().get("study") or {}).get("settings")) or {}).get("conditions") or [])
+        ours = [s.name for s in self.p.checked.cohort.conditions if s.n]
+        if served and (set(served) - set(ours) or set(ours) - set(served)):
+            raise PilotError(f"the study serves the conditions {', '.join(served)}, and the cohort has participants "
+                             f"in {', '.join(ours) or 'none'}: give the cohort participants in each of the study's "
+                             f"conditions and no other (cohort.participants.<condition>=N); no session was opened")
+
     def open_sessions(self) -> list[Taker]:
         """A session for each participant of the cohort, one after another, each given the cohort's next
         participant of the condition the server assigned."""
+        self.check_study()
         cohort = self.p.checked.cohort
         free = {s.name: [q for q in self.p.participants if q.condition == s.name] for s in cohort.conditions}
         takers = self.takers
