@@ -41,3 +41,17 @@ def test_every_documented_command_answers_help():
         else:  # a description (the module's first lines), or Hydra's help of the app
             short = module.rsplit(".", 1)[-1]
             assert short in text or "overhang-framework" in text, (module, text[:300])
+
+
+def test_the_pilot_commands_of_the_docs_give_the_options_the_pilot_requires():
+    """Each ``experiment pilot`` the docs show parses as the pilot's command line (``--out`` is required)."""
+    import shlex
+
+    from overhang_framework.experiment.pilot import parser
+
+    for doc in (ROOT / "docs" / "people.md", ROOT / "docs" / "experiment.md"):
+        text = doc.read_text().replace("\\\n", " ")
+        for line in re.findall(r"^python -m overhang_framework\.experiment pilot (.*)$", text, flags=re.M):
+            words = shlex.split(line.split("#")[0])
+            args = parser().parse_args(words)
+            assert args.out, (doc.name, line)
