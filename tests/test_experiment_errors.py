@@ -98,15 +98,19 @@ def test_every_refusal_a_page_can_meet_says_what_to_do(client):
     said_to_a_participant(client.post("/api/placements", json={"phase": "practice"}, headers=h), 422)
 
 
-def test_a_participant_who_finished_is_told_so_in_another_browser(client):
-    from overhang_framework.experiment.store import Participant  # noqa: F401
-
-    s = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
+def test_someone_with_only_the_id_of_a_participant_who_finished_is_not_told_they_took_part(client):
+    """The id alone gets the answer a participant half way gets (another browser holds the session): nothing says
+    the person finished; their own session token opens their end page."""
+    finished = client.post("/api/sessions", json={"params": {"participant": "P9"}}).json()
     client.app.state.store.complete("P9", 1.0, 0.5)
-    data = said_to_a_participant(client.post("/api/sessions", json={"params": {"participant": "P9"}}), 403,
-                                 "finished")
-    assert data["message"].startswith("You have finished this study already: thank you.")
-    assert "new link" not in data["message"] and s["token"] not in str(data)
+    client.post("/api/sessions", json={"params": {"participant": "P8"}})
+    guessed, half_way = (client.post("/api/sessions", json={"params": {"participant": p}}) for p in ("P9", "P8"))
+    assert guessed.status_code == half_way.status_code == 403
+    assert guessed.json() == {**half_way.json(), "error": half_way.json()["error"].replace("P8", "P9")}
+    assert "finish" not in guessed.text and finished["token"] not in guessed.text
+    own = client.post("/api/sessions", json={"params": {"participant": "P9"}},
+                      headers={"Authorization": f"Bearer {finished['token']}"})
+    assert own.status_code == 200 and own.json()["position"]["phase"] == "done"
 
 
 def test_an_exhausted_database_pool_is_a_503_too(client, monkeypatch):

@@ -532,11 +532,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         known = store.participant(pid)
         if known is not None:
             if token is None or not hmac.compare_digest(token_hash(token), known.token_hash):
-                if known.completed_at is not None:
-                    raise Refused(403, f"participant {pid} has finished the study, in another browser or with an "
-                                       "earlier link", reason="finished", **for_participant(
-                                           "You have finished this study already: thank you. There is nothing more "
-                                           "to do", settings, "If you were not shown your completion code"))
+                # the same answer whether they are half way or finished: the id alone says nothing of how far
+                # someone got (their session token does: with it, a finished participant sees their end page)
                 raise Refused(403, f"participant {pid} already has a session, held by another browser or an earlier "
                                    "link; the researcher can issue a new link (experiment reissue)",
                               reason="session_elsewhere", contact=settings.contact)

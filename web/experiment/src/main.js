@@ -36,11 +36,11 @@ const escapeHtml = (text) =>
 
 function showElsewhere(contact) {
   showMessage(
-    "This study is open elsewhere",
-    `<p>Your session was started in another browser or on another device, so it cannot continue
-    here.</p>
-    <p>Please contact <b>${escapeHtml(contact || "the researcher")}</b> and ask for a new link. The new
-    link lets you continue exactly where you stopped, in this browser.</p>`,
+    "This link cannot open the study here",
+    `<p>A session with this link was started in another browser or on another device, so it cannot be
+    opened here.</p>
+    <p>Please contact <b>${escapeHtml(contact || "the researcher")}</b> and ask for a new link. A new
+    link opens your session in this browser, where it stands.</p>`,
     "elsewhere",
   );
 }
