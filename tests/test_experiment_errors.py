@@ -110,7 +110,7 @@ def test_someone_with_only_the_id_of_a_participant_who_finished_is_not_told_they
     assert "finish" not in guessed.text and finished["token"] not in guessed.text
     own = client.post("/api/sessions", json={"params": {"participant": "P9"}},
                       headers={"Authorization": f"Bearer {finished['token']}"})
-    assert own.status_code == 200 and own.json()["position"]["phase"] == "done"
+    assert own.status_code == 200 and own.json()["completed"]
 
 
 def test_an_exhausted_database_pool_is_a_503_too(client, monkeypatch):
