@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -344,3 +345,30 @@ def test_a_server_that_cannot_reach_its_database_exits_for_the_service_to_retry(
     err = capsys.readouterr().err
     assert code == UNAVAILABLE != 2  # the unit's RestartPreventExitStatus=2 keeps only refusals down
     assert err.count("\n") == 1 and err.startswith("error: cannot reach the database: ") and "wrong" not in err
+
+
+def test_a_server_that_cannot_write_the_checkout_asks_for_the_build_in_one_line(tmp_path, monkeypatch):
+    """A service user that does not own the checkout meets a front end without a build (or older than its sources):
+    it is told to build it as the owner, and npm is not run."""
+    import time
+
+    from overhang_framework.errors import ConfigError
+    from overhang_framework.experiment import web
+
+    checkout = tmp_path / "web"
+    (checkout / "dist").mkdir(parents=True)
+    (checkout / "package.json").write_text("{}")
+    monkeypatch.setattr(web, "REPO_WEB", checkout)
+    monkeypatch.setattr(web.subprocess, "run", lambda *a, **k: pytest.fail(f"npm was run: {a}"))
+    monkeypatch.setattr(web.os, "access", lambda path, mode: Path(path) != checkout)  # as its service user sees it
+    with pytest.raises(ConfigError, match=r"^the front end has no build, and this user cannot write .*web to build it: run python "
+                                          r"-m overhang_framework.experiment build as the checkout's owner first"):
+        web.ensure_built()
+    (checkout / "dist" / "index.html").write_text("<!doctype html>")
+    old = time.time() - 60
+    os.utime(checkout / "dist" / "index.html", (old, old))
+    with pytest.raises(ConfigError, match="the front end is older than its sources, and this user cannot write"):
+        web.ensure_built()
+    monkeypatch.setattr(web.os, "access", lambda path, mode: True)
+    os.utime(checkout / "package.json", (old - 60, old - 60))
+    assert web.ensure_built() == checkout / "dist"  # built and current: served, nothing to write

@@ -8,6 +8,7 @@ makes it when it is missing.
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -44,6 +45,12 @@ def ensure_built(web_dir: Optional[Path] = None, force: bool = False) -> Path:
     if not (REPO_WEB / "package.json").exists():
         raise ConfigError(f"the front end's sources are not at {REPO_WEB}; run from a clone of the repository or "
                           "set web_dir to a built front end")
+    unwritable = [p for p in (REPO_WEB, REPO_WEB / "node_modules", dist) if p.exists() and not os.access(p, os.W_OK)]
+    if unwritable:
+        why = "has no build" if not (dist / "index.html").exists() else "is older than its sources"
+        raise ConfigError(f"the front end {why}, and this user cannot write {unwritable[0]} to build it: run "
+                          "python -m overhang_framework.experiment build as the checkout's owner first (or set web_dir "
+                          "to a built front end)")
     npm = shutil.which("npm")
     if npm is None:
         raise ConfigError("npm is not installed; the front end needs Node.js 18 or later with npm "
