@@ -790,3 +790,23 @@ def test_guessing_the_admin_token_is_refused_after_ten_wrong_tokens_a_minute(mak
     assert start(client, "P1").status_code == 201  # participants are not held up
     clock.now += ADMIN_WINDOW - ADMIN_GUESSES + 0.5  # the first guess is a minute old
     assert listed(ADMIN).status_code == 200
+
+
+def test_a_pilots_planning_is_taken_off_the_servers_clock_and_nobody_elses(make_client):
+    """A simulated participant's placement says how long its planner computed (simulator_time): the server's clock
+    leaves it out, so the time recorded is the participant's; a person's placement may not say it."""
+    clock = FakeClock()
+    client = make_client(clock=clock)
+    person = start(client, "H1").json()
+    assert "simulator_time is a pilot's" in error(
+        place(client, person, "practice", 1, 1, *practice_tower(client, 1)[1][1:], simulator_time=2.0), 422)
+    reply = client.post("/api/sessions", json={"params": {"participant": "S1"}, "simulated": True},
+                        headers={"X-Admin-Token": ADMIN})
+    pilot = reply.json()
+    client.post("/api/consent", json={"version": pilot["consent"]["version"]}, headers=auth(pilot))
+    begin(client, pilot, "practice", 1, 1)
+    clock.now += 3.5  # 2.0 s of planning, then 1.5 s of the simulated participant's decision
+    out = place(client, pilot, "practice", 1, 1, *practice_tower(client, 1)[1][1:], start=False, simulator_time=2.0)
+    assert out.status_code == 200, out.text
+    assert out.json()["server_time"] == pytest.approx(1.5)
+    assert client.store.placements("S1")[0].server_time == pytest.approx(1.5)

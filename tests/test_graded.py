@@ -123,6 +123,11 @@ def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
     assert (people.loc[people["condition"] == "time_limited", "true_risk"] == 0.9).all()
     text = (out / "study.md").read_text()
     assert text.startswith("# The graded-budget study") and "| fitted risk aversion |" in text
+    assert text.splitlines()[2].startswith("**Nothing can be concluded from this study:** it has 2 participants")
+    prereg = (out / "preregistration.md").read_text()  # the design writes its preregistration
+    assert prereg.startswith("# Preregistration: the graded-budget study")
+    assert "python -m overhang_framework.study graded_budgets --out" in prereg and "H-risk" in prereg
+    assert len(pd.read_csv(out / "preregistration_effects.csv")) >= 3
 
 
 def test_a_fitted_measure_that_only_some_best_models_have_says_over_how_many_it_is():
@@ -305,3 +310,37 @@ def test_the_report_says_first_when_the_study_is_too_small_to_conclude_anything(
     text = graded.report(graded.predictions(cohort(3, 0.03), levels), graded.trends(cohort(3, 0.03), levels), table,
                          levels, LEVELS, dict.fromkeys(levels, 3), study=dict.fromkeys(levels, 3))
     assert text.splitlines()[2].startswith("**Nothing can be concluded from this study:**")
+
+
+def test_the_preregistration_states_the_hypotheses_the_size_and_the_power_across_effect_sizes():
+    from overhang_framework.studies import prereg
+
+    levels = graded.levels_of(LEVELS)
+    pool = cohort(40, 0.04)
+    halved = prereg.scaled(pool, levels, "avg_overhang", 0.5)
+    means, half = (d.groupby("condition")["avg_overhang"].mean()[levels] for d in (pool, halved))
+    np.testing.assert_allclose(half - half.mean(), 0.5 * (means - means.mean()))
+    spread = lambda d: d.groupby("condition")["avg_overhang"].std()  # noqa: E731
+    np.testing.assert_allclose(spread(halved), spread(pool))  # each participant keeps their distance from the mean
+    table = graded.power(pool, levels, [m for m in graded.MEASURES if m.name in ("overhang", "gamma", "stable")],
+                         sizes=(4, 8, 15, 30), resamples=60)
+    effects = prereg.effect_power(pool, levels, 15, resamples=60, scales=(0.25, 1.0))
+    at = effects[effects["measure"] == "overhang"].set_index("effect")["power"]
+    assert at[0.25] < at[1.0]  # a smaller effect has less power at the planned size
+    text = prereg.document(levels, LEVELS, table, effects, {lv: 30.0 for lv in levels}, dict.fromkeys(levels, 40),
+                           False, {"commit": "abc123", "version": "0.1.0", "settings_hash": "f00d", "seed": 0,
+                                   "resamples": 60}, "python -m overhang_framework.study graded_budgets --out d")
+    assert "- **H-overhang** (primary): the average overhang grows (Spearman's ρ" in text
+    assert "- **stable proportion (%)**: no trend" in text and "H-depth" not in text  # no fit: no fitted hypotheses
+    assert "commit `abc123`" in text and "settings hash `f00d`" in text
+    assert "| `limit_2_5s` | 2.5 s | about 30 min |" in text and "| `unconstrained` | none | about 30 min |" in text
+    assert "python -m overhang_framework.study graded_budgets --log export.jsonl --out analysis" in text
+    # Γ is flat in this cohort: no size gives every primary hypothesis its power, and the document says so
+    assert prereg.planned_size(table) == (None, "gamma")
+    assert "**No size of the grid gives every primary hypothesis 80% power** (the Γ has it at no size up to 30" in text
+    flat_free = table[table["measure"] != "gamma"]
+    n, which = prereg.planned_size(flat_free)
+    assert which == "overhang" and n == graded.sample_sizes(flat_free)["overhang"]
+    assert f"**{n} participants per level**" in prereg.document(levels, LEVELS, flat_free, effects, {}, {}, False,
+                                                                 {"settings_hash": "f", "seed": 0, "resamples": 60},
+                                                                 "c")

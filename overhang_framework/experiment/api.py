@@ -115,6 +115,9 @@ class PlacementIn(BaseModel):
     layer: Optional[int] = None
     timed_out: bool = False
     decision_time: float = Field(ge=0)
+    #: A pilot's simulated participant only: the seconds its planner computed before the decision began (the
+    #: simulator's cost on this machine, not the participant's), taken off the server's clock.
+    simulator_time: float = Field(default=0.0, ge=0)
     trajectory: list[tuple[float, float, float]] = Field(default_factory=list, max_length=MAX_SAMPLES)
     dwell: list[tuple[float, int, float]] = Field(default_factory=list, max_length=MAX_SAMPLES)
 
@@ -645,7 +648,9 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
         if issued is None:
             raise Refused(409, f"{pos.phase} trial {pos.trial} step {pos.step} has not been started: "
                                "POST /api/steps/start first")
-        server_time = round(max(0.0, request.state.arrived - issued), 3)
+        if body.simulator_time and (p.source or "human") != "simulated":
+            raise Refused(422, "simulator_time is a pilot's: only a simulated participant's placement may carry it")
+        server_time = round(max(0.0, request.state.arrived - issued - body.simulator_time), 3)
         late = bool(limited and not body.timed_out and server_time > limit + settings.time_grace)
         if body.timed_out and server_time < limit - EARLY_TIMEOUT:
             raise Refused(422, f"timed_out too early: the step has run {server_time:.2f} s of its "

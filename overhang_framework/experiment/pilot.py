@@ -351,15 +351,20 @@ class Pilot:
                 state = state_of(world, task, position["tower"])
                 time_left = clock.get("time_left")
                 limit = None if (self.timeouts != "page" or time_left is None) else time_left / self.time_scale
+                planning = time.monotonic()
                 choice = decide(participant, spec, cohort, state, world, predictor, planner, value,
                                 rngs[key["phase"]], limit)
+                # the simulator's planning is this machine's cost, not the participant's: it is said to the server
+                # (simulator_time), which takes it off its clock, and the participant's time is waited after it
+                planning = time.monotonic() - planning
                 wait = (time_left if choice.timed_out else choice.seconds * self.time_scale)
-                pause = received + wait - time.monotonic()
+                pause = received + planning + wait - time.monotonic()
                 if pause > 0:
                     self.stop.wait(pause)
                 body = {**key, "x": choice.x, "layer": None if choice.timed_out else choice.action.layer,
-                        "timed_out": choice.timed_out, "decision_time": round(time.monotonic() - received, 3),
-                        "trajectory": [], "dwell": []}
+                        "timed_out": choice.timed_out,
+                        "decision_time": round(max(0.0, time.monotonic() - received - planning), 3),
+                        "simulator_time": round(planning, 3), "trajectory": [], "dwell": []}
                 reply = client.post("/api/placements", body)
                 received = time.monotonic()
                 taker.placements += 1
@@ -369,6 +374,7 @@ class Pilot:
                     "grid_x": choice.action.x, "layer": choice.action.layer, "x": choice.x, "lapse": choice.lapsed,
                     "predictor_calls": choice.predictor_calls, "depth_completed": choice.depth_completed,
                     "simulated_time": choice.seconds, "waited": round(wait, 3), "claimed_timeout": choice.timed_out,
+                    "planning_seconds": round(planning, 3),
                     "timed_out": reply["timed_out"], "late": reply.get("late"), "server_time": reply["server_time"],
                     "stable": reply["stable"], "reward": reply["reward"], "passed": reply.get("passed")})
                 if key["phase"] == "practice" and reply["trial_over"]:

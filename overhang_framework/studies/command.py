@@ -14,6 +14,13 @@ from overhang_framework.studies.findings import STUDIES
 from overhang_framework.studies.run import run
 
 
+
+def _quoted(word: str) -> str:
+    import shlex
+
+    return shlex.quote(str(word))
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.study", description=studies.__doc__.split("\n\n")[0])
     ap.add_argument("study", help=f"one of: {', '.join(STUDIES)}")
@@ -51,7 +58,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         summary = run(args.study, Path(args.out), args.scale, args.pool, args.tasks, args.jobs, depths, args.resamples,
                       args.replicas, args.seed, args.world, args.participants, args.fit, not args.no_progress, say,
-                      args.sim, not args.no_fit, args.log)
+                      args.sim, not args.no_fit, args.log,
+                      " ".join(["python -m overhang_framework.study", *map(_quoted, argv if argv is not None else sys.argv[1:])]))
     except OverhangError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2

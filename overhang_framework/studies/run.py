@@ -42,12 +42,12 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 1000, replicas: int = 39, seed: int = 0,
         world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
         progress: bool = True, say: Callable[[str], None] = lambda s: None, sims: Sequence[str | Path] = (),
-        fit_models: bool = True, logs: Sequence[str | Path] = ()) -> dict:
+        fit_models: bool = True, logs: Sequence[str | Path] = (), command: str = "") -> dict:
     """Run ``study`` into ``out``; see the module docstring. ``sims``: finished simulations of the study's cohort
     (``python -m overhang_framework.participants`` run directories) to take as the participants instead of
     simulating them; ``logs``: behaviour logs of people (an export of the study: JSON Lines, CSV or a Psych-DS
     folder), analysed as the study's participants; ``fit_models`` false leaves out the fit (and the findings that
-    need it)."""
+    need it); ``command``: the command line that ran it, which the graded design's preregistration names."""
     from omegaconf import OmegaConf
 
     if study not in STUDIES:
@@ -142,7 +142,8 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         steps.finish("fit", digest, time.perf_counter() - t0)
 
     if study in GRADED:
-        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models, progress, data)
+        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models, progress, data,
+                       command or f"python -m overhang_framework.study {study} --out {out}")
 
     # 4. the findings, and their power by resampling participants
     t0 = time.perf_counter()
@@ -231,7 +232,8 @@ def _participants(out: Path, sizes: dict[str, int], fitted: bool = True,
 
 
 def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples: int, seed: int,
-            started: float, fitted: bool = True, progress: bool = False, data: str = "sim") -> dict:
+            started: float, fitted: bool = True, progress: bool = False, data: str = "sim",
+            command: str = "") -> dict:
     """A graded study's step 4: each level's figures, the trends and the sample sizes (:mod:`overhang_framework.studies.graded`)."""
     from overhang_framework.studies import graded
 
@@ -253,6 +255,25 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
         bar.close()
     for name, frame in (("predictions.csv", pred), ("trends.csv", found), ("power.csv", table)):
         atomic_write_text(out / name, frame.to_csv(index=False))
+    written = ["predictions.csv", "trends.csv", "power.csv"]
+    if data == "sim" and resamples:  # the design: its preregistration
+        from omegaconf import OmegaConf
+
+        from overhang_framework.behaviour.log import read_log
+        from overhang_framework.studies import prereg
+        from overhang_framework.version import commit, version
+
+        planned, _ = prereg.planned_size(table)
+        at = planned if planned is not None else int(max(graded.SIZES))
+        effects = prereg.effect_power(pool_people, levels, at, max(50, resamples // 5), seed)
+        atomic_write_text(out / "preregistration_effects.csv", effects.to_csv(index=False))
+        minutes = prereg.durations(read_log(out / data / "log.jsonl"), levels)
+        provenance = {"commit": commit(), "version": version(), "seed": seed, "resamples": resamples,
+                      "settings_hash": prereg.settings_hash(OmegaConf.to_container(sim_cfg, resolve=True))}
+        atomic_write_text(out / "preregistration.md", prereg.document(
+            levels, limits, table, effects, minutes, {c: int((pool_people["condition"] == c).sum()) for c in levels},
+            fitted, provenance, command))
+        written += ["preregistration.md", "preregistration_effects.csv"]
     steps.finish("findings", "", time.perf_counter() - t0)
     text = graded.report(pred, found, table, levels, limits, {c: int((pool_people["condition"] == c).sum())
                                                               for c in levels}, people=data == "people",
@@ -263,7 +284,7 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
                  "run the study again without `--no-fit` to add them.\n")
     text += ("\n## Steps\n\n" + "\n".join(f"- {k}: {v['seconds']:.0f} s" for k, v in steps.done.items())
              + f"\n\nTotal this run: {time.perf_counter() - started:.0f} s. Files: `{data}/`, `analysis/report.md`, "
-             "`fit/comparison.md`, `participants.csv`, `predictions.csv`, `trends.csv`, `power.csv`.\n")
+             "`fit/comparison.md`, `participants.csv`, " + ", ".join(f"`{w}`" for w in written) + ".\n")
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": found, "report": text}
 
