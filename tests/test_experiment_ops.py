@@ -295,7 +295,7 @@ def test_the_systemd_unit_runs_the_checked_overrides_as_the_user(tmp_path, capsy
     assert "contact='Lab, lab@example.org'" in words
     assert main(["systemd-unit", "--user", "overhang", "workers=0"]) == 2  # checked as the server checks it
     assert "workers must be" in capsys.readouterr().err
-    assert main(["systemd-unit", "--user", "overhang", "admin_token=secret-token"]) == 2
+    assert main(["systemd-unit", "--user", "overhang", "admin_token=a-long-secret-token"]) == 2
     assert "OVERHANG_ADMIN_TOKEN" in capsys.readouterr().err
     # a user the machine does not have, a password in the unit, a database the server cannot open: one line each
     for words, said in [
