@@ -355,3 +355,34 @@ def test_a_graded_study_of_peoples_log_is_analysed_and_says_first_what_its_size_
                           "--log takes people's data and --sim simulated participants; give one of them")):
         proc = subprocess.run([*base[:5], str(tmp_path / "refused"), *extra], capture_output=True, text=True)
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and words in proc.stderr, proc.stderr
+
+
+def test_a_two_condition_study_of_peoples_log_reports_people_and_says_first_what_its_size_cannot_support(tmp_path):
+    """``study paper_people --log``: the report is of people (no word of simulated participants), the paper's
+    findings are what it tests, and with fewer people a condition than the study is designed for its first sentence
+    says nothing can be concluded."""
+    from overhang_framework.studies.report import shortfall
+
+    sim = tmp_path / "sim"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
+                           "predictor=ipe", "predictor.K=10", "cohort.participants={time_limited: 3, unconstrained: 3}",
+                           "cohort.n_tasks=2", "seed=5", "world.physics=static", "progress=false",
+                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = tmp_path / "study"
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.study", "paper_people", "--out", str(out),
+                           "--no-progress", "--world", "world.physics=static", "--log", str(sim / "log.jsonl"),
+                           "--no-fit", "--resamples", "5", "--replicas", "0"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "# Study: paper_people: what people did"
+    assert lines[2].startswith("**Nothing can be concluded from this study:** it has 3 participants in its condition "
+                               "`time_limited`, fewer than the 43 the study is designed for"), lines[:4]
+    assert "6 people (3 time_limited, 3 unconstrained)" in proc.stdout and "the paper predicts" in proc.stdout
+    text = (out / "study.md").read_text()
+    assert "simulated" not in text and "`people/`" in text and "`sim/`" not in text
+    # the sentence names the condition furthest below its plan, and none when every condition has its size
+    assert "`time_limited`" in shortfall({"time_limited": 10, "unconstrained": 30}, {"time_limited": 43,
+                                                                                    "unconstrained": 38})
+    assert shortfall({"time_limited": 43, "unconstrained": 40}, {"time_limited": 43, "unconstrained": 38}) is None

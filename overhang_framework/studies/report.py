@@ -33,14 +33,31 @@ def _size(multiple: Any, sizes: dict[str, int]) -> str:
     return f"about {int(round(n * multiple))}"
 
 
+def shortfall(sizes: Mapping[str, int], planned: Mapping[str, int]) -> Optional[str]:
+    """The report's first sentence when a condition has fewer participants than the study is designed for (the
+    paper's), saying which; None when none has."""
+    short = [(c, sizes.get(c, 0), int(n)) for c, n in planned.items() if sizes.get(c, 0) < int(n)]
+    if not short:
+        return None
+    c, have, want = min(short, key=lambda t: t[1] / t[2])
+    return (f"**Nothing can be concluded from this study:** it has {have} participant{'s' * (have != 1)} in its "
+            f"condition `{c}`, fewer than the {want} the study is designed for (the paper's), at which the findings' "
+            "power was planned; a finding it does not show may be there, and one it shows may be chance.")
+
+
 def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int], simulated: dict[str, int],
            n_tasks: Optional[int], resamples: int, planted: bool, depths: Sequence[int], seconds: float,
            bootstrap: bool = False, check_line: Optional[str] = None,
-           why: Optional[Mapping[str, str]] = None) -> str:
+           why: Optional[Mapping[str, str]] = None, people: bool = False,
+           planned: Optional[Mapping[str, int]] = None) -> str:
+    """``study.md``. ``people``: the participants are people (a log), not simulated, so the findings are the
+    paper's, tested on them; ``planned``: the participants a condition the study is designed for, whose shortfall
+    the first sentence names (:func:`shortfall`)."""
     from overhang_framework.behaviour.analysis import fmt_p, markdown_table, p_is
 
     why = why or {}
     n = sum(sizes.values())
+    who = "" if people else "simulated "
     shown = table[table["finding"] != "switch"] if not planted else table
     untested = shown[~shown["tested"]] if "tested" in shown.columns else shown.iloc[:0]
     shown = shown.drop(untested.index)
@@ -48,11 +65,15 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
     kind = "planted" if planted else "null"
     expected = "each finding" if planted else \
         "none of the effects of a dual transition (beyond chance), and the approximate physics its cohort keeps"
-    lines = [f"# Study: {study} ({kind})", "",
-             f"{n} participants ({', '.join(f'{v} {k}' for k, v in sizes.items())}), "
+    said = shortfall(sizes, planned) if planned else None
+    if people:
+        expected = "each finding of the paper's dual transition"
+    lines = [f"# Study: {study}" + (": what people did" if people else f" ({kind})"), "",
+             *([said, ""] if said else []),
+             f"{n} {'people' if people else 'participants'} ({', '.join(f'{v} {k}' for k, v in sizes.items())}), "
              f"{'all' if n_tasks is None else n_tasks} tasks each, "
              f"{'fitted depths ' + ', '.join(map(str, depths)) if depths else 'no fit'}; "
-             f"the study should show {expected}.", ""]
+             f"{'the paper predicts' if people else 'the study should show'} {expected}.", ""]
     names = ", ".join(f"{r.finding}" for r in holds.itertuples()) or "none"
     effects = len(shown[shown["finding"] != "stable"])
     lines.append(f"- **Found:** {len(holds)} of {effects} effects at α = .05 ({names}); the stable proportion "
@@ -85,14 +106,14 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
                "effect this sample happens to show, an optimistic estimate; --pool 2 or more draws them without "
                "replacement from a larger cohort" if bootstrap else "without replacement")
         lines.append(f"- **{word.capitalize()}** ({resamples} studies of {n} redrawn from the {sum(simulated.values())} "
-                     f"simulated participants, {how}): {rates}.")
+                     f"{who}participants, {how}): {rates}.")
         if planted:
             low = shown[(shown["rate"] < TARGET_POWER) & (shown["finding"] != "stable")]
             if len(low):
                 lines.append("- **Below 0.8:** " + "; ".join(
                     f"{r.finding} ({r.rate:.0%} at {n}; {r.size_for_power or 'not redrawn'} participants reach 0.8"
                     + (f"; {why[r.finding]}" if r.finding in why else "") + ")"
-                    for r in low.itertuples()) + ". Studies larger than the simulated cohort are drawn with "
+                    for r in low.itertuples()) + f". Studies larger than the {who}cohort are drawn with "
                     "replacement, so those sizes are optimistic.")
         else:
             high = shown[(shown["rate"] > ALPHA) & ~shown["finding"].isin(NULL_KEEPS)]
@@ -100,7 +121,7 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
                 lines.append(f"- **Above α = .05:** " + "; ".join(
                     f"{r.finding} ({r.rate:.0%}" + (f"; {why[r.finding]}" if r.finding in why else "") + ")"
                     for r in high.itertuples()) + ". Redrawn studies share participants, so a rate shows the "
-                    "simulated cohort's own difference as well as chance.")
+                    f"{who}cohort's own difference as well as chance.")
     if len(untested):
         lines.append("- **Not tested:** " + "; ".join(f"{r.finding} ({r.statistic})" for r in untested.itertuples()) + ".")
     if check_line:
@@ -121,6 +142,6 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
     lines.append(markdown_table(["step", "seconds"], [[k, f"{v['seconds']:.0f}"] for k, v in steps.done.items()]))
     checked = "`fit/check/check.md`, " if check_line else ""
     fitted = "`fit/comparison.md`, " if depths else ""
-    lines += ["", f"Total this run: {seconds:.0f} s. Files: `sim/`, `analysis/report.md`, {fitted}"
+    lines += ["", f"Total this run: {seconds:.0f} s. Files: `{'people' if people else 'sim'}/`, `analysis/report.md`, {fitted}"
                   f"{checked}`participants.csv`, `findings.csv`, `power.csv`."]
     return "\n".join(lines) + "\n"

@@ -186,7 +186,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
     why = diagnostics(pool_people)
     atomic_write_text(out / "study.md", report(study, table, steps, sizes, simulated, n_tasks, resamples, planted,
                                                depths, time.perf_counter() - started, replaced(pool_people, sizes),
-                                               why=why))
+                                               why=why, people=bool(logs), planned=counts if logs else None))
 
     # 5. the predictive check of the study's own participants (the findings do not wait for it)
     check_line = None
@@ -212,7 +212,8 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
             steps.finish("check", digest, time.perf_counter() - t0)
         check_line = _check_line(out / "fit" / "check" / "check.md")
     text = report(study, table, steps, sizes, simulated, n_tasks, resamples, planted, depths,
-                  time.perf_counter() - started, replaced(pool_people, sizes), check_line, why)
+                  time.perf_counter() - started, replaced(pool_people, sizes), check_line, why,
+                  people=bool(logs), planned=counts if logs else None)
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": table, "report": text}
 
