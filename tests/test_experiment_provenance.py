@@ -191,7 +191,12 @@ def test_withdraw_deletes_a_participant_from_the_database_and_every_later_export
     assert "P2" not in (after.parent / "log.study.json").read_text()
     # P2 cannot come back, with the old link or as a newcomer
     back = client.post("/api/sessions", json={"params": {"participant": "P2"}})
-    assert back.status_code == 410 and back.json()["reason"] == "withdrawn"
+    assert back.status_code == 403 and back.json()["reason"] == "session_elsewhere"
+    # and the answer to the id alone is the one of a participant half way or finished: it does not say they withdrew
+    busy = client.post("/api/sessions", json={"params": {"participant": "P1"}})
+    assert busy.status_code == back.status_code and busy.json() == {**back.json(), "error": busy.json()["error"]}
+    assert back.json()["error"].replace("P2", "P1") == busy.json()["error"]
+    assert "withdr" not in back.text
     assert store.participant("P2") is None
     capsys.readouterr()
     assert main(["withdraw", "P2", "--yes", *overrides]) == 2

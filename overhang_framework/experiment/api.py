@@ -533,19 +533,16 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
                           **for_participant(f"This link is not one the study can take. {USE_YOUR_LINK}", settings))
         token = _bearer(authorization)
         known = store.participant(pid)
+        if (known is not None and (token is None or not hmac.compare_digest(token_hash(token), known.token_hash))) \
+                or (known is None and store.withdrew(pid)):
+            # one answer whether they are half way, finished or withdrawn: the id alone says nothing of whether or how
+            # someone took part (their session token does: with it, a finished participant sees their end page; a
+            # withdrawn one has none, and the researcher who deleted them can tell them why they cannot come back)
+            raise Refused(403, f"participant {pid} already has a session, held by another browser or an earlier "
+                               "link; the researcher can issue a new link (experiment reissue)",
+                          reason="session_elsewhere", contact=settings.contact)
         if known is not None:
-            if token is None or not hmac.compare_digest(token_hash(token), known.token_hash):
-                # the same answer whether they are half way or finished: the id alone says nothing of how far
-                # someone got (their session token does: with it, a finished participant sees their end page)
-                raise Refused(403, f"participant {pid} already has a session, held by another browser or an earlier "
-                                   "link; the researcher can issue a new link (experiment reissue)",
-                              reason="session_elsewhere", contact=settings.contact)
             return JSONResponse(session_payload(known, token), status_code=200)
-        if store.withdrew(pid):
-            raise Refused(410, f"participant {pid} withdrew from this study, and their data were deleted; they "
-                               "cannot take part again", reason="withdrawn", **for_participant(
-                                   "You withdrew from this study, and your data were deleted, so you cannot take "
-                                   "part again", settings, "If you think this is a mistake"))
         token = secrets.token_urlsafe(24)
 
         def newcomer(counts: dict[str, int]) -> Participant:

@@ -386,7 +386,6 @@ async function start() {
     session = await openSession(params, token);
   } catch (error) {
     if (error.reason === "session_elsewhere") showElsewhere(error.data?.contact);
-    else if (error.reason === "withdrawn") showMessage("You have withdrawn", `<p>${escapeHtml(error.message)}</p>`, "withdrawn");
     else if (error.reason === "finished") showMessage("You have finished", `<p>${escapeHtml(error.message)}</p>`, "finished");
     else showError(error, () => start());
     return;
