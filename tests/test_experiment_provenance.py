@@ -4,6 +4,7 @@ the refusal of a restart with other settings, the consent record, ``withdraw`` a
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 from pathlib import Path
@@ -487,3 +488,41 @@ def test_a_pilots_sessions_do_not_unbalance_the_peoples_conditions(overrides):
     assert sorted(people) == ["time_limited"] * 2 + ["unconstrained"] * 2  # balanced among people alone
     pilots = [store.participant(f"pilot-{k}").condition for k in range(3)]
     assert sorted(set(pilots)) == ["time_limited", "unconstrained"]  # and the pilot's among themselves
+
+
+def test_each_level_s_consent_page_states_its_own_expected_duration(overrides):
+    """``durations`` gives each condition its expected minutes, which its consent page states (``duration`` the
+    rest): a participant sees and agrees to their condition's text, whose version is stored with their consent; a
+    page of another condition's version is refused; bad durations are one line."""
+    from overhang_framework.errors import ConfigError
+
+    words = [*overrides, "conditions=[time_limited,unconstrained]", "+durations.unconstrained=25", "duration=15"]
+    client = _serve_app(words)
+    assert client.settings.durations == {"time_limited": 15.0, "unconstrained": 25.0}
+    seen = {}
+    for pid in ("P1", "P2", "P3", "P4"):
+        s, h = _session(client, pid, consent=False)
+        seen.setdefault(s["condition"], []).append((s, h))
+    assert set(seen) == {"time_limited", "unconstrained"}  # balanced: two each
+    (tl, tl_h), (un, un_h) = seen["time_limited"][0], seen["unconstrained"][0]
+    assert "It takes about 15 minutes." in tl["consent"]["html"] and "about 25 minutes" in un["consent"]["html"]
+    assert "@duration@" not in tl["consent"]["html"] and tl["consent"]["version"] != un["consent"]["version"]
+    assert seen["time_limited"][1][0]["consent"] == tl["consent"]  # one text a condition
+    refused = client.post("/api/consent", json={"version": un["consent"]["version"]}, headers=tl_h)
+    assert refused.status_code == 409 and "reload the page" in refused.json()["error"]
+    for s, h in ((tl, tl_h), (un, un_h)):
+        assert client.post("/api/consent", json={"version": s["consent"]["version"]}, headers=h).status_code == 200
+        assert client.app.state.store.participant(s["participant"]).consent_version == s["consent"]["version"]
+    # the study's consent version is of every condition's text: changing one level's duration changes it
+    assert client.settings.consent_version not in (tl["consent"]["version"], un["consent"]["version"])
+    client.app.state.store.close()
+    with pytest.raises(ConfigError, match=r"consent_version: .* durations.unconstrained: 25.0 -> 30.0|"
+                                          r"durations.unconstrained: 25.0 -> 30.0"):
+        _serve_app([*overrides, "conditions=[time_limited,unconstrained]", "+durations.unconstrained=30",
+                    "duration=15"])
+    for bad, words in (("+durations.unconstrained=-5", "durations.unconstrained must be a number of minutes > 0, "
+                                                         "got -5"),
+                       ("duration=soon", "duration must be a number of minutes > 0, got 'soon'"),
+                       ("durations=[1,2]", "bad value for 'durations'")):
+        with pytest.raises(ConfigError, match=re.escape(words)):
+            load_settings([*overrides, bad, f"admin_token={ADMIN}"])

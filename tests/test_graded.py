@@ -128,6 +128,10 @@ def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
     assert prereg.startswith("# Preregistration: the graded-budget study")
     assert "python -m overhang_framework.study graded_budgets --out" in prereg and "H-risk" in prereg
     assert len(pd.read_csv(out / "preregistration_effects.csv")) >= 3
+    practice = pd.read_csv(out / "practice.csv")  # the design's participants did the served study's practice
+    assert len(practice) == 8 and set(practice["condition"]) == set(pred["level"])
+    assert "| level | screened out in the practice (simulated) | recruit |" in prereg
+    assert f"`limit_2_5s` | {int((~practice[practice['condition'] == 'limit_2_5s']['passed']).sum())} of 2" in prereg
 
 
 def test_a_fitted_measure_that_only_some_best_models_have_says_over_how_many_it_is():

@@ -500,8 +500,8 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
             "trials": [{"trial": t} for t in range(1, len(p.order) + 1)],
             "position": asdict(pos), "clock": current_clock(p, pos), "completed": p.completed_at is not None,
             "contact": settings.contact,
-            "consent": {"html": settings.consent_html, "version": settings.consent_version,
-                        "given": p.consented_at is not None},
+            "consent": dict(zip(("html", "version"), settings.consent_of(p.condition)),
+                            given=p.consented_at is not None),
         }
         if token is not None:
             out["token"] = token
@@ -569,10 +569,11 @@ def create_app(settings: Settings, store: Optional[Store] = None, outcomes: Opti
 
     @app.post("/api/consent")
     def consent(body: ConsentIn, p: Participant = Depends(participant_of)):
-        if p.consented_at is None and body.version != settings.consent_version:
-            raise Refused(409, f"the consent text has changed (version {settings.consent_version}, the page showed "
+        version = settings.consent_of(p.condition)[1]
+        if p.consented_at is None and body.version != version:
+            raise Refused(409, f"the consent text has changed (version {version}, the page showed "
                                f"{body.version}); reload the page to read it")
-        p = store.consent(p.id, settings.consent_version)
+        p = store.consent(p.id, version)
         return {"consent_version": p.consent_version, "consented_at": utc_iso(p.consented_at)}
 
     @app.post("/api/decline")

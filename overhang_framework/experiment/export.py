@@ -60,7 +60,7 @@ EXPORT_VARIABLES: dict[str, Variable] = {
                         "integer", None, 1),
     "consent_version": Variable(
         "The version of the consent text the participant agreed to: sha256: and the first 16 hex digits of the "
-        "text's SHA-256 (the study's consent_file).", "string"),
+        "text's SHA-256, as the participant's condition shows it (the study's consent_file, with its duration).", "string"),
     "consented_at": Variable("When the server recorded the participant's consent: ISO 8601 date and time, UTC.",
                              "string"),
     "framework_version": Variable("The overhang-framework version of the server that stored the placement.",

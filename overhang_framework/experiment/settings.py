@@ -7,11 +7,12 @@ token), so a mistake stops the server before it listens, in one line.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -83,6 +84,15 @@ class Settings:
     extra: dict = field(default_factory=dict)
     #: The time limit (seconds, None: none) of each condition other than ``time_limited`` and ``unconstrained``.
     time_limits: dict = field(default_factory=dict)
+    #: Each condition's consent page (HTML) and its version, where the text differs by condition (its duration).
+    consents: dict = field(default_factory=dict)
+    #: Each condition's expected duration in minutes, which its consent page states.
+    durations: dict = field(default_factory=dict)
+
+    def consent_of(self, condition: str) -> tuple[str, str]:
+        """The consent page ``condition``'s participants see and its version (a condition the settings no longer
+        have: the study's shared text)."""
+        return self.consents.get(condition, (self.consent_html, self.consent_version))
 
     def limit_of(self, condition: str) -> Optional[float]:
         """The time limit of ``condition``'s participants: ``time_limit`` for ``time_limited``, none for
@@ -202,10 +212,10 @@ def practice_tasks(cfg: DictConfig, world) -> list[PracticeTask]:
     return out
 
 
-def consent_text(path, contact: str = "") -> tuple[str, str]:
+def consent_text(path, contact: str = "", minutes: float = 20) -> tuple[str, str]:
     """The consent page's HTML (from ``path``, or the shipped text when None), with ``@contact@`` replaced by
-    ``contact`` (HTML-escaped), and its version: ``sha256:`` and the first 16 hex digits of the SHA-256 of the
-    text as participants see it."""
+    ``contact`` (HTML-escaped) and ``@duration@`` by ``minutes``, and its version: ``sha256:`` and the first 16 hex
+    digits of the SHA-256 of the text as participants see it."""
     import hashlib
     import html
 
@@ -217,7 +227,7 @@ def consent_text(path, contact: str = "") -> tuple[str, str]:
                           "HTML file of the consent text, or null for the shipped one") from None
     if not text.strip():
         raise ConfigError(f"consent_file: {file} is empty; give an HTML file of the consent text")
-    text = text.replace("@contact@", html.escape(contact or "the researcher"))
+    text = text.replace("@contact@", html.escape(contact or "the researcher")).replace("@duration@", f"{minutes:g}")
     return text, "sha256:" + hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
@@ -286,7 +296,9 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
             raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
         counts[key] = value
-    consent_html, consent_version = consent_text(cfg.get("consent_file"), str(cfg.contact or ""))
+    durations = consent_durations(cfg.get("duration"), cfg.get("durations"), conditions)
+    consents = {c: consent_text(cfg.get("consent_file"), str(cfg.contact or ""), durations[c]) for c in conditions}
+    consent_html, consent_version = study_consent(consents)
     allow_change = cfg.get("allow_settings_change")
     if not isinstance(allow_change, bool):
         raise ConfigError(f"allow_settings_change must be true or false, got {allow_change!r}")
@@ -294,7 +306,8 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
     if source not in ("human", "simulated"):
         raise ConfigError(f"source must be human or simulated (a pilot), got {source!r}")
     return Settings(
-        decline_url=str(cfg.get("decline_url") or "/declined"), source=source, consent_html=consent_html, consent_version=consent_version, allow_settings_change=allow_change,
+        decline_url=str(cfg.get("decline_url") or "/declined"), source=source, consent_html=consent_html, consent_version=consent_version, consents=consents, durations=durations,
+        allow_settings_change=allow_change,
         world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold),
         practice_max_attempts=max_attempts, conditions=conditions,
         time_limit=_number(cfg, "time_limit"), time_grace=_number(cfg, "time_grace", strict=False),
@@ -306,6 +319,43 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         run_dir=run_dir, web_dir=web_dir, host=str(cfg.host), port=int(port), **counts,
         keep_alive=_number(cfg, "keep_alive"), forwarded_allow_ips=forwarded,
         time_limits={c: limits[c] for c in conditions if c in limits})
+
+
+def consent_durations(default, value, conditions: Sequence[str]) -> dict[str, float]:
+    """Each condition's expected duration in minutes: its entry of ``durations`` (``value``), else ``duration``
+    (``default``). A duration is a number > 0; an entry for a condition the study does not run (a level since
+    dropped) is left unused."""
+    import re
+
+    def minutes(where: str, v) -> float:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise ConfigError(f"{where} must be a number of minutes > 0, got {v!r}")
+        return float(v)
+
+    base = minutes("duration", default)
+    value = OmegaConf.to_container(value) if OmegaConf.is_config(value) else (value or {})
+    if not isinstance(value, dict):
+        raise ConfigError(f"durations must map condition names to minutes, got {value!r}")
+    own = {}
+    for name, v in value.items():
+        if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_]{0,39}", name):
+            raise ConfigError(f"durations: {name!r} is not a condition's name (the conditions: "
+                              f"{', '.join(conditions)})")
+        own[name] = minutes(f"durations.{name}", v)
+    return {c: own.get(c, base) for c in conditions}
+
+
+def study_consent(consents: Mapping[str, tuple[str, str]]) -> tuple[str, str]:
+    """The study's consent text and version, from each condition's: the shared one when every condition shows the
+    same text; else the first condition's text, and a version of them all (``sha256:`` and 16 hex digits of the
+    conditions' versions in order), so that a change to any condition's text changes it."""
+    import hashlib
+
+    texts = list(consents.values())
+    if len({v for _, v in texts}) <= 1:
+        return texts[0]
+    joined = ";".join(f"{c}={v}" for c, (_, v) in consents.items())
+    return texts[0][0], "sha256:" + hashlib.sha256(joined.encode("utf-8")).hexdigest()[:16]
 
 
 def time_limits(value) -> dict:

@@ -62,7 +62,8 @@ def _numbers(*values) -> bool:
 
 
 def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequence[str],
-           physics: Optional[str] = None, config: Optional[Mapping] = None) -> dict[str, int]:
+           physics: Optional[str] = None, config: Optional[Mapping] = None,
+           screened: Optional[dict[str, int]] = None) -> dict[str, int]:
     """Take the participants of finished simulations (each a run directory of ``python -m
     overhang_framework.participants`` with ``log.jsonl`` and ``participants.csv``) as a study's: their logs and
     tables, in the order given, into ``into`` (rewritten only when they change). A simulation of ``cohort``
@@ -72,7 +73,9 @@ def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequ
     ``conditions``; refuses, in one line, a directory without a finished simulation, another population, one
     under another physics than ``physics``, a participant id given twice, two runs whose participants draw
     from the same random streams (the same seed and index: the same people, paired across conditions), and a
-    condition with nobody."""
+    condition with nobody. A pilot's participants whom the practice screened out (``screened_out`` in its
+    ``participants.csv``) did no main trial and are left out, as the preregistered exclusions say; ``screened``, when
+    given, is filled with their number a condition."""
     logs, tables, seen, streams = [], [], {}, {}
     for where in map(Path, sims):
         if not (where / "log.jsonl").is_file() or not (where / "participants.csv").is_file():
@@ -86,6 +89,12 @@ def gather(sims: Sequence[str | Path], into: Path, cohort: str, conditions: Sequ
             raise ConfigError(f"--sim {where}: simulated under world.physics={made}, and this study's world is "
                               f"world.physics={physics} (give --world world.physics={made})")
         table = pd.read_csv(where / "participants.csv", dtype={"id": str})
+        if "screened_out" in table.columns:
+            out = table["screened_out"].astype(str).str.lower().isin(("true", "1"))
+            if screened is not None:
+                for condition, n in table[out]["condition"].astype(str).value_counts().items():
+                    screened[condition] = screened.get(condition, 0) + int(n)
+            table = table[~out].reset_index(drop=True)
         if name != cohort:
             present = [c for c in dict.fromkeys(table["condition"].astype(str))]
             if config is None:

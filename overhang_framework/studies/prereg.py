@@ -67,11 +67,22 @@ def planned_size(power_table: pd.DataFrame) -> tuple[Optional[int], Optional[str
     return needed[which], which
 
 
-def durations(log: pd.DataFrame, levels: Sequence[str], overhead_minutes: float = 5.0) -> dict[str, float]:
+#: Minutes of a session besides the main trials' decisions (the consent, the instructions, the practice, watching
+#: each tower's outcome): the paper's sessions took about 20 minutes, of which its people's decisions took about 8
+#: (2.47 s and 7.27 s a placement, 43 and 38 people, up to 100 placements each).
+OVERHEAD_MINUTES = 12.0
+
+
+def durations(log: pd.DataFrame, levels: Sequence[str], overhead_minutes: float = OVERHEAD_MINUTES) -> dict[str, float]:
     """Each level's expected duration in minutes: its participants' mean total decision time over the main trials,
-    plus ``overhead_minutes`` for the consent, the instructions and the practice."""
+    plus ``overhead_minutes`` for the rest of a session."""
     totals = log.groupby(["condition", "participant"])["decision_time"].sum() / 60.0
     return {lv: float(totals.loc[lv].mean()) + overhead_minutes for lv in levels if lv in totals.index}
+
+
+def consent_minutes(minutes: float) -> int:
+    """A duration as the consent page states it: rounded up to 5 minutes."""
+    return int(5 * math.ceil(minutes / 5 - 1e-9))
 
 
 def settings_hash(config: Mapping[str, Any]) -> str:
@@ -81,8 +92,12 @@ def settings_hash(config: Mapping[str, Any]) -> str:
 
 def document(levels: Sequence[str], limits: Mapping[str, Optional[float]], power_table: pd.DataFrame,
              effects: pd.DataFrame, minutes: Mapping[str, float], pool: Mapping[str, int], fitted: bool,
-             provenance: Mapping[str, Any], command: str) -> str:
-    """``preregistration.md``: every number it states comes from the arguments, which the design computed."""
+             provenance: Mapping[str, Any], command: str, screen: "pd.DataFrame | str | None" = None) -> str:
+    """``preregistration.md``: every number it states comes from the arguments, which the design computed.
+    ``screen``: the design's participants' practice (:func:`overhang_framework.studies.screenout.simulate_practice`),
+    or why it could not be simulated."""
+    from overhang_framework.studies import screenout
+
     label = {m.name: m.label for m in graded.MEASURES}
     n, sets = planned_size(power_table)
     sizes = graded.sample_sizes(power_table)
@@ -114,7 +129,11 @@ def document(levels: Sequence[str], limits: Mapping[str, Optional[float]], power
         limit = "none" if limits[lv] is None else f"{limits[lv]:g} s"
         lines.append(f"| `{lv}` | {limit} | about {minutes[lv]:.0f} min |" if lv in minutes else f"| `{lv}` | {limit} | |")
     lines += ["", "(expected duration: the simulated participants' mean total decision time over the main trials, "
-              "plus 5 minutes for the consent, the instructions and the practice)", "",
+              f"plus {OVERHEAD_MINUTES:g} minutes for the rest of a session: the paper's sessions took about 20 "
+              "minutes, of which its people's decisions took about 8. Each level's consent page states its duration, "
+              "rounded up to 5 minutes: served with `study=graded_budgets`, "
+              f"`'durations={{{', '.join(f'{lv}: {consent_minutes(minutes[lv])}' for lv in levels if lv in minutes)}}}'`.)",
+              "",
               "Levels are assigned at random, balanced over the participants the server has taken. The 2.5 s and 10 s "
               "levels rest on a hypothesis: their people are assumed to lie between the paper's two conditions.", "",
               "## Sample size", ""]
@@ -125,6 +144,24 @@ def document(levels: Sequence[str], limits: Mapping[str, Optional[float]], power
         if grid and n == grid[0]:
             lines.append("The grid's smallest size already has the power, so the planned size is the grid's floor, "
                          "not the least the design needs.")
+    if isinstance(screen, pd.DataFrame) and len(screen):
+        rows = screenout.summary(screen, levels, n)
+        lines += ["", "The practice screens out participants before the main trials (below, \"Exclusions\"). The "
+                  "design's simulated participants did the served study's practice as its server scores it; to keep "
+                  + (f"{n} a level after exclusions, recruit:" if n is not None else "the planned size, recruit by the "
+                     "share screened out:"), "",
+                  "| level | screened out in the practice (simulated) | recruit |", "|---|---|---|"]
+        for r in rows:
+            recruit = "–" if r["recruit"] is None and n is None else (
+                "no number: every simulated participant was screened out" if r["recruit"] is None else str(r["recruit"]))
+            lines.append(f"| `{r['level']}` | {r['screened_out']} of {r['simulated']} ({r['share']:.0%}) | {recruit} |")
+        if n is not None and all(r["recruit"] is not None for r in rows):
+            lines += ["", f"{sum(r['recruit'] for r in rows)} recruited in all. A screen-out that differs from "
+                      "these by level changes who remains: the report gives each level's screened-out count."]
+    elif isinstance(screen, str):
+        lines += ["", f"The expected screen-out in the practice could not be simulated ({screen}); the size above is "
+                  "after exclusions: recruit more by the screen-out a pilot through the server measures "
+                  "(`python -m overhang_framework.experiment pilot`)."]
     else:
         lines.append("**No size of the grid gives every primary hypothesis 80% power**"
                      + (f" (the {label[sets]} has it at no size up to {grid[-1]} a level)" if sets and grid else "")
@@ -141,9 +178,9 @@ def document(levels: Sequence[str], limits: Mapping[str, Optional[float]], power
     lines += ["", "## Exclusions", "",
               "A participant who does not pass the practice within the study's attempts is screened out before the "
               "main trials, paid for their time and not analysed (the export leaves them out). Participants who "
-              "withdraw are deleted. No other exclusion. The design's simulated participants do no practice, so the "
-              "expected screen-out is not in the size above: recruit more by the screen-out a pilot through the "
-              "server measures (`python -m overhang_framework.experiment pilot`).", "",
+              "withdraw are deleted. No other exclusion." + (
+                  " The expected screen-out, from the design's simulated participants, is in the recruitment above."
+                  if isinstance(screen, pd.DataFrame) and len(screen) else ""), "",
               "## Analysis plan", "",
               "After the last participant, the study's data are exported and analysed by the command that computed "
               "this design's figures:", "", "```bash",

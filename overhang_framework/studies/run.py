@@ -98,11 +98,14 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         say(f"taking {sum(sizes.values())} people ({', '.join(f'{n} {k}' for k, n in sizes.items())}) from "
             f"{len(logs)} log{'s' * (len(logs) > 1)}")
     elif sims:
+        screened: dict[str, int] = {}
         sizes = gather(sims, out / "sim", str(base.cohort.name), list(counts), str(sim_cfg.world.physics),
-                       OmegaConf.to_container(sim_cfg, resolve=True))
+                       OmegaConf.to_container(sim_cfg, resolve=True), screened)
         simulated = dict(sizes)
         say(f"taking {sum(sizes.values())} participants ({', '.join(f'{n} {k}' for k, n in sizes.items())}) "
-            f"from {len(sims)} simulation{'s' * (len(sims) > 1)}")
+            f"from {len(sims)} simulation{'s' * (len(sims) > 1)}"
+            + (f"; left out, screened out in the practice: {', '.join(f'{n} {k}' for k, n in screened.items())}"
+               if screened else ""))
     else:
         say(f"simulating {sum(simulated.values())} participants "
             f"({', '.join(f'{n} {k}' for k, n in simulated.items())})")
@@ -142,7 +145,7 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
         steps.finish("fit", digest, time.perf_counter() - t0)
 
     if study in GRADED:
-        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models, progress, data,
+        return _graded(out, sim_cfg, sizes, steps, resamples, seed, started, fit_models, progress, data, jobs, say,
                        command or f"python -m overhang_framework.study {study} --out {out}")
 
     # 4. the findings, and their power by resampling participants
@@ -233,8 +236,8 @@ def _participants(out: Path, sizes: dict[str, int], fitted: bool = True,
 
 
 def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples: int, seed: int,
-            started: float, fitted: bool = True, progress: bool = False, data: str = "sim",
-            command: str = "") -> dict:
+            started: float, fitted: bool = True, progress: bool = False, data: str = "sim", jobs: int = 1,
+            say: Callable[[str], None] = lambda s: None, command: str = "") -> dict:
     """A graded study's step 4: each level's figures, the trends and the sample sizes (:mod:`overhang_framework.studies.graded`)."""
     from overhang_framework.studies import graded
 
@@ -269,12 +272,14 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
         effects = prereg.effect_power(pool_people, levels, at, max(50, resamples // 5), seed)
         atomic_write_text(out / "preregistration_effects.csv", effects.to_csv(index=False))
         minutes = prereg.durations(read_log(out / data / "log.jsonl"), levels)
+        screen = _practice(out, sim_cfg, steps, jobs, progress, say)
         provenance = {"commit": commit(), "version": version(), "seed": seed, "resamples": resamples,
                       "settings_hash": prereg.settings_hash(OmegaConf.to_container(sim_cfg, resolve=True))}
         atomic_write_text(out / "preregistration.md", prereg.document(
             levels, limits, table, effects, minutes, {c: int((pool_people["condition"] == c).sum()) for c in levels},
-            fitted, provenance, command))
-        written += ["preregistration.md", "preregistration_effects.csv"]
+            fitted, provenance, command, screen))
+        written += ["preregistration.md", "preregistration_effects.csv"] + \
+            (["practice.csv"] if isinstance(screen, pd.DataFrame) else [])
     steps.finish("findings", "", time.perf_counter() - t0)
     text = graded.report(pred, found, table, levels, limits, {c: int((pool_people["condition"] == c).sum())
                                                               for c in levels}, people=data == "people",
@@ -288,6 +293,40 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
              "`fit/comparison.md`, `participants.csv`, " + ", ".join(f"`{w}`" for w in written) + ".\n")
     atomic_write_text(out / "study.md", text)
     return {"out": str(out), "findings": found, "report": text}
+
+
+def _practice(out: Path, sim_cfg, steps: Steps, jobs: int, progress: bool,
+              say: Callable[[str], None]) -> "pd.DataFrame | str":
+    """The design's participants doing the served study's practice (``practice.csv``, its step ``practice``), or why
+    it could not be simulated (the server's practice has no stored towers for its physics, say)."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.progress import progress_bar
+    from overhang_framework.studies import screenout
+
+    config = OmegaConf.to_container(sim_cfg, resolve=True)
+    try:
+        _, practice, attempts = screenout.practice_of()
+    except OverhangError as err:
+        return " ".join(str(err).split())
+    digest = _digest(extra={"config": config, "attempts": attempts,
+                            "practice": [[p.task.id, list(p.task.sequence), p.pass_reward] for p in practice]})
+    path = out / "practice.csv"
+    if steps.current("practice", digest) and path.exists():
+        return pd.read_csv(path)
+    t0 = time.perf_counter()
+    n = sum(min(int(v), screenout.PER_LEVEL) for v in config["cohort"]["participants"].values())
+    say(f"the practice of {n} of the design's participants (up to {screenout.PER_LEVEL} a level), as the server "
+        "scores it: the expected screen-out")
+    bar = progress_bar(total=n, desc="practice", unit="participant", disable=not progress, miniters=1,
+                       mininterval=0.5, dynamic_ncols=True)
+    try:
+        table = screenout.simulate_practice(config, jobs=jobs, on_participant=lambda: bar.update(1))
+    finally:
+        bar.close()
+    atomic_write_text(path, table.to_csv(index=False))
+    steps.finish("practice", digest, time.perf_counter() - t0)
+    return table
 
 
 def take_logs(logs: Sequence[str | Path], into: Path, study: str, conditions: Sequence[str]) -> dict[str, int]:
