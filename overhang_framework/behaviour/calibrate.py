@@ -613,10 +613,11 @@ def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_
     return summary
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m overhang_framework.behaviour.calibrate",
-                                     description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+def parser() -> argparse.ArgumentParser:
+    """The command's argument parser."""
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.behaviour.calibrate",
+                                 description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
     lib = sub.add_parser("library", help="one row per trial of a participants run (the library)")
     lib.add_argument("run_dir", type=Path)
     lib.add_argument("--out", required=True, type=Path)
@@ -648,7 +649,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     m.add_argument("--json", type=Path, default=None, metavar="FILE",
                    help="also write the table's figures to a JSON file (per condition and measure: the mean of the "
                         "runs' means, the paper's mean and SEM, the distance in its SEMs)")
-    args = parser.parse_args(argv)
+    return ap
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = parser().parse_args(argv)
     try:
         if args.command == "measure":
             if args.save is not None and len(args.run_dirs) != 1:
