@@ -357,3 +357,26 @@ def test_the_long_commands_parse_and_compose_as_written(command, tmp_path, monke
         CHECKS[words[2]](words[3:])
     except SystemExit as err:  # argparse's refusal
         pytest.fail(f"{command}: its arguments do not parse (exit {err.code})")
+
+
+@pytest.mark.parametrize("module, args", [
+    ("overhang_framework.participants", ["cohort=paper_peple", "hydra.run.dir=runs/x"]),
+    ("overhang_framework.participants", ["cohort=paper_people", "cohort.n_taks=2"]),
+    ("overhang_framework.study", ["graded_budgets", "--out", "runs/g", "--fit", "+models.ipe.riskk=[0.5]"]),
+    ("overhang_framework.study", ["graded_budgets", "--out", "runs/g", "--participants", "cohort.n_taks=2"]),
+    ("overhang_framework.fit", ["runs/x/log.jsonl", "--out", "runs/f", "space=explanationz"]),
+    ("overhang_framework.fit.recovery", ["--config-name", "recovery_explanations", "--out", "runs/e", "cachee=x"]),
+    ("overhang_framework.experiment", ["studdy=graded_budgets"]),
+    ("overhang_framework.experiment", ["pilot", "--out", "runs/p", "cohort=smal"]),
+    ("overhang_framework.experiment.practice", ["practice.tolerence=0.02"]),
+    ("overhang_framework.bench.pilot_recovery", ["--out", "runs/r", "--fit", "models.ipe.KK=20", "cohort=small"]),
+    ("overhang_framework.behaviour.calibrate", ["fit", "t.csv", "--out", "o", "--proposal", "proposal_peple"]),
+], ids=lambda v: v if isinstance(v, str) else " ".join(v)[:40])
+def test_the_checks_refuse_a_misspelt_command(module, args, tmp_path, monkeypatch):
+    """What the validation would catch in a doc: a misspelt key or config name is refused, in one line."""
+    from overhang_framework.errors import OverhangError
+
+    monkeypatch.chdir(mirror(tmp_path / "root"))
+    monkeypatch.setenv("OVERHANG_ADMIN_TOKEN", "a-long-enough-admin-token")
+    with pytest.raises(OverhangError):
+        CHECKS[module](args)

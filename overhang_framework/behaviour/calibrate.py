@@ -562,11 +562,12 @@ def fit_condition(library: Library, targets: Optional[Mapping[str, tuple[float, 
 
 def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Optional[Distribution]]:
     """The proposal's distributions, from the shipped cohort config."""
-    from overhang_framework.config import compose_config
     from overhang_framework.behaviour.simulation import CONFIG_NAME, check_config
+    from overhang_framework.preflight import compose_checked
 
-    checked = check_config(compose_config([f"cohort={cohort_name}", "world.physics=static", "predictor=hybrid",
-                                           "conditions.time_limited.time_limit=null"], config_name=CONFIG_NAME))
+    # an unknown cohort is one line naming the cohorts there are
+    checked = check_config(compose_checked([f"cohort={cohort_name}", "world.physics=static", "predictor=hybrid",
+                                            "conditions.time_limited.time_limit=null"], config_name=CONFIG_NAME))
     return dict(checked.cohort.parameters)
 
 

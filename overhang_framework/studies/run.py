@@ -81,7 +81,14 @@ def check_settings(study: str, out: Path, scale: float = 1.0, pool: float = 2.0,
     from overhang_framework.behaviour.simulation import CONFIG_NAME
 
     sim_cfg = _compose(words, CONFIG_NAME, "--participants")  # both configs checked before any work
-    _compose(fit_words, "fit", "--fit")
+    fit_cfg = _compose(fit_words, "fit", "--fit")
+    from overhang_framework.fit.space import model_space
+
+    try:  # a misspelt model setting is refused now, not after the simulation
+        model_space(OmegaConf.to_container(fit_cfg.models, resolve=True) or {}, [int(d) for d in depths],
+                    check_only=True)
+    except OverhangError as err:
+        raise ConfigError(f"--fit: {err}") from None
 
     return {"cohort": cohort, "model": model, "planted": planted, "base": base, "counts": counts, "sizes": sizes,
             "simulated": simulated, "sim_cfg": sim_cfg, "fit_words": fit_words}
