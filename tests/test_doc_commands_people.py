@@ -8,7 +8,8 @@ classifies each one, and fails when the docs gain a command it does not classify
   directory that mirrors the repository's root (its files linked, ``runs/`` its own), so what a command writes
   goes there and never into the checkout. docs/experiment.md's study commands (export, reissue, withdraw) read a
   small study database the test prepares where the docs' server would have made it.
-* ``slow``: done in a minute or more; run among the slow tests (``pytest -m slow``), validated otherwise.
+* ``slow``: done in ten seconds or more; run among the slow tests (``pytest -m slow``, after the ``run`` commands
+  before it), validated otherwise.
 * ``validate``: too long to run here (simulations, fits, servers); the command's own parser reads its arguments
   and its own checks compose its config with the overrides it passes, as it does before it starts, so a
   misspelt key, an unknown config name or a refused value fails here.
@@ -65,7 +66,8 @@ TABLE: list[tuple[str, str, str]] = [
      "a server: it runs until stopped"),
     (r"python -m overhang_framework\.experiment export .*run_dir=runs/pilot.*", "run", ""),
     (r"python -m overhang_framework\.experiment (reissue|withdraw) P1( --yes)? run_dir=runs/pilot", "run", ""),
-    (r"python -m overhang_framework\.analyze runs/pilot/(log\.jsonl|dataset) --out runs/pilot/analysis", "run", ""),
+    (r"python -m overhang_framework\.analyze runs/pilot/(log\.jsonl|dataset) --out runs/pilot/analysis", "slow",
+     "an analysis of the prepared study: about 10 s each"),
     (r"python -m overhang_framework\.behaviour\.psychds runs/pilot/dataset", "run", ""),
     (r"python -m overhang_framework\.experiment\.practice", "run", ""),
     (r"python -m overhang_framework\.experiment\.practice practice\.tolerance=\S+ --out \S+", "slow",
@@ -203,18 +205,18 @@ def tracked_changes() -> str:
                           text=True).stdout
 
 
-def run_docs(tmp_path: Path, kind: str) -> list[tuple[Command, subprocess.CompletedProcess]]:
-    """The ``kind`` commands of each doc, in its order (an identical command once), each doc in its own mirror
-    of the root; the two docs at once."""
+def run_docs(tmp_path: Path, kinds: tuple[str, ...]) -> list[tuple[Command, subprocess.CompletedProcess]]:
+    """The commands of each doc whose action is one of ``kinds``, in its order (an identical command once), each
+    doc in its own mirror of the root; the two docs at once."""
     chains, cwds, envs, done = [], [], [], []
     for doc in DOCS:
         seen, commands = set(), []
         for c in doc_commands(doc):
-            if action(c)[0] == kind and c.text not in seen:
+            if action(c)[0] in kinds and c.text not in seen:
                 seen.add(c.text)
                 commands.append(c)
         root = mirror(tmp_path / Path(doc).stem)
-        if kind == "run" and doc == "docs/experiment.md":
+        if doc == "docs/experiment.md":
             prepared_study(root)
         env = {**os.environ, **doc_env(doc)}
         env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"  # `python` is this one
@@ -234,7 +236,7 @@ def failures(pairs) -> list[str]:
 
 
 def test_the_commands_that_take_seconds_run_as_written(tmp_path):
-    pairs = run_docs(tmp_path, "run")
+    pairs = run_docs(tmp_path, ("run",))
     assert len(pairs) >= 20
     assert not failures(pairs), "\n\n".join(failures(pairs))
     said = {c.text: p.stdout + p.stderr for c, p in pairs}
@@ -245,9 +247,9 @@ def test_the_commands_that_take_seconds_run_as_written(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_commands_that_take_a_minute_run_as_written(tmp_path):
-    pairs = run_docs(tmp_path, "slow")
-    assert pairs
+def test_the_commands_that_take_longer_run_as_written(tmp_path):
+    pairs = run_docs(tmp_path, ("run", "slow"))
+    assert any(action(c)[0] == "slow" for c, _ in pairs)
     assert not failures(pairs), "\n\n".join(failures(pairs))
 
 
@@ -324,6 +326,12 @@ def check_practice(args: list[str]) -> None:
     _world_and_tasks(parser().parse_args(args).overrides)
 
 
+def check_analyze(args: list[str]) -> None:
+    from overhang_framework.analyze import parser
+
+    parser().parse_args(args)  # its input is the export before it
+
+
 #: How each module's command is checked without running it.
 CHECKS = {
     "overhang_framework.participants": check_participants,
@@ -333,6 +341,7 @@ CHECKS = {
     "overhang_framework.fit.recovery": check_recovery,
     "overhang_framework.experiment": check_experiment,
     "overhang_framework.experiment.practice": check_practice,
+    "overhang_framework.analyze": check_analyze,
     "overhang_framework.bench.pilot_recovery": check_pilot_recovery,
 }
 
