@@ -18,3 +18,17 @@ def run_each(argvs: Sequence[Sequence[str]], timeout: float = 300, workers: int 
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(one, argvs))
+
+
+def run_chains(chains: Sequence[Sequence[Sequence[str]]], timeout: float = 300, workers: int = 2,
+               envs: Optional[Sequence[Mapping[str, str]]] = None, cwds: Optional[Sequence] = None) -> list:
+    """Each chain's argvs in their order (a later one may read what an earlier one wrote), the chains two at a
+    time, chain ``i`` in ``envs[i]`` and ``cwds[i]`` when given; the ``subprocess.run`` results, chain by chain."""
+    def chain(i):
+        env = None if envs is None else dict(envs[i])
+        cwd = None if cwds is None else cwds[i]
+        return [subprocess.run(list(argv), capture_output=True, text=True, timeout=timeout, env=env, cwd=cwd)
+                for argv in chains[i]]
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(chain, range(len(chains))))

@@ -562,11 +562,12 @@ def fit_condition(library: Library, targets: Optional[Mapping[str, tuple[float, 
 
 def proposal_distributions(cohort_name: str = "proposal") -> dict[str, Optional[Distribution]]:
     """The proposal's distributions, from the shipped cohort config."""
-    from overhang_framework.config import compose_config
     from overhang_framework.behaviour.simulation import CONFIG_NAME, check_config
+    from overhang_framework.preflight import compose_checked
 
-    checked = check_config(compose_config([f"cohort={cohort_name}", "world.physics=static", "predictor=hybrid",
-                                           "conditions.time_limited.time_limit=null"], config_name=CONFIG_NAME))
+    # an unknown cohort is one line naming the cohorts there are
+    checked = check_config(compose_checked([f"cohort={cohort_name}", "world.physics=static", "predictor=hybrid",
+                                            "conditions.time_limited.time_limit=null"], config_name=CONFIG_NAME))
     return dict(checked.cohort.parameters)
 
 
@@ -613,10 +614,11 @@ def fit(trials: pd.DataFrame, out: Path, seed: int = 0, maxiter: int = 200, abc_
     return summary
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m overhang_framework.behaviour.calibrate",
-                                     description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+def parser() -> argparse.ArgumentParser:
+    """The command's argument parser."""
+    ap = argparse.ArgumentParser(prog="python -m overhang_framework.behaviour.calibrate",
+                                 description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
     lib = sub.add_parser("library", help="one row per trial of a participants run (the library)")
     lib.add_argument("run_dir", type=Path)
     lib.add_argument("--out", required=True, type=Path)
@@ -648,7 +650,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     m.add_argument("--json", type=Path, default=None, metavar="FILE",
                    help="also write the table's figures to a JSON file (per condition and measure: the mean of the "
                         "runs' means, the paper's mean and SEM, the distance in its SEMs)")
-    args = parser.parse_args(argv)
+    return ap
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = parser().parse_args(argv)
     try:
         if args.command == "measure":
             if args.save is not None and len(args.run_dirs) != 1:

@@ -58,9 +58,8 @@ def _table(name: str, r: dict) -> list[str]:
     return lines + [""]
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    from overhang_framework.results import atomic_write_json, atomic_write_text
-
+def parser() -> argparse.ArgumentParser:
+    """The command's argument parser."""
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.bench.pilot_recovery",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("overrides", nargs="*", help="the participants command's overrides (cohort=small seed=0)")
@@ -68,7 +67,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ap.add_argument("--time-scale", default="1")
     ap.add_argument("--serve", action="append", default=[], help="passed to the pilot's --serve")
     ap.add_argument("--fit", action="append", default=[], help="a word for the fit command (repeatable)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from overhang_framework.results import atomic_write_json, atomic_write_text
+
+    args = parser().parse_args(argv)
     out = args.out
     seconds = {}
     seconds["pilot"] = _timed(["-m", "overhang_framework.experiment", "pilot", "--out", str(out / "pilot"),

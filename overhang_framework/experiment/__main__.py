@@ -418,6 +418,62 @@ def _write(text: str, out: Optional[str]) -> int:
     return 0
 
 
+def parser(command: str = "serve") -> argparse.ArgumentParser:
+    """The argument parser of ``command`` (one of :data:`SUMMARIES`, the pilot's aside: ``pilot.parser``); its
+    arguments are read with ``parse_intermixed_args``."""
+    commands = tuple(SUMMARIES)
+    ap = argparse.ArgumentParser(
+        prog=f"python -m overhang_framework.experiment {command}", description=textwrap.fill(DESCRIPTIONS[command], 100),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=(("commands:\n" + "\n".join(f"  {c:<13} {SUMMARIES[c]}" for c in commands)
+                 + "\n\npython -m overhang_framework.experiment COMMAND --help says more.")
+                if command == "serve" else "Overrides are keys of conf/serve.yaml (docs/experiment.md); the\n"
+                "commands that read the study's database need the run_dir=DIR or database=URL its server used."))
+    if command in ("reissue", "withdraw"):
+        ap.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
+    if command == "withdraw":
+        ap.add_argument("--yes", action="store_true",
+                            help="delete them, for good (without it nothing is deleted: the command says what would "
+                                 "be; exports and backups made before still hold them)")
+    if command == "restore":
+        ap.add_argument("file", help="a backup that the backup command wrote")
+    ap.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. run_dir=DIR port=8080 "
+                                                     "database=URL")
+    if command == "backup":
+        ap.add_argument("--out", required=True, help="the copy to write (SQLite: a database file; "
+                                                         "PostgreSQL: a pg_dump archive, custom format)")
+    if command == "nginx-config":
+        ap.add_argument("--server-name", required=True, help="the host name participants open")
+        ap.add_argument("--certificate", help="default: certbot's fullchain.pem for the server name")
+        ap.add_argument("--certificate-key", help="default: certbot's privkey.pem for the server name")
+        ap.add_argument("--http-port", type=int, default=80)
+        ap.add_argument("--https-port", type=int, default=443)
+        ap.add_argument("--listen", action="append", default=[],
+                            help="an address to listen on (repeatable; default: every IPv4 and IPv6 address)")
+    if command == "systemd-unit":
+        ap.add_argument("--user", required=True, help="the system user the server runs as")
+        ap.add_argument("--env-file", default="/etc/overhang-experiment.env",
+                            help="the file with OVERHANG_ADMIN_TOKEN=... (default: %(default)s)")
+    if command in ("nginx-config", "systemd-unit"):
+        ap.add_argument("--out", help="the file to write (default: standard output)")
+    if command == "export":
+        ap.add_argument("--out", required=True,
+                            help="the behaviour log to write (JSON Lines), or with --format psych-ds the dataset's "
+                                 "folder (new, empty, or an earlier export, which is replaced)")
+        ap.add_argument("--format", default="jsonl", metavar="|".join(("jsonl", "psych-ds")),
+                            help="jsonl (default): one behaviour-log file; psych-ds: a Psych-DS dataset folder")
+        ap.add_argument("--include-screened-out", action="store_true",
+                            help="add the practice attempts of participants screened out in the practice")
+        ap.add_argument("--include-simulated", action="store_true",
+                            help="add a pilot's simulated participants (source: simulated) to an export of a "
+                                 "study of people")
+    if command in ("export", "reissue", "withdraw"):
+        ap.add_argument("--url", help="a running server to ask (default: read the database directly)")
+    if command == "build":
+        ap.add_argument("--force", action="store_true", help="build even when web/dist exists")
+    return ap
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     from overhang_framework.errors import OverhangError
@@ -438,56 +494,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         except OverhangError as err:
             print(f"error: {err}; commands: {', '.join(commands)}", file=sys.stderr)
             return 2
-    parser = argparse.ArgumentParser(
-        prog=f"python -m overhang_framework.experiment {command}", description=textwrap.fill(DESCRIPTIONS[command], 100),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=(("commands:\n" + "\n".join(f"  {c:<13} {SUMMARIES[c]}" for c in commands)
-                 + "\n\npython -m overhang_framework.experiment COMMAND --help says more.")
-                if command == "serve" else "Overrides are keys of conf/serve.yaml (docs/experiment.md); the\n"
-                "commands that read the study's database need the run_dir=DIR or database=URL its server used."))
-    if command in ("reissue", "withdraw"):
-        parser.add_argument("participant", help="the participant's id (PROLIFIC_PID or participant)")
-    if command == "withdraw":
-        parser.add_argument("--yes", action="store_true",
-                            help="delete them, for good (without it nothing is deleted: the command says what would "
-                                 "be; exports and backups made before still hold them)")
-    if command == "restore":
-        parser.add_argument("file", help="a backup that the backup command wrote")
-    parser.add_argument("overrides", nargs="*", help="keys of conf/serve.yaml, e.g. run_dir=DIR port=8080 "
-                                                     "database=URL")
-    if command == "backup":
-        parser.add_argument("--out", required=True, help="the copy to write (SQLite: a database file; "
-                                                         "PostgreSQL: a pg_dump archive, custom format)")
-    if command == "nginx-config":
-        parser.add_argument("--server-name", required=True, help="the host name participants open")
-        parser.add_argument("--certificate", help="default: certbot's fullchain.pem for the server name")
-        parser.add_argument("--certificate-key", help="default: certbot's privkey.pem for the server name")
-        parser.add_argument("--http-port", type=int, default=80)
-        parser.add_argument("--https-port", type=int, default=443)
-        parser.add_argument("--listen", action="append", default=[],
-                            help="an address to listen on (repeatable; default: every IPv4 and IPv6 address)")
-    if command == "systemd-unit":
-        parser.add_argument("--user", required=True, help="the system user the server runs as")
-        parser.add_argument("--env-file", default="/etc/overhang-experiment.env",
-                            help="the file with OVERHANG_ADMIN_TOKEN=... (default: %(default)s)")
-    if command in ("nginx-config", "systemd-unit"):
-        parser.add_argument("--out", help="the file to write (default: standard output)")
-    if command == "export":
-        parser.add_argument("--out", required=True,
-                            help="the behaviour log to write (JSON Lines), or with --format psych-ds the dataset's "
-                                 "folder (new, empty, or an earlier export, which is replaced)")
-        parser.add_argument("--format", default="jsonl", metavar="|".join(("jsonl", "psych-ds")),
-                            help="jsonl (default): one behaviour-log file; psych-ds: a Psych-DS dataset folder")
-        parser.add_argument("--include-screened-out", action="store_true",
-                            help="add the practice attempts of participants screened out in the practice")
-        parser.add_argument("--include-simulated", action="store_true",
-                            help="add a pilot's simulated participants (source: simulated) to an export of a "
-                                 "study of people")
-    if command in ("export", "reissue", "withdraw"):
-        parser.add_argument("--url", help="a running server to ask (default: read the database directly)")
-    if command == "build":
-        parser.add_argument("--force", action="store_true", help="build even when web/dist exists")
-    args = parser.parse_intermixed_args(argv)  # overrides may come before or after the flags
+    args = parser(command).parse_intermixed_args(argv)  # overrides may come before or after the flags
     for name, what in (("participant", "a participant's id"), ("file", "the backup file")):
         value = getattr(args, name, None)
         if value is not None and "=" in value and not Path(value).exists():

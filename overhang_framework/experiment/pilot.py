@@ -561,12 +561,12 @@ then:
     return ap
 
 
-def run(args) -> dict:
-    """The pilot of ``args`` (parsed by :func:`parser`); its summary. Config mistakes raise before any request."""
+def check(args, port: int = 0) -> tuple[Plan, Optional[list[str]], Any]:
+    """The pilot of ``args`` (parsed by :func:`parser`) checked before anything is written or requested: its plan,
+    and without ``--url`` the overrides of its own server (on ``port``) and their settings, checked as the server
+    checks them."""
     from overhang_framework.experiment.api import PARTICIPANT_ID
     from overhang_framework.preflight import check_writable
-    from overhang_framework.results import atomic_write_json, atomic_write_text
-    from overhang_framework.rundir import result_config
 
     if not (args.time_scale > 0 and math.isfinite(args.time_scale)):
         raise ConfigError(f"--time-scale must be a number > 0, got {args.time_scale!r}")
@@ -588,16 +588,28 @@ def run(args) -> dict:
     if (out / CSV).exists() or (out / "experiment.sqlite").exists():
         raise ConfigError(f"{out} holds an earlier pilot ({CSV} or experiment.sqlite); give another --out")
     p = plan(args.overrides)
+    if args.url:
+        return p, None, None
+    from overhang_framework.experiment.settings import load_settings
+
+    words = server_overrides(p, args.time_scale, out.resolve(), port) + list(args.serve)
+    return p, words, load_settings(words, need_admin_token=False)  # every mistake in one line, before it starts
+
+
+def run(args) -> dict:
+    """The pilot of ``args`` (parsed by :func:`parser`); its summary. Config mistakes raise before any request."""
+    from overhang_framework.experiment.settings import ADMIN_ENV
+    from overhang_framework.results import atomic_write_json, atomic_write_text
+    from overhang_framework.rundir import result_config
+
+    out = Path(args.out)
+    p, words, settings = check(args, free_port() if not args.url else 0)
     server = None
     if args.url:
         url = args.url
     else:
-        from overhang_framework.experiment.settings import load_settings
         from overhang_framework.experiment.store import Store
 
-        port = free_port()
-        words = server_overrides(p, args.time_scale, out.resolve(), port) + list(args.serve)
-        settings = load_settings(words, need_admin_token=False)  # every mistake in one line, before it starts
         out.mkdir(parents=True, exist_ok=True)
         Store(settings.database).close()  # the tables, made once before the server processes open the database
         server = Server(words, settings.port, out / SERVER_LOG, settings.workers)

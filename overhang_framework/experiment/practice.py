@@ -274,15 +274,20 @@ def _world_and_tasks(overrides: Sequence[str]):
     return world, tasks, tolerance
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    parser = argparse.ArgumentParser(
+def parser() -> argparse.ArgumentParser:
+    """The command's argument parser."""
+    ap = argparse.ArgumentParser(
         prog=COMMAND,
         description="Find the best tower of each practice task that stays legal and stands with every placement "
                     "off by up to practice.tolerance (conf/serve.yaml), confirm it under the reference, and keep "
                     "it in the practice towers file; tasks already there are skipped.")
-    parser.add_argument("overrides", nargs="*", help="overrides of conf/serve.yaml (practice.tolerance=..., world....)")
-    parser.add_argument("--out", default=str(DATA_FILE), help=f"practice towers file (default: {DATA_FILE})")
-    args = parser.parse_args(argv)
+    ap.add_argument("overrides", nargs="*", help="overrides of conf/serve.yaml (practice.tolerance=..., world....)")
+    ap.add_argument("--out", default=str(DATA_FILE), help=f"practice towers file (default: {DATA_FILE})")
+    return ap
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = parser().parse_args(argv)
 
     from overhang_framework.errors import OverhangError
     from overhang_framework.optimum import task_optimum

@@ -58,12 +58,9 @@ def _whole(cfg, key: str, minimum: int) -> int:
     return value
 
 
-def check_config(cfg: DictConfig) -> dict:
-    """Every value of ``cfg`` checked, the logs read and the models built (nothing fitted)."""
-    from overhang_framework.behaviour.log import read_log, require_records
-    from overhang_framework.fit.compare import read_truth
+def check_settings(cfg: DictConfig) -> dict:
+    """Every value of ``cfg`` checked that can be without reading the logs (a command before its logs exist)."""
     from overhang_framework.fit.space import model_space
-    from overhang_framework.plugins import Registry
     from overhang_framework.preflight import check_writable
 
     extra = [k for k in cfg if k not in TOP and k != "hydra"]
@@ -101,6 +98,18 @@ def check_config(cfg: DictConfig) -> dict:
     if not isinstance(depths, list):
         depths = [depths]
     model_space(_plain(cfg.models) or {}, depths, check_only=True)  # a bad setting stops the command here
+    return {"logs": logs, "depths": depths, "shard": shard, "shards": shards, "motor": motor}
+
+
+def check_config(cfg: DictConfig) -> dict:
+    """Every value of ``cfg`` checked, the logs read and the models built (nothing fitted)."""
+    from overhang_framework.behaviour.log import read_log, require_records
+    from overhang_framework.fit.compare import read_truth
+    from overhang_framework.fit.space import model_space
+    from overhang_framework.plugins import Registry
+
+    checked = check_settings(cfg)
+    logs, depths, shard, shards, motor = (checked[k] for k in ("logs", "depths", "shard", "shards", "motor"))
     truth = truth_files(_plain(cfg.get("truth")), logs)
     read_truth(truth, {})  # a file that is not a participants.csv stops the command here
     df = require_records(read_log([str(p) for p in logs]), logs)

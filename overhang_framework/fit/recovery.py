@@ -482,13 +482,11 @@ def run(cfg: DictConfig) -> dict:
     return summary
 
 
-def main(argv: Optional[Sequence[str]] = None) -> None:
+def checked_config(args: Sequence[str]) -> DictConfig:
+    """The recovery config of the command line ``args`` (``--out DIR``, ``--config-name NAME``, overrides), composed and
+    checked (nothing simulated or fitted); one :class:`OverhangError` line otherwise."""
     from overhang_framework.preflight import check_flags, compose_checked, split_flags
 
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--help" in args or "-h" in args:
-        print(__doc__)
-        return
     words, out, name = [], None, CONFIG_NAME
     it = iter(args)
     for word in it:
@@ -502,17 +500,26 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             name = word.split("=", 1)[1]
         else:
             words.append(word)
+    check_flags(words)
+    flags, overrides = split_flags(words)
+    if flags:
+        raise ConfigError(f"recovery takes overrides only, not {' '.join(flags)}")
+    if out is not None:
+        overrides.append(f"out='{Path(out).resolve()}'")
+    if name not in CONFIGS:
+        raise ConfigError(f"--config-name {name!r} is not a recovery config; allowed: {', '.join(CONFIGS)}")
+    cfg = compose_checked(overrides, config_name=name)
+    check_config(cfg)
+    return cfg
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--help" in args or "-h" in args:
+        print(__doc__)
+        return
     try:
-        check_flags(words)
-        flags, overrides = split_flags(words)
-        if flags:
-            raise ConfigError(f"recovery takes overrides only, not {' '.join(flags)}")
-        if out is not None:
-            overrides.append(f"out='{Path(out).resolve()}'")
-        if name not in CONFIGS:
-            raise ConfigError(f"--config-name {name!r} is not a recovery config; allowed: {', '.join(CONFIGS)}")
-        cfg = compose_checked(overrides, config_name=name)
-        check_config(cfg)
+        cfg = checked_config(args)
         Path(cfg.out).mkdir(parents=True, exist_ok=True)
         logging.basicConfig(filename=str(Path(cfg.out) / "recovery.log"), level=logging.INFO,
                             format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")

@@ -21,7 +21,8 @@ def _quoted(word: str) -> str:
     return shlex.quote(str(word))
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def parser() -> argparse.ArgumentParser:
+    """The command's argument parser."""
     ap = argparse.ArgumentParser(prog="python -m overhang_framework.study", description=studies.__doc__.split("\n\n")[0])
     ap.add_argument("study", help=f"one of: {', '.join(STUDIES)}")
     ap.add_argument("--out", required=True, help="the study's directory")
@@ -48,7 +49,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                          "Psych-DS folder; repeatable) instead of simulating any; power is then a bootstrap of them")
     ap.add_argument("--no-fit", action="store_true", help="leave out the fit and the findings that need it")
     ap.add_argument("--no-progress", action="store_true")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = parser().parse_args(argv)
     say = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     try:
         depths = [int(d) for d in args.depths.split(",") if d.strip()]

@@ -38,16 +38,13 @@ def _compose(words: Sequence[str], config_name: str, what: str):
         raise ConfigError(f"{what}: {first}") from None
 
 
-def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: Optional[int] = None,
-        jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 1000, replicas: int = 39, seed: int = 0,
-        world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
-        progress: bool = True, say: Callable[[str], None] = lambda s: None, sims: Sequence[str | Path] = (),
-        fit_models: bool = True, logs: Sequence[str | Path] = (), command: str = "") -> dict:
-    """Run ``study`` into ``out``; see the module docstring. ``sims``: finished simulations of the study's cohort
-    (``python -m overhang_framework.participants`` run directories) to take as the participants instead of
-    simulating them; ``logs``: behaviour logs of people (an export of the study: JSON Lines, CSV or a Psych-DS
-    folder), analysed as the study's participants; ``fit_models`` false leaves out the fit (and the findings that
-    need it); ``command``: the command line that ran it, which the graded design's preregistration names."""
+def check_settings(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: Optional[int] = None,
+                   jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 1000, replicas: int = 39,
+                   seed: int = 0, world: Sequence[str] = (), participants: Sequence[str] = (),
+                   fit: Sequence[str] = (), progress: bool = True, sims: Sequence[str | Path] = (),
+                   logs: Sequence[str | Path] = ()) -> dict:
+    """The settings of :func:`run` checked and both its configs (the participants' and the fit's) composed, before
+    any work and without writing anything; a one-line :class:`ConfigError` otherwise."""
     from omegaconf import OmegaConf
 
     if study not in STUDIES:
@@ -69,9 +66,6 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
                           "are for simulating them: leave them out")
     cohort, model, planted = STUDIES[study]
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    steps = Steps(out)
-    started = time.perf_counter()
     base = _compose([f"cohort={cohort}"], "participants", "--participants")
     counts = {str(k): int(v) for k, v in OmegaConf.to_container(base.cohort.participants).items()}
     sizes = {k: max(1, round(v * scale)) for k, v in counts.items()}
@@ -84,12 +78,46 @@ def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: O
 
     fit_words = [*world, f"jobs={jobs}", f"cache={out / 'scores.sqlite'}", f"progress={str(progress).lower()}",
                  f"depths=[{','.join(str(int(d)) for d in depths)}]", *fit]
-    from overhang_framework.behaviour.simulation import CONFIG_NAME, run as simulate
+    from overhang_framework.behaviour.simulation import CONFIG_NAME
 
     sim_cfg = _compose(words, CONFIG_NAME, "--participants")  # both configs checked before any work
-    _compose(fit_words, "fit", "--fit")
+    fit_cfg = _compose(fit_words, "fit", "--fit")
+    from overhang_framework.fit.space import model_space
+
+    try:  # a misspelt model setting is refused now, not after the simulation
+        model_space(OmegaConf.to_container(fit_cfg.models, resolve=True) or {}, [int(d) for d in depths],
+                    check_only=True)
+    except OverhangError as err:
+        raise ConfigError(f"--fit: {err}") from None
+
+    return {"cohort": cohort, "model": model, "planted": planted, "base": base, "counts": counts, "sizes": sizes,
+            "simulated": simulated, "sim_cfg": sim_cfg, "fit_words": fit_words}
+
+
+def run(study: str, out: Path, scale: float = 1.0, pool: float = 2.0, n_tasks: Optional[int] = None,
+        jobs: int = 1, depths: Sequence[int] = (1, 2), resamples: int = 1000, replicas: int = 39, seed: int = 0,
+        world: Sequence[str] = (), participants: Sequence[str] = (), fit: Sequence[str] = (),
+        progress: bool = True, say: Callable[[str], None] = lambda s: None, sims: Sequence[str | Path] = (),
+        fit_models: bool = True, logs: Sequence[str | Path] = (), command: str = "") -> dict:
+    """Run ``study`` into ``out``; see the module docstring. ``sims``: finished simulations of the study's cohort
+    (``python -m overhang_framework.participants`` run directories) to take as the participants instead of
+    simulating them; ``logs``: behaviour logs of people (an export of the study: JSON Lines, CSV or a Psych-DS
+    folder), analysed as the study's participants; ``fit_models`` false leaves out the fit (and the findings that
+    need it); ``command``: the command line that ran it, which the graded design's preregistration names."""
+    from omegaconf import OmegaConf
+
+    checked = check_settings(study, out, scale, pool, n_tasks, jobs, depths, resamples, replicas, seed, world,
+                             participants, fit, progress, sims, logs)
+    cohort, model, planted, base, counts, sizes, simulated, sim_cfg, fit_words = (checked[k] for k in (
+        "cohort", "model", "planted", "base", "counts", "sizes", "simulated", "sim_cfg", "fit_words"))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    steps = Steps(out)
+    started = time.perf_counter()
 
     # 1. the participants
+    from overhang_framework.behaviour.simulation import run as simulate
+
     t0 = time.perf_counter()
     data = "people" if logs else "sim"
     if logs:
