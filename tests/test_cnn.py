@@ -557,6 +557,7 @@ def test_the_exported_network_is_kept_between_processes(tmp_path, monkeypatch):
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})
+    monkeypatch.setattr(cnn_model, "_ONNX_SHARED", {})
     exports = []
     original = cnn_model.export_onnx
     monkeypatch.setattr(cnn_model, "export_onnx", lambda *a: exports.append(1) or original(*a))
@@ -565,10 +566,12 @@ def test_the_exported_network_is_kept_between_processes(tmp_path, monkeypatch):
     kept = list((tmp_path / "overhang_framework" / "onnx").glob("*.onnx"))
     assert len(exports) == 1 and len(kept) == 1
     monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})  # as a new process
+    monkeypatch.setattr(cnn_model, "_ONNX_SHARED", {})
     np.testing.assert_array_equal(StabilityModel("default", device="cpu").probabilities(tower), first)
     assert len(exports) == 1
     kept[0].write_bytes(b"not a model")  # a damaged file is exported again and replaced
     monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})
+    monkeypatch.setattr(cnn_model, "_ONNX_SHARED", {})
     np.testing.assert_array_equal(StabilityModel("default", device="cpu").probabilities(tower), first)
     assert len(exports) == 2 and kept[0].read_bytes() != b"not a model"
 
@@ -869,3 +872,52 @@ def test_networks_built_at_once_in_threads_export_one_at_a_time_and_once(tmp_pat
     expected = net(torch.from_numpy(images)).detach().numpy()
     for network in built:
         np.testing.assert_allclose(np.asarray(network(images)).reshape(expected.shape), expected, rtol=1e-5, atol=1e-6)
+
+
+def test_networks_built_at_once_in_threads_are_built_one_at_a_time_and_shared(tmp_path, monkeypatch):
+    """A pilot's participants build their CNN predictors in threads at the same moment: torch.fx's folding and
+    torch.export patch torch while they trace, so the builds take turns, and the exported network is built once
+    and shared (each thread's predictor scores as one built alone)."""
+    import threading
+
+    from overhang_framework.cnn import model as cnn_model
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(cnn_model, "_ONNX_MODELS", {})
+    monkeypatch.setattr(cnn_model, "_ONNX_SHARED", {})
+    inside, most, folds = [0], [0], []
+    original = cnn_model.fold_batch_norm
+
+    def watched(net):
+        inside[0] += 1
+        most[0] = max(most[0], inside[0])
+        folds.append(1)
+        try:
+            return original(net)
+        finally:
+            inside[0] -= 1
+
+    monkeypatch.setattr(cnn_model, "fold_batch_norm", watched)
+    built, errors = [], []
+    gate = threading.Barrier(4)
+
+    def build():
+        try:
+            gate.wait()
+            built.append(StabilityModel("default", device="cpu"))
+        except Exception as err:  # noqa: BLE001 (a thread's error is the test's)
+            errors.append(err)
+
+    threads = [threading.Thread(target=build) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(built) == 4
+    assert most[0] == 1 and len(folds) == 1  # one build, the others waited for it
+    assert len({id(m.net) for m in built}) == 1 and {m.folded for m in built} == {built[0].folded}
+    tower = [Geometry((Block(1.8, 0.0, 0), Block(0.6, 0.7, 1)))]
+    monkeypatch.setattr(cnn_model, "_ONNX_SHARED", {})
+    alone = StabilityModel("default", device="cpu").probabilities(tower)
+    for m in built:
+        np.testing.assert_array_equal(m.probabilities(tower), alone)

@@ -311,3 +311,43 @@ def test_a_pilot_stopped_midway_leaves_its_files_and_says_what_it_left_on_the_se
         assert {p.id: p.source for p in store.participants()} == {"pilot-001": "simulated", "pilot-002": "simulated"}
     finally:
         store.close()
+
+
+@pytest.mark.slow
+def test_a_graded_pilot_at_the_default_concurrency_against_a_served_study_is_exported_and_analysed(tmp_path,
+                                                                                                   monkeypatch):
+    """The graded study served as a lab serves it (``study=graded_budgets``), a pilot of two participants a level
+    through it at the pilot's default concurrency (8: every participant at once, each building its hybrid predictor's
+    CNN at the same moment), the export the pilot suggests, and ``study graded_budgets --log`` on it: the full
+    report, opening with what its size cannot support."""
+    tasks = "tasks.only=[paper00,paper03]"
+    process, url, words = _serve(tmp_path / "server", ["study=graded_budgets", tasks])
+    try:
+        _wait(url, process)
+        out = tmp_path / "pilot"
+        monkeypatch.setenv("OVERHANG_ADMIN_TOKEN", "pilot-test-admin")
+        done = pilot(out, "--url", url, "--time-scale", "0.02", "cohort=graded_budgets", tasks, "seed=7",
+                     "cohort.participants={limit_2_5s: 2, time_limited: 2, limit_10s: 2, unconstrained: 2}")
+        assert "8 participants (" in done.stdout and "Traceback" not in done.stderr, done.stdout + done.stderr[-2000:]
+        import shlex
+
+        suggested = shlex.split(done.stdout.strip().splitlines()[-1].split("the log: ", 1)[1])
+        run(*suggested[1:])  # the export the pilot suggests, from the live study
+    finally:
+        process.terminate()
+        process.wait(timeout=30)
+    table = truth(out)
+    finished = [r for r in table.values() if r["screened_out"] == "False"]
+    assert len(table) == 8 and finished, table
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert {r["participant"] for r in records} == {r["id"] for r in finished}  # the screened-out are left out
+    analysis = run("-m", "overhang_framework.study", "graded_budgets", "--log", str(out / "log.jsonl"),
+                   "--out", str(tmp_path / "analysis"), "--no-fit", "--resamples", "20", "--no-progress",
+                   timeout=1200)
+    lines = analysis.stdout.splitlines()
+    assert lines[0] == "# The graded-budget study: what people did"
+    assert lines[2].startswith("**Nothing can be concluded from this study:** it has "), lines[:4]
+    report = (tmp_path / "analysis" / "study.md").read_text()
+    assert "## Each level" in report and "simulated" not in report.split("## Steps")[0]
+    trends = pd.read_csv(tmp_path / "analysis" / "trends.csv")
+    assert {"overhang", "gamma", "lateral"} <= set(trends["measure"])

@@ -236,24 +236,37 @@ class StabilityModel:
         self.renderer = make_renderer(payload["renderer"])
         self.device = pick_device(device)
         self.batch_size = batch_size
-        self.net = build_model(self.backbone, int(payload.get("outputs", 1)), self.renderer.channels,
-                               (self.renderer.height, self.renderer.width))
-        self.net.load_state_dict(payload["state_dict"])
-        self.net.eval().to(self.device)
         self.fused = fused
-        #: batch norms folded into the convolution before them (0 unfused, or for a network torch.fx cannot trace)
-        self.folded = fold_batch_norm(self.net) if fused else 0
-        if self.folded:
-            self.net.to(memory_format=torch.channels_last)
         #: what runs the network: ``onnxruntime`` or ``torch``
         self.runtime = runtime if fused and self.device.type == "cpu" else "torch"
-        if self.runtime == "onnxruntime":
-            import hashlib
+        # torch.fx (the folding) and torch.export patch torch's modules while they trace, so a network is built in
+        # one thread at a time; an exported one is built once a process and shared (ONNX Runtime's sessions run
+        # from any thread)
+        with _EXPORTING:
+            shared = None
+            if self.runtime == "onnxruntime":
+                import hashlib
 
-            made = hashlib.sha256(self.path.read_bytes())
-            made.update(repr((torch.__version__, self.renderer.shape, self.folded)).encode())
-            self.net = onnx_network(self.net, self.renderer.shape, torch.get_num_threads(),
-                                    key=made.hexdigest()[:32])
+                made = hashlib.sha256(self.path.read_bytes())
+                made.update(repr((torch.__version__, self.renderer.shape, "folded")).encode())
+                key = made.hexdigest()[:32]
+                shared = _ONNX_SHARED.get((key, torch.get_num_threads()))
+            if shared is not None:
+                self.net, self.folded = shared
+            else:
+                self.net = build_model(self.backbone, int(payload.get("outputs", 1)), self.renderer.channels,
+                                       (self.renderer.height, self.renderer.width))
+                self.net.load_state_dict(payload["state_dict"])
+                self.net.eval().to(self.device)
+                #: batch norms folded into the convolution before them (0 unfused, or for a network torch.fx
+                #: cannot trace)
+                self.folded = fold_batch_norm(self.net) if fused else 0
+                if self.folded:
+                    self.net.to(memory_format=torch.channels_last)
+                if self.runtime == "onnxruntime":
+                    self.net = onnx_network(self.net, self.renderer.shape, torch.get_num_threads(),
+                                            key=f"{key}-{self.folded}")
+                    _ONNX_SHARED[(key, torch.get_num_threads())] = (self.net, self.folded)
         self._buffer = self._new_buffer(0)
 
     @property
@@ -317,9 +330,12 @@ class OnnxNetwork:
 
 
 _ONNX_MODELS: dict = {}
-#: One export at a time in a process: ``torch.export`` is not thread-safe (a pilot's concurrent participants, each
-#: building a CNN, crashed in it); the threads that wait then find the model the first one exported.
-_EXPORTING = threading.Lock()
+#: The exported networks of this process, with their folded batch norms, by checkpoint digest and threads.
+_ONNX_SHARED: dict = {}
+#: One network built and exported at a time in a process: ``torch.fx`` and ``torch.export`` are not thread-safe
+#: (a pilot's concurrent participants, each building a CNN, crashed in them); the threads that wait then share
+#: the network the first one built.
+_EXPORTING = threading.RLock()
 
 
 def onnx_cache_dir() -> Path:
