@@ -100,7 +100,7 @@ def test_a_restart_with_settings_participants_see_is_refused_in_one_line_and_an_
     # where the server listens and how many processes it runs change nothing a participant sees
     _serve_app([*overrides, "port=8123", "workers=1", "keep_alive=30", "world.cache=false",
                 "world.workers=2"]).app.state.store.close()
-    with pytest.raises(ConfigError, match=r"tasks: .* -> .*; time_limit: 5\.0 -> 4\.0\); .*allow_settings_change=true"):
+    with pytest.raises(ConfigError, match=r"tasks\[0\]: \[\"paper00\", .*\] -> \[\"paper01\", .*\]; time_limit: 5\.0 -> 4\.0\); .*allow_settings_change=true"):
         _serve_app([*overrides[:1], "tasks.only=[paper03,paper01]", "physics_processes=0", "time_limit=4"])
     # the command line says it in one line, before it listens
     assert main([*overrides, "time_limit=4", f"admin_token={ADMIN}", "port=0"]) == 2
@@ -526,3 +526,19 @@ def test_each_level_s_consent_page_states_its_own_expected_duration(overrides):
                        ("durations=[1,2]", "bad value for 'durations'")):
         with pytest.raises(ConfigError, match=re.escape(words)):
             load_settings([*overrides, bad, f"admin_token={ADMIN}"])
+
+
+def test_a_refused_restart_shows_where_two_long_settings_differ():
+    """Two task lists that share a long start: the refusal names the changed task, or, when one is removed, each
+    side shows the place where they part."""
+    from overhang_framework.experiment.provenance import SHOWN, differences
+
+    old = {"tasks": [{"id": f"paper{i:02d}", "sequence": [1.2, 0.6, 1.8]} for i in range(20)]}
+    new = {"tasks": [*old["tasks"][:12], {"id": "paper12", "sequence": [1.2, 0.6, 0.6]}, *old["tasks"][13:]]}
+    assert differences(old, new) == ["tasks[paper12].sequence: [1.2, 0.6, 1.8] -> [1.2, 0.6, 0.6]"]
+    longer = {"tasks": [*old["tasks"][:12], *old["tasks"][13:]]}  # a task removed: the texts where they part
+    (line,) = differences(old, longer)
+    before, after = line.removeprefix("tasks: ").split(" -> ")
+    assert before.startswith("...") and after.startswith("...") and '"paper12"' in before and '"paper13"' in after
+    assert len(before) <= SHOWN and len(after) <= SHOWN
+    assert differences({"time_limit": 5.0}, {"time_limit": 4}) == ["time_limit: 5.0 -> 4"]  # short values whole

@@ -72,11 +72,48 @@ def differences(old: Mapping, new: Mapping, prefix: str = "") -> list[str]:
         a, b = old.get(key, "(none)"), new.get(key, "(none)")
         if isinstance(a, Mapping) and isinstance(b, Mapping):
             out.extend(differences(a, b, f"{name}."))
+        elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b) and a != b \
+                and all(isinstance(v, (Mapping, list)) for v in (*a, *b)):  # a list of records: item by item
+            for i, (x, y) in enumerate(zip(a, b)):  # a list's changed items, each by its id where both share it
+                if x == y:
+                    continue
+                item = _item_id(x, y, i)
+                if isinstance(x, Mapping) and isinstance(y, Mapping):
+                    out.extend(differences(x, y, f"{name}[{item}]."))
+                else:
+                    out.append(f"{name}[{item}]: {' -> '.join(_shown(x, y))}")
         elif a != b:
-            out.append(f"{name}: {_short(a)} -> {_short(b)}")
+            out.append(f"{name}: {' -> '.join(_shown(a, b))}")
     return out
 
 
-def _short(value: Any) -> str:
-    text = value if isinstance(value, str) else json.dumps(value)
-    return text if len(text) <= 60 else text[:57] + "..."
+def _item_id(x: Any, y: Any, index: int) -> Any:
+    """What names a changed list item: the ``id`` (a mapping's) or first string (a list's) both sides share, else
+    its index."""
+    if isinstance(x, Mapping) and isinstance(y, Mapping) and x.get("id") is not None and x.get("id") == y.get("id"):
+        return x["id"]
+    if isinstance(x, list) and isinstance(y, list) and x and y and isinstance(x[0], str) and x[0] == y[0]:
+        return x[0]
+    return index
+
+
+#: Characters of a changed value shown on each side of ``->``.
+SHOWN = 60
+
+
+def _shown(a: Any, b: Any) -> tuple[str, str]:
+    """``a`` and ``b`` as text, each cut to about :data:`SHOWN` characters around where they first differ, so that
+    two long values (a task list, say) show their difference, not the start they share."""
+    ta, tb = (v if isinstance(v, str) else json.dumps(v) for v in (a, b))
+    if len(ta) <= SHOWN and len(tb) <= SHOWN:
+        return ta, tb
+    same = 0
+    while same < min(len(ta), len(tb)) and ta[same] == tb[same]:
+        same += 1
+    start = max(0, same - 20)
+
+    def cut(text: str) -> str:
+        part = text[start:start + SHOWN - 6]
+        return ("..." if start else "") + part + ("..." if start + len(part) < len(text) else "")
+
+    return cut(ta), cut(tb)
