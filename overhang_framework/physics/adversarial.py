@@ -20,6 +20,9 @@ module draws towers biased to that kind and keeps those nearest the margin:
    ``tilt`` but not at ``rank_tilt``, the ``n`` with the smallest such tilt.
 4. :func:`replay` runs each in the reference (full window, the world config's
    PyBullet parameters); an *error* is a tower sure at ``tilt`` that falls there.
+   Each error runs once more without ending at the threshold (its blocks' places
+   at the window's end), and the towers of at most :data:`TASK_BLOCKS` blocks are
+   counted apart.
 
 ``python -m overhang_framework.physics.adversarial --n 2000 --seed 0 --out FILE.json``
 does all four and writes the counts, the parameters, the machine, the wall time,
@@ -55,6 +58,9 @@ COLUMN = ((0.6, 0.65), (1.2, 0.35))
 #: Widths of the load blocks and their odds.
 LOAD = ((1.8, 0.8), (1.2, 0.2))
 CONFIDENCE = 0.95
+#: The most blocks a task has (six, seven for the benchmark's ``cross`` tasks): the sample's towers of at most
+#: this many blocks are counted apart.
+TASK_BLOCKS = 7
 
 
 def _pick(rng: np.random.Generator, table) -> float:
@@ -218,7 +224,8 @@ def draw_near_margin(n: int, seed: int, backend: TieredBackend, rank_tilt: float
 
 def replay(towers: Sequence[Geometry], params: PyBulletParams, workers: int = 1, chunk: int = 50,
            progress: Optional[Callable[[int], None]] = None) -> tuple[np.ndarray, np.ndarray]:
-    """The reference's verdicts and largest block displacements (m) of ``towers``: full-window PyBullet
+    """The reference's verdicts of ``towers`` and how far their farthest-moved block was when each run ended (m):
+    full-window PyBullet
     (``early_stop`` off; a run ends early only once a block has passed the threshold, which is final), one
     process or a pool of ``workers``. ``progress(k)`` after every ``k`` towers."""
     params = replace(params, early_stop=False)
@@ -320,6 +327,10 @@ def run(n: int = 2000, seed: int = 0, rank_tilt: float = 0.06, tilt: Optional[fl
         stands, moved = replay(sample.towers, backend.reference_params, workers=workers, progress=bar.update)
     errors = [i for i in range(len(sample.towers)) if not stands[i]]
     kept = len(sample.towers)
+    # each error once more with the run not ended at the threshold: where its blocks are at the window's end
+    ends = replay([sample.towers[i] for i in errors], replace(backend.reference_params, stop_on_fall=False))[1]
+    small = [i for i, g in enumerate(sample.towers) if len(g) <= TASK_BLOCKS]
+    small_errors = sum(not stands[i] for i in small)
     wall = time.perf_counter() - start
     return {
         "command": "python -m overhang_framework.physics.adversarial",
@@ -336,13 +347,16 @@ def run(n: int = 2000, seed: int = 0, rank_tilt: float = 0.06, tilt: Optional[fl
         "errors": len(errors),
         "confidence": CONFIDENCE,
         "error_rate_upper": upper_bound(len(errors), kept),
+        "task_sized": {"blocks_at_most": TASK_BLOCKS, "kept": len(small), "errors": int(small_errors),
+                       "error_rate_upper": upper_bound(int(small_errors), len(small))},
         "margin_tilt": {"min": float(sample.tilts.min()) if kept else None,
                         "median": float(np.median(sample.tilts)) if kept else None,
                         "max": float(sample.tilts.max()) if kept else None},
         "largest_displacement_standing": float(moved[stands].max()) if stands.any() else None,
         "composition": composition(sample.towers),
-        "error_towers": [{"tower": tower_text(sample.towers[i]), "margin_tilt": float(sample.tilts[i]),
-                          "displacement": float(moved[i])} for i in errors],
+        "error_towers": [{"tower": tower_text(sample.towers[i]), "blocks": len(sample.towers[i]),
+                          "margin_tilt": float(sample.tilts[i]), "displacement": float(moved[i]),
+                          "displacement_end_of_window": float(end)} for i, end in zip(errors, ends)],
         "nearest": [{"tower": tower_text(g), "margin_tilt": float(v), "displacement": float(d)}
                     for g, v, d in list(zip(sample.towers, sample.tilts, moved))[:10]],
         "params": {"tiered": asdict(tiered), "static": asdict(static), "reference": asdict(backend.reference_params)},
@@ -400,7 +414,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     atomic_write_json(args.out, result)
     print(f"{result['kept']} towers nearest the margin (of {result['drawn']:,} drawn), {result['errors']} errors; "
-          f"95% upper bound on the error rate {result['error_rate_upper']:.2%}; {result['wall_time']:.0f} s; "
+          f"95% upper bound on the error rate {result['error_rate_upper']:.2%}; of at most {TASK_BLOCKS} blocks: "
+          f"{result['task_sized']['kept']}, {result['task_sized']['errors']} errors; {result['wall_time']:.0f} s; "
           f"written to {args.out}", file=sys.stderr)
     return 0
 
