@@ -131,6 +131,47 @@ class TieredBackend:
                 self._reference = DiskCachedBackend(self._reference, self.verdict_file)
         return self._reference
 
+    def _arrays(self, geometries: Sequence[Geometry], gravity, friction):
+        """The geometries as padded arrays ``(W, X, L)`` (a width of 0 pads a shorter tower), gravity per row
+        and friction per block (or ``None``), built once for every stage."""
+        n = len(geometries)
+        sp = self.static_params
+        g = np.tile([0.0, -sp.gravity], (n, 1)) if gravity is None else np.asarray(gravity, dtype=float).reshape(n, 2)
+        from overhang_framework.render import block_arrays
+
+        W, X, L, _ = block_arrays(geometries)
+        fric = None if friction is None else np.zeros((n, W.shape[1]))
+        if fric is not None:
+            for i, geo in enumerate(geometries):
+                fric[i, :len(geo)] = np.asarray(friction[i], dtype=float)[:len(geo)]
+        return W, X, L, g, fric
+
+    def _sure(self, W, X, L, g, fric, tilt) -> np.ndarray:
+        """The "stands for sure" check on arrays; ``tilt`` one angle or one per row."""
+        n = W.shape[0]
+        tilt = np.broadcast_to(np.asarray(tilt, dtype=float), (n,))
+        rows = np.arange(n)
+        sure = np.ones(n, dtype=bool)
+        settings = [(_tilted(g, tilt), fric), (_tilted(g, -tilt), fric)]
+        if self.tiers.frictionless_stable:
+            settings.append((g, np.zeros(W.shape)))
+        for grav, fr in settings:
+            rows = rows[sure[rows]]
+            if not rows.size:
+                break
+            sure[rows] = self._stable.stable_arrays(W[rows], X[rows], L[rows], grav[rows],
+                                                    None if fr is None else fr[rows])
+        return sure
+
+    def stands_for_sure(self, geometries: Sequence[Geometry], tilt=None, gravity=None, friction=None) -> np.ndarray:
+        """Per geometry, whether the "stands for sure" stage passes with gravity tilted by ``tilt`` (one angle
+        or one per geometry; default ``stable_tilt``) instead of ``stable_tilt``, its other settings unchanged."""
+        geometries = list(geometries)
+        if not geometries:
+            return np.zeros(0, dtype=bool)
+        W, X, L, g, fric = self._arrays(geometries, gravity, friction)
+        return self._sure(W, X, L, g, fric, self.tiers.stable_tilt if tilt is None else tilt)
+
     def classify(self, geometries: Sequence[Geometry], gravity=None, friction=None) -> np.ndarray:
         """Per geometry, what the static stages say: 1 stands for sure, 0 falls for sure, -1 unsure."""
         geometries = list(geometries)
@@ -139,31 +180,13 @@ class TieredBackend:
         if n == 0:
             return out
         sp = self.static_params
-        g = np.tile([0.0, -sp.gravity], (n, 1)) if gravity is None else np.asarray(gravity, dtype=float).reshape(n, 2)
-        # the geometries as padded arrays, built once for every stage (a width of 0 pads a shorter tower)
-        from overhang_framework.render import block_arrays
-
-        W, X, L, _ = block_arrays(geometries)
-        width = W.shape[1]
-        fric = None if friction is None else np.zeros((n, width))
-        if fric is not None:
-            for i, geo in enumerate(geometries):
-                fric[i, :len(geo)] = np.asarray(friction[i], dtype=float)[:len(geo)]
+        W, X, L, g, fric = self._arrays(geometries, gravity, friction)
 
         def ask(backend, rows, grav, fr):
             return backend.stable_arrays(W[rows], X[rows], L[rows], grav[rows], None if fr is None else fr[rows])
 
         t = self.tiers
-        rows = np.arange(n)
-        sure = np.ones(n, dtype=bool)
-        settings = [(_tilted(g, t.stable_tilt), fric), (_tilted(g, -t.stable_tilt), fric)]
-        if t.frictionless_stable:
-            settings.append((g, np.zeros((n, width))))
-        for grav, fr in settings:
-            rows = rows[sure[rows]]
-            if not rows.size:
-                break
-            sure[rows] = ask(self._stable, rows, grav, fr)
+        sure = self._sure(W, X, L, g, fric, t.stable_tilt)
         out[sure] = 1
         fric_fall = None if fric is None else fric * (t.fall_friction / sp.friction if sp.friction > 0 else 1.0)
         rows = np.flatnonzero(~sure)
