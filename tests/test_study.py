@@ -372,7 +372,8 @@ def test_a_two_condition_study_of_peoples_log_reports_people_and_says_first_what
     out = tmp_path / "study"
     proc = subprocess.run([sys.executable, "-m", "overhang_framework.study", "paper_people", "--out", str(out),
                            "--no-progress", "--world", "world.physics=static", "--log", str(sim / "log.jsonl"),
-                           "--no-fit", "--resamples", "5", "--replicas", "0"],
+                           "--resamples", "5", "--replicas", "0", "--depths", "1", "--fit", "~models.cnn",
+                           "--fit", "~models.hybrid", "--fit", "models.ipe.K=5", "--fit", "models.ipe.sigma=[0.02]"],
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
@@ -382,6 +383,12 @@ def test_a_two_condition_study_of_peoples_log_reports_people_and_says_first_what
     assert "6 people (3 time_limited, 3 unconstrained)" in proc.stdout and "the paper predicts" in proc.stdout
     text = (out / "study.md").read_text()
     assert "simulated" not in text and "`people/`" in text and "`sim/`" not in text
+    # people have no truth: their table is not a participants.csv beside the log, which the fit would read as one
+    assert (out / "people" / "people.csv").is_file() and not (out / "people" / "participants.csv").exists()
+    fits = pd.read_csv(out / "fit" / "fits.csv")
+    fitted = {p for p in fits["participant"] if not p.startswith("pooled:")}  # and a pooled fit a condition
+    assert fitted == set(pd.read_csv(out / "participants.csv")["participant"])
+    assert not [c for c in pd.read_csv(out / "participants.csv").columns if c.startswith("true_")]
     # the sentence names the condition furthest below its plan, and none when every condition has its size
     assert "`time_limited`" in shortfall({"time_limited": 10, "unconstrained": 30}, {"time_limited": 43,
                                                                                     "unconstrained": 38})

@@ -22,6 +22,9 @@ STUDIES = {"dual_transition": ("dual_transition", ["predictor=hybrid"], True),
 #: Studies of several time limits between subjects (:mod:`overhang_framework.studies.graded`): their findings are each
 #: level's figures and the trends across the levels, with the participants per level a lab needs.
 GRADED = ("graded_budgets",)
+#: The participants of a study of people (``people/``, beside their log): their ids and conditions. Not named
+#: ``participants.csv``, which beside a log is a simulation's truth, and which the fit would read as one.
+PEOPLE = "people.csv"
 ALPHA = 0.05
 #: Towers of at most EARLY blocks are early, of at least LATE blocks late (Fig. 4's crossover).
 EARLY, LATE = 3, 5
@@ -69,7 +72,8 @@ def participant_table(out: Path, fitted: bool = True, data: str = "sim") -> pd.D
     (``unmapped_share``: people do not place on a grid), and each family's evidence (``evidence_<family>``); with
     ``fitted`` false, the fit's columns empty (a study without a fit). ``data``: the folder of ``out`` that holds
     the participants (``sim``, simulated; ``people``, from a log)."""
-    truth = pd.read_csv(out / data / "participants.csv", dtype={"id": str}).rename(columns={"id": "participant"})
+    table = out / data / (PEOPLE if data == "people" else "participants.csv")
+    truth = pd.read_csv(table, dtype={"id": str}).rename(columns={"id": "participant"})
     truth = truth.rename(columns={c: f"true_{c}" for c in ("sigma", "depth", "beta", "lapse", "switch", "risk",
                                                             "percept", "hand") if c in truth.columns})
     t1 = pd.read_csv(out / "analysis" / "table1_participants.csv")[

@@ -14,7 +14,7 @@ import pandas as pd
 
 from overhang_framework.errors import ConfigError, OverhangError
 from overhang_framework.results import atomic_write_text
-from overhang_framework.studies.findings import (ANALYSES, FINDINGS, GRADED, MULTIPLES, STUDIES,
+from overhang_framework.studies.findings import (ANALYSES, FINDINGS, GRADED, MULTIPLES, PEOPLE, STUDIES,
                                                  TARGET_POWER, diagnostics, evaluate, expected, participant_table,
                                                  power)
 from overhang_framework.studies.gather import gather
@@ -359,7 +359,7 @@ def _practice(out: Path, sim_cfg, steps: Steps, jobs: int, progress: bool,
 
 def take_logs(logs: Sequence[str | Path], into: Path, study: str, conditions: Sequence[str]) -> dict[str, int]:
     """People's behaviour logs (``logs``: exports of the study) as the study's participants: their records written
-    to ``into/log.jsonl`` and their conditions to ``into/participants.csv``; the number a condition, in the order of
+    to ``into/log.jsonl`` and their conditions to ``into/people.csv``; the number a condition, in the order of
     ``conditions``. A condition the study does not have, or a log without records, is one :class:`ConfigError` line."""
     from overhang_framework.behaviour.log import LogError, read_log, require_records, write_log
 
@@ -376,7 +376,7 @@ def take_logs(logs: Sequence[str | Path], into: Path, study: str, conditions: Se
     into.mkdir(parents=True, exist_ok=True)
     write_log(df, into / "log.jsonl")
     table = people.rename(columns={"participant": "id"}).sort_values("id", kind="stable")
-    atomic_write_text(into / "participants.csv", table.to_csv(index=False))
+    atomic_write_text(into / PEOPLE, table.to_csv(index=False))
     return {c: int((people["condition"] == c).sum()) for c in conditions if (people["condition"] == c).any()}
 
 
