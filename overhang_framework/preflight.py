@@ -569,11 +569,16 @@ def check_app_command(args: Sequence[str], config_name: str, check_config: Calla
             check_output(configs[0], Path(str(directory)))
 
 
-def run_app_command(argv: Optional[Sequence[str]], app: Callable, config_name: str, check_config: Callable,
-                    doc: str, check_output: Optional[Callable] = None) -> None:
+def run_app_command(argv: Optional[Sequence[str]], app: Callable, config_name: Optional[str],
+                    check_config: Optional[Callable], doc: str, check_output: Optional[Callable] = None,
+                    check: Optional[Callable[[list], None]] = None,
+                    words: Callable[[list], list] = list, interrupted: Optional[str] = None) -> None:
     """A Hydra command's ``main``: ``--help`` prints ``doc``; a mistake on the command line (or, with
     ``check_output``, a run directory the run must not write into) is one line and exit status 2 before
-    Hydra starts; otherwise Hydra runs ``app`` with its flags put first."""
+    Hydra starts; otherwise Hydra runs ``app`` with its flags put first. ``words`` turns the command line into
+    Hydra's words (a command's own options into overrides); ``check`` checks them in place of
+    :func:`check_app_command` of ``config_name`` and ``check_config``; ``interrupted``, when given, is said on a
+    Ctrl-C during the check (exit status 130)."""
     import sys
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -581,12 +586,21 @@ def run_app_command(argv: Optional[Sequence[str]], app: Callable, config_name: s
         print(doc)
         return
     try:
-        check_app_command(args, config_name, check_config, check_output)
+        args = list(words(args))
+        if check is not None:
+            check(args)
+        else:
+            check_app_command(args, config_name, check_config, check_output)
     except (OverhangError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
-    flags, words = split_flags(args)
-    sys.argv = [sys.argv[0]] + flags + words
+    except KeyboardInterrupt:
+        if interrupted is None:
+            raise
+        print(interrupted, file=sys.stderr)
+        sys.exit(130)
+    flags, rest = split_flags(args)
+    sys.argv = [sys.argv[0]] + flags + rest
     app()
 
 

@@ -346,6 +346,11 @@ def test_a_graded_study_of_peoples_log_is_analysed_and_says_first_what_its_size_
     assert (out / "people" / "log.jsonl").exists() and not (out / "sim").exists()
     trends = pd.read_csv(out / "trends.csv")
     assert {"overhang", "gamma", "lateral"} <= set(trends["measure"])
+    # two a level: no bootstrap of them stands for a study's power, so none is computed, and the report says why
+    assert "(power not estimated: a bootstrap of fewer than 4 people a level says nothing of a larger study)" in \
+        (out / "study.md").read_text() and pd.read_csv(out / "power.csv").empty
+    text = (out / "study.md").read_text()
+    assert "these people do not show it" in text or "these people show it" in text
     df.loc[df["participant"] == ids[0], "condition"] = "limit_1s"
     write_log(df, tmp_path / "other.jsonl")
     for extra, words in ((["--log", str(tmp_path / "other.jsonl")], "--log: participants in condition 'limit_1s', "

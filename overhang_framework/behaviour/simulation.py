@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -38,7 +37,7 @@ from overhang_framework.behaviour.participants import (
     simulate_participant,
 )
 from overhang_framework.config import CONFIG_PATH, enable_plugin_configs
-from overhang_framework.errors import ConfigError, OverhangError
+from overhang_framework.errors import ConfigError
 from overhang_framework.plugins import Registry
 from overhang_framework.progress import progress_bar
 from overhang_framework.results import atomic_write_text
@@ -230,23 +229,10 @@ def preflight(args: Sequence[str]) -> None:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:
-    from overhang_framework.preflight import split_flags
+    from overhang_framework.preflight import run_app_command
 
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--help" in args or "-h" in args:
-        print(__doc__)
-        return
-    try:
-        preflight(args)
-    except OverhangError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print("interrupted before the first trial; nothing was written", file=sys.stderr)
-        sys.exit(130)
-    flags, words = split_flags(args)
-    sys.argv = [sys.argv[0]] + flags + words  # Hydra wants its flags first
-    app()
+    run_app_command(argv, app, None, None, __doc__, check=preflight,
+                    interrupted="interrupted before the first trial; nothing was written")
 
 
 if __name__ == "__main__":

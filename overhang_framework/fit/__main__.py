@@ -297,21 +297,9 @@ def preflight(words: Sequence[str]) -> None:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> None:
-    from overhang_framework.preflight import split_flags
+    from overhang_framework.preflight import run_app_command
 
-    args = list(sys.argv[1:] if argv is None else argv)
-    if "--help" in args or "-h" in args:
-        print(__doc__)
-        return
-    try:
-        words = command_words(args)
-        preflight(words)
-    except OverhangError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
-    flags, overrides = split_flags(words)
-    sys.argv = [sys.argv[0]] + flags + overrides
-    app()
+    run_app_command(argv, app, None, None, __doc__, check=preflight, words=command_words)
 
 
 if __name__ == "__main__":

@@ -42,7 +42,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from overhang_framework.geometry import BLOCK_HEIGHT, MAX_LAYER, WIDTHS, Action, Block, Geometry
+from overhang_framework.geometry import MAX_LAYER, WIDTHS, Action, Block, Geometry
 from overhang_framework.physics.pybullet_backend import PyBulletParams
 from overhang_framework.physics.static_backend import StaticParams
 from overhang_framework.physics.tiered import TieredBackend, TieredParams

@@ -260,7 +260,8 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
     lines = ["# The graded-budget study" + (": what people did" if people else ": predictions and design"), "",
              *([said, ""] if said else []),
              "Levels, by the time they leave per placement: " + ", ".join(
-                 f"`{lv}` ({'no limit' if limits[lv] is None else f'{limits[lv]:g} s'}; {pool.get(lv, 0)} {kind})"
+                 f"`{lv}` ({'no limit' if limits[lv] is None else f'{limits[lv]:g} s'}; {pool.get(lv, 0)} "
+                 f"{'person' if people and pool.get(lv, 0) == 1 else kind})"
                  for lv in levels) + ".", "", "## Each level", "",
              "| measure | " + " | ".join(levels) + " |", "|---|" + "---|" * len(levels)]
     partial = []
@@ -297,7 +298,8 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
                          f"({'none found' if r['holds'] else 'a trend found'}){_extremes(pred, r['measure'])}.")
             continue
         way = "grows" if r["direction"] > 0 else "shrinks"
-        found_text = "shows" if r["holds"] else "does not show"
+        found_text = ("show" if r["holds"] else "do not show") if people else \
+            ("shows" if r["holds"] else "does not show")
         pool_n = min(pool.get(level, 0) for level in levels)
         at_n = power_table[(power_table["measure"] == r["measure"]) & (power_table["per_level"] == n)]
         error = (f" ({float(at_n['power'].iloc[0]):.2f} ± {float(at_n['mc_error'].iloc[0]):.2f}, the share of "
@@ -311,7 +313,8 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
         lines.append(f"- **{what}** {way} with the time allowed, as expected: ρ = {r['rho']:+.2f}, p = "
                      f"{r['p']:.3g}; {'these people' if people else 'the simulated pool'} {found_text} it. {size}.")
     if not len(power_table):
-        return "\n".join(lines + ["", "(power not estimated)", ""])
+        few = people and study is not None and min(study.get(lv, 0) for lv in levels) < SIZES[0]
+        return "\n".join(lines + ["", f"(power not estimated{': a bootstrap of fewer than ' + str(SIZES[0]) + ' people a level says nothing of a larger study' if few else ''})", ""])
     lines += ["", "| measure | " + " | ".join(str(s) for s in sorted(power_table["per_level"].unique())) + " |",
               "|---|" + "---|" * power_table["per_level"].nunique()]
     for measure, at in power_table.groupby("measure", sort=False):

@@ -118,7 +118,7 @@ def report(study: str, table: pd.DataFrame, steps: Steps, sizes: dict[str, int],
         else:
             high = shown[(shown["rate"] > ALPHA) & ~shown["finding"].isin(NULL_KEEPS)]
             if len(high):
-                lines.append(f"- **Above α = .05:** " + "; ".join(
+                lines.append("- **Above α = .05:** " + "; ".join(
                     f"{r.finding} ({r.rate:.0%}" + (f"; {why[r.finding]}" if r.finding in why else "") + ")"
                     for r in high.itertuples()) + ". Redrawn studies share participants, so a rate shows the "
                     f"{who}cohort's own difference as well as chance.")

@@ -281,8 +281,11 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
     bar = progress_bar(total=len(measured) * len(graded.SIZES) * resamples, desc="power", unit="study",
                        disable=not progress or not resamples, mininterval=1.0, dynamic_ncols=True)
     try:
+        # people too few a level for the smallest study the design considers: a bootstrap of them is no power
+        few = data == "people" and min(int((people["condition"] == lv).sum()) for lv in levels) < graded.SIZES[0]
         table = graded.power(pool_people, levels, resamples=resamples, seed=seed, on_study=lambda: bar.update(1)) \
-            if resamples else pd.DataFrame(columns=["measure", "per_level", "power", "resamples", "mc_error"])
+            if resamples and not few else pd.DataFrame(columns=["measure", "per_level", "power", "resamples",
+                                                                "mc_error"])
     finally:
         bar.close()
     for name, frame in (("predictions.csv", pred), ("trends.csv", found), ("power.csv", table)):
