@@ -398,3 +398,29 @@ def test_a_two_condition_study_of_peoples_log_reports_people_and_says_first_what
     assert "`time_limited`" in shortfall({"time_limited": 10, "unconstrained": 30}, {"time_limited": 43,
                                                                                     "unconstrained": 38})
     assert shortfall({"time_limited": 43, "unconstrained": 40}, {"time_limited": 43, "unconstrained": 38}) is None
+
+
+def test_a_pilot_s_screened_out_participants_are_left_out_of_a_study_that_takes_its_folder(tmp_path):
+    """A pilot's folder (``participants.csv`` with ``screened_out``) given to ``--sim``: those the practice screened
+    out did no main trial and are no level's members; their number a condition is said."""
+    from omegaconf import OmegaConf
+
+    from overhang_framework.behaviour.simulation import CONFIG_NAME
+    from overhang_framework.config import compose_config
+    from overhang_framework.studies.gather import gather
+
+    graded = OmegaConf.to_container(compose_config(["cohort=graded_budgets"], config_name=CONFIG_NAME), resolve=True)
+    levels = ["limit_2_5s", "time_limited", "limit_10s", "unconstrained"]
+    where = tmp_path / "pilot"
+    _fake_run(where, ["cohort=graded_budgets", "seed=7"], {lv: lv for lv in levels})
+    table = pd.read_csv(where / "participants.csv")
+    extra = table.assign(id=table["id"].str.replace("-001", "-002"), index=table["index"] + 4)
+    both = pd.concat([table, extra], ignore_index=True)
+    both["screened_out"] = [False, True, False, False, False, False, False, True]  # as the pilot writes it
+    both.to_csv(where / "participants.csv", index=False)
+    screened: dict = {}
+    sizes = gather([where], tmp_path / "sim", "graded_budgets", levels, "tiered", graded, screened)
+    assert sizes == {"limit_2_5s": 2, "time_limited": 1, "limit_10s": 2, "unconstrained": 1}
+    assert screened == {"time_limited": 1, "unconstrained": 1}
+    kept = pd.read_csv(tmp_path / "sim" / "participants.csv")
+    assert len(kept) == 6 and not kept["screened_out"].any()
