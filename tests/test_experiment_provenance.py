@@ -474,7 +474,8 @@ def test_a_new_contact_is_refused_as_the_consent_text_change_it_is_and_says_so(o
 
     _serve_app([*overrides, "contact=lab@example.org"]).app.state.store.close()
     with pytest.raises(ConfigError, match=r"consent_version: .* -> .*\) \(the consent text changed: it includes the "
-                                          r"contact=, so a new contact or consent_file changes it\); serve"):
+                                          r"contact= and the session's duration=, so a new contact, duration, "
+                                          r"durations or consent_file changes it\); serve"):
         _serve_app([*overrides, "contact=other-lab@example.org"])
 
 
@@ -516,14 +517,17 @@ def test_each_level_s_consent_page_states_its_own_expected_duration(overrides):
     # the study's consent version is of every condition's text: changing one level's duration changes it
     assert client.settings.consent_version not in (tl["consent"]["version"], un["consent"]["version"])
     client.app.state.store.close()
-    with pytest.raises(ConfigError, match=r"consent_version: .* durations.unconstrained: 25.0 -> 30.0|"
-                                          r"durations.unconstrained: 25.0 -> 30.0"):
+    with pytest.raises(ConfigError, match=r"consent_version: sha256:[0-9a-f]{16} -> sha256:[0-9a-f]{16}\).*"
+                                          r"so a new contact, duration, durations or consent_file changes it"):
         _serve_app([*overrides, "conditions=[time_limited,unconstrained]", "+durations.unconstrained=30",
                     "duration=15"])
     for bad, words in (("+durations.unconstrained=-5", "durations.unconstrained must be a number of minutes > 0, "
                                                          "got -5"),
                        ("duration=soon", "duration must be a number of minutes > 0, got 'soon'"),
-                       ("durations=[1,2]", "bad value for 'durations'")):
+                       ("durations=[1,2]", "bad value for 'durations'"),
+                       ("+durations.unconstrainted=25", "durations: 'unconstrainted' is not a condition of the study "
+                                                        "(its conditions and time_limits: time_limited, unconstrained); "
+                                                        "remove it with '~durations.unconstrainted'")):
         with pytest.raises(ConfigError, match=re.escape(words)):
             load_settings([*overrides, bad, f"admin_token={ADMIN}"])
 
@@ -542,3 +546,29 @@ def test_a_refused_restart_shows_where_two_long_settings_differ():
     assert before.startswith("...") and after.startswith("...") and '"paper12"' in before and '"paper13"' in after
     assert len(before) <= SHOWN and len(after) <= SHOWN
     assert differences({"time_limit": 5.0}, {"time_limit": 4}) == ["time_limit: 5.0 -> 4"]  # short values whole
+
+
+def test_a_study_served_before_durations_were_settable_restarts_with_the_same_consent_text(overrides):
+    """The shipped text said "about 30 minutes" before its duration was a setting: the default keeps that text, so a
+    study already running restarts unchanged."""
+    import hashlib
+
+    from overhang_framework.experiment.settings import CONSENT_FILE
+
+    settings = load_settings([*overrides, f"admin_token={ADMIN}"])
+    before = CONSENT_FILE.read_text().replace("@duration@", "30").replace("@contact@", settings.contact)
+    assert settings.consent_html == before and "about 30 minutes" in before
+    assert settings.consent_version == "sha256:" + hashlib.sha256(before.encode()).hexdigest()[:16]
+
+
+def test_a_participant_of_a_dropped_level_who_has_not_agreed_sees_their_own_level_s_duration(overrides):
+    """A level dropped from the conditions (kept in time_limits and durations) while someone is in it: their consent
+    page is their level's own text, its version the hash of what they see."""
+    import hashlib
+
+    settings = load_settings([*overrides, f"admin_token={ADMIN}", "conditions=[unconstrained]",
+                              "+time_limits.limit_3s=3.0", "+durations.limit_3s=12", "+durations.unconstrained=25"])
+    html, version = settings.consent_of("limit_3s")
+    assert "about 12 minutes" in html and version == "sha256:" + hashlib.sha256(html.encode()).hexdigest()[:16]
+    assert "about 25 minutes" in settings.consent_of("unconstrained")[0]
+    assert "about 30 minutes" in settings.consent_of("time_limited")[0]  # none of its own: duration

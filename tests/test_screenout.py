@@ -84,8 +84,14 @@ def test_the_preregistration_recruits_by_the_simulated_screen_out():
     text = prereg.document(*args, screen)
     need = screenout.to_recruit(n, 3, 4)
     assert f"| `limit_2_5s` | 3 of 4 (75%) | {need} |" in text and f"| `time_limited` | 0 of 4 (0%) | {n} |" in text
-    assert f"{need + 3 * n} recruited in all" in text
+    # the server balances the levels over everyone it takes: each level gets what the worst one needs
+    assert f"**Recruit {need} a level, {4 * need} in all.**" in text
     assert "'durations={limit_2_5s: 15, time_limited: 15, limit_10s: 15, unconstrained: 15}'" in text
+    flat = table.assign(power=0.1)  # no size has the power: the document says so, whatever the screen-out
+    for screened in (screen, "no towers", None):
+        lacking = prereg.document(levels, limits, flat, *args[3:], screened)
+        assert "**No size of the grid gives every primary hypothesis 80% power**" in lacking
+        assert "participants per level**" not in lacking and "**Recruit" not in lacking
     why = prereg.document(*args, "practice task practice1 has no stored buildable tower")
     assert "could not be simulated (practice task practice1 has no stored buildable tower)" in why
     assert "recruit:" not in why

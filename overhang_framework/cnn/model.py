@@ -242,6 +242,7 @@ class StabilityModel:
         # torch.fx (the folding) and torch.export patch torch's modules while they trace, so a network is built in
         # one thread at a time; an exported one is built once a process and shared (ONNX Runtime's sessions run
         # from any thread)
+        n_threads = torch.get_num_threads()  # as this constructor set it, whatever another thread sets later
         with _EXPORTING:
             shared = None
             if self.runtime == "onnxruntime":
@@ -250,7 +251,7 @@ class StabilityModel:
                 made = hashlib.sha256(self.path.read_bytes())
                 made.update(repr((torch.__version__, self.renderer.shape, "folded")).encode())
                 key = made.hexdigest()[:32]
-                shared = _ONNX_SHARED.get((key, torch.get_num_threads()))
+                shared = _ONNX_SHARED.get((key, n_threads))
             if shared is not None:
                 self.net, self.folded = shared
             else:
@@ -264,9 +265,8 @@ class StabilityModel:
                 if self.folded:
                     self.net.to(memory_format=torch.channels_last)
                 if self.runtime == "onnxruntime":
-                    self.net = onnx_network(self.net, self.renderer.shape, torch.get_num_threads(),
-                                            key=f"{key}-{self.folded}")
-                    _ONNX_SHARED[(key, torch.get_num_threads())] = (self.net, self.folded)
+                    self.net = onnx_network(self.net, self.renderer.shape, n_threads, key=f"{key}-{self.folded}")
+                    _ONNX_SHARED[(key, n_threads)] = (self.net, self.folded)
         self._buffer = self._new_buffer(0)
 
     @property

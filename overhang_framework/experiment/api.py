@@ -253,8 +253,8 @@ def begin_study(settings: Settings, store: Store):
                                  allow_change=settings.allow_settings_change)
     except SettingsChanged as err:
         consent = any(c.startswith("consent_version:") for c in err.changes)
-        note = (" (the consent text changed: it includes the contact=, so a new contact or consent_file changes "
-                "it)" if consent else "")
+        note = (" (the consent text changed: it includes the contact= and the session's duration=, so a new "
+                "contact, duration, durations or consent_file changes it)" if consent else "")
         raise ConfigError(f"the study in this database runs with other settings ({'; '.join(err.changes)}){note}; serve "
                           "it with the settings it started with, or add allow_settings_change=true to change them "
                           "(the change is recorded with the study)") from None

@@ -54,7 +54,6 @@ def study_settings(settings: Settings) -> dict:
         "screen_out_url": settings.screen_out_url,
         "decline_url": settings.decline_url,
         "consent_version": settings.consent_version,
-        "durations": dict(settings.durations),
         "source": settings.source,
     }
 

@@ -88,11 +88,18 @@ class Settings:
     consents: dict = field(default_factory=dict)
     #: Each condition's expected duration in minutes, which its consent page states.
     durations: dict = field(default_factory=dict)
+    #: The duration of a condition without its own, and the consent text's file (None: the shipped one).
+    duration: float = 30.0
+    consent_file: Optional[str] = None
 
     def consent_of(self, condition: str) -> tuple[str, str]:
-        """The consent page ``condition``'s participants see and its version (a condition the settings no longer
-        have: the study's shared text)."""
-        return self.consents.get(condition, (self.consent_html, self.consent_version))
+        """The consent page ``condition``'s participants see and its version; a condition the study no longer
+        serves (a level dropped while someone is in it) gets its own text, with its duration in ``durations`` or
+        ``duration``."""
+        if condition not in self.consents:
+            self.consents[condition] = consent_text(self.consent_file, self.contact,
+                                                    self.durations.get(condition, self.duration))
+        return self.consents[condition]
 
     def limit_of(self, condition: str) -> Optional[float]:
         """The time limit of ``condition``'s participants: ``time_limit`` for ``time_limited``, none for
@@ -296,7 +303,7 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
             raise ConfigError(f"{key} must be a whole number >= {minimum}, got {value!r}")
         counts[key] = value
-    durations = consent_durations(cfg.get("duration"), cfg.get("durations"), conditions)
+    duration, durations = consent_durations(cfg.get("duration"), cfg.get("durations"), conditions, limits)
     consents = {c: consent_text(cfg.get("consent_file"), str(cfg.contact or ""), durations[c]) for c in conditions}
     consent_html, consent_version = study_consent(consents)
     allow_change = cfg.get("allow_settings_change")
@@ -306,7 +313,8 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
     if source not in ("human", "simulated"):
         raise ConfigError(f"source must be human or simulated (a pilot), got {source!r}")
     return Settings(
-        decline_url=str(cfg.get("decline_url") or "/declined"), source=source, consent_html=consent_html, consent_version=consent_version, consents=consents, durations=durations,
+        decline_url=str(cfg.get("decline_url") or "/declined"), source=source, consent_html=consent_html, consent_version=consent_version, consents=consents, durations=durations, duration=duration,
+        consent_file=None if cfg.get("consent_file") is None else str(cfg.get("consent_file")),
         allow_settings_change=allow_change,
         world=world_cfg, tasks=tasks, practice=practice, practice_threshold=float(threshold),
         practice_max_attempts=max_attempts, conditions=conditions,
@@ -321,12 +329,11 @@ def load_settings(overrides: Sequence[str] = (), cfg: Optional[DictConfig] = Non
         time_limits={c: limits[c] for c in conditions if c in limits})
 
 
-def consent_durations(default, value, conditions: Sequence[str]) -> dict[str, float]:
-    """Each condition's expected duration in minutes: its entry of ``durations`` (``value``), else ``duration``
-    (``default``). A duration is a number > 0; an entry for a condition the study does not run (a level since
-    dropped) is left unused."""
-    import re
-
+def consent_durations(default, value, conditions: Sequence[str],
+                      limits: Mapping[str, Optional[float]] = {}) -> tuple[float, dict[str, float]]:
+    """``duration`` (``default``) and each condition's expected duration in minutes: its entry of ``durations``
+    (``value``), else ``duration``. A duration is a number > 0; an entry names a condition of the study, or one of
+    ``time_limits`` (a level not served now, whose participants keep it), else it is refused in one line."""
     def minutes(where: str, v) -> float:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
             raise ConfigError(f"{where} must be a number of minutes > 0, got {v!r}")
@@ -336,13 +343,14 @@ def consent_durations(default, value, conditions: Sequence[str]) -> dict[str, fl
     value = OmegaConf.to_container(value) if OmegaConf.is_config(value) else (value or {})
     if not isinstance(value, dict):
         raise ConfigError(f"durations must map condition names to minutes, got {value!r}")
+    known = list(dict.fromkeys([*conditions, *limits, "time_limited", "unconstrained"]))
     own = {}
     for name, v in value.items():
-        if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_]{0,39}", name):
-            raise ConfigError(f"durations: {name!r} is not a condition's name (the conditions: "
-                              f"{', '.join(conditions)})")
+        if name not in known:
+            raise ConfigError(f"durations: {name!r} is not a condition of the study (its conditions and time_limits: "
+                              f"{', '.join(known)}); remove it with '~durations.{name}'")
         own[name] = minutes(f"durations.{name}", v)
-    return {c: own.get(c, base) for c in conditions}
+    return base, {**own, **{c: own.get(c, base) for c in conditions}}
 
 
 def study_consent(consents: Mapping[str, tuple[str, str]]) -> tuple[str, str]:

@@ -144,28 +144,31 @@ def document(levels: Sequence[str], limits: Mapping[str, Optional[float]], power
         if grid and n == grid[0]:
             lines.append("The grid's smallest size already has the power, so the planned size is the grid's floor, "
                          "not the least the design needs.")
-    if isinstance(screen, pd.DataFrame) and len(screen):
-        rows = screenout.summary(screen, levels, n)
-        lines += ["", "The practice screens out participants before the main trials (below, \"Exclusions\"). The "
-                  "design's simulated participants did the served study's practice as its server scores it; to keep "
-                  + (f"{n} a level after exclusions, recruit:" if n is not None else "the planned size, recruit by the "
-                     "share screened out:"), "",
-                  "| level | screened out in the practice (simulated) | recruit |", "|---|---|---|"]
-        for r in rows:
-            recruit = "–" if r["recruit"] is None and n is None else (
-                "no number: every simulated participant was screened out" if r["recruit"] is None else str(r["recruit"]))
-            lines.append(f"| `{r['level']}` | {r['screened_out']} of {r['simulated']} ({r['share']:.0%}) | {recruit} |")
-        if n is not None and all(r["recruit"] is not None for r in rows):
-            lines += ["", f"{sum(r['recruit'] for r in rows)} recruited in all. A screen-out that differs from "
-                      "these by level changes who remains: the report gives each level's screened-out count."]
-    elif isinstance(screen, str):
-        lines += ["", f"The expected screen-out in the practice could not be simulated ({screen}); the size above is "
-                  "after exclusions: recruit more by the screen-out a pilot through the server measures "
-                  "(`python -m overhang_framework.experiment pilot`)."]
     else:
         lines.append("**No size of the grid gives every primary hypothesis 80% power**"
                      + (f" (the {label[sets]} has it at no size up to {grid[-1]} a level)" if sets and grid else "")
                      + ": the design cannot plan a sample size for them.")
+    if isinstance(screen, pd.DataFrame) and len(screen):
+        rows = screenout.summary(screen, levels, n)
+        lines += ["", "The practice screens out participants before the main trials (below, \"Exclusions\"). The "
+                  "design's simulated participants did the served study's practice as its server scores it"
+                  + (f"; for {n} a level to remain (in expectation) a level needs:" if n is not None else ":"), "",
+                  "| level | screened out in the practice (simulated) | recruits for the planned size |",
+                  "|---|---|---|"]
+        for r in rows:
+            recruit = "–" if n is None else (
+                "no number: every simulated participant was screened out" if r["recruit"] is None else str(r["recruit"]))
+            lines.append(f"| `{r['level']}` | {r['screened_out']} of {r['simulated']} ({r['share']:.0%}) | {recruit} |")
+        if n is not None and rows and all(r["recruit"] is not None for r in rows):
+            most = max(r["recruit"] for r in rows)
+            lines += ["", f"**Recruit {most} a level, {most * len(levels)} in all.** The server balances the levels "
+                      "over everyone it takes, the screened-out included, so every level gets as many recruits as the "
+                      "level that screens out most needs. A level's screen-out that differs from these changes who "
+                      "remains: the report gives each level's count."]
+    elif isinstance(screen, str):
+        lines += ["", f"The expected screen-out in the practice could not be simulated ({screen}); the size above is "
+                  "after exclusions: recruit more by the screen-out a pilot through the server measures "
+                  "(`python -m overhang_framework.experiment pilot`)."]
     if len(effects):
         scales = sorted(effects["effect"].unique())
         lines += ["", f"Power at {int(effects['per_level'].iloc[0])} a level if the effect is smaller than designed "

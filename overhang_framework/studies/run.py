@@ -337,10 +337,13 @@ def _practice(out: Path, sim_cfg, steps: Steps, jobs: int, progress: bool,
 
     config = OmegaConf.to_container(sim_cfg, resolve=True)
     try:
-        _, practice, attempts = screenout.practice_of()
+        _, practice, attempts, served = screenout.practice_of()
     except OverhangError as err:
         return " ".join(str(err).split())
-    digest = _digest(extra={"config": config, "attempts": attempts,
+    # what the practice depends on: the participants, the served world and practice, how many a level (not how the
+    # run shows its progress or how many processes it takes)
+    digest = _digest(extra={"config": {k: v for k, v in config.items() if k not in ("jobs", "progress")},
+                            "served_world": served, "per_level": screenout.PER_LEVEL, "attempts": attempts,
                             "practice": [[p.task.id, list(p.task.sequence), p.pass_reward] for p in practice]})
     path = out / "practice.csv"
     if steps.current("practice", digest) and path.exists():
@@ -380,6 +383,7 @@ def take_logs(logs: Sequence[str | Path], into: Path, study: str, conditions: Se
     write_log(df, into / "log.jsonl")
     table = people.rename(columns={"participant": "id"}).sort_values("id", kind="stable")
     atomic_write_text(into / PEOPLE, table.to_csv(index=False))
+    (into / "participants.csv").unlink(missing_ok=True)  # an earlier version's, which the fit would read as a truth
     return {c: int((people["condition"] == c).sum()) for c in conditions if (people["condition"] == c).any()}
 
 

@@ -22,11 +22,11 @@ COLUMNS = ["participant", "condition", "passed", "attempts", "failed_task"]
 PER_LEVEL = 40
 
 
-def practice_of(serve_overrides: Sequence[str] = ()) -> tuple[Any, list, Optional[int]]:
+def practice_of(serve_overrides: Sequence[str] = ()) -> tuple[Any, list, Optional[int], dict]:
     """The served study's world (whose physics scores the practice), its practice tasks (each with its pass mark)
     and the attempts a task allows (None: no limit), from ``conf/serve.yaml`` with ``serve_overrides``. A practice
     whose towers are not stored for the server's physics is the :class:`~overhang_framework.errors.ConfigError` of
-    the server's own check."""
+    the server's own check. Also the served world's config."""
     from omegaconf import OmegaConf
 
     from overhang_framework.experiment.settings import compose, practice_tasks
@@ -34,7 +34,7 @@ def practice_of(serve_overrides: Sequence[str] = ()) -> tuple[Any, list, Optiona
 
     cfg = compose(serve_overrides)
     world = Registry().create("world", plain(cfg.world))
-    return world, practice_tasks(cfg, world), OmegaConf.select(cfg, "practice.max_attempts")
+    return world, practice_tasks(cfg, world), OmegaConf.select(cfg, "practice.max_attempts"), plain(cfg.world)
 
 
 def practise(participant, spec, cohort, practice: Sequence, max_attempts: Optional[int], world, predictor, planner,
@@ -68,7 +68,7 @@ def _setup(config: dict, serve_overrides: tuple) -> dict:
     from overhang_framework.behaviour.simulation import check_config
 
     checked = check_config(OmegaConf.create(config))
-    world, practice, max_attempts = practice_of(serve_overrides)
+    world, practice, max_attempts, _ = practice_of(serve_overrides)
     return {"checked": checked, "world": world, "practice": practice, "max_attempts": max_attempts,
             "specs": {s.name: s for s in checked.cohort.conditions},
             "participants": draw_participants(checked.cohort, checked.seed)}
