@@ -130,7 +130,7 @@ def test_the_graded_study_runs_end_to_end_at_a_small_size(tmp_path):
     assert len(pd.read_csv(out / "preregistration_effects.csv")) >= 3
     practice = pd.read_csv(out / "practice.csv")  # the design's participants did the served study's practice
     assert len(practice) == 8 and set(practice["condition"]) == set(pred["level"])
-    assert "| level | screened out in the practice (simulated) | recruit |" in prereg
+    assert "| level | screened out in the practice (simulated) | recruits for the planned size |" in prereg
     assert f"`limit_2_5s` | {int((~practice[practice['condition'] == 'limit_2_5s']['passed']).sum())} of 2" in prereg
 
 
