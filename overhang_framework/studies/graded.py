@@ -222,6 +222,12 @@ def _extremes(pred: pd.DataFrame, measure: str) -> str:
     return f"; lowest at `{low['level']}` ({low['mean']:.3g}), highest at `{high['level']}` ({high['mean']:.3g})"
 
 
+def too_few(study: Mapping[str, int], levels: Sequence[str]) -> bool:
+    """Whether a level of ``study`` (its participants a level) has fewer than the smallest study the design considers
+    (:data:`SIZES`): too few for the trend test, and for a bootstrap of them to stand for any study's power."""
+    return min(study.get(lv, 0) for lv in levels) < SIZES[0]
+
+
 def verdict(power_table: pd.DataFrame, study: Mapping[str, int], levels: Sequence[str]) -> Optional[str]:
     """The report's first sentence when the study (``study``: its participants a level) is too small for the planned
     test to conclude anything, saying why; None when it is not. Too small: a level with fewer participants than the
@@ -230,7 +236,7 @@ def verdict(power_table: pd.DataFrame, study: Mapping[str, int], levels: Sequenc
     fewest = min(levels, key=lambda lv: study.get(lv, 0))
     n = study.get(fewest, 0)
     who = f"{n} participant{'s' * (n != 1)} in its level `{fewest}`"
-    if n < SIZES[0]:
+    if too_few(study, levels):
         return (f"**Nothing can be concluded from this study:** it has {who}, fewer than the {SIZES[0]} a level of the "
                 "smallest study the design considers, below which the trend test across the levels has next to no "
                 "power; what follows describes these participants, not the effect of the time allowed.")
@@ -313,8 +319,9 @@ def report(pred: pd.DataFrame, found: pd.DataFrame, power_table: pd.DataFrame, l
         lines.append(f"- **{what}** {way} with the time allowed, as expected: ρ = {r['rho']:+.2f}, p = "
                      f"{r['p']:.3g}; {'these people' if people else 'the simulated pool'} {found_text} it. {size}.")
     if not len(power_table):
-        few = people and study is not None and min(study.get(lv, 0) for lv in levels) < SIZES[0]
-        return "\n".join(lines + ["", f"(power not estimated{': a bootstrap of fewer than ' + str(SIZES[0]) + ' people a level says nothing of a larger study' if few else ''})", ""])
+        why = (f": a bootstrap of fewer than {SIZES[0]} people a level says nothing of a larger study"
+               if people and study is not None and too_few(study, levels) else "")
+        return "\n".join(lines + ["", f"(power not estimated{why})", ""])
     lines += ["", "| measure | " + " | ".join(str(s) for s in sorted(power_table["per_level"].unique())) + " |",
               "|---|" + "---|" * power_table["per_level"].nunique()]
     for measure, at in power_table.groupby("measure", sort=False):

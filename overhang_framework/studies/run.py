@@ -278,11 +278,12 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
     from overhang_framework.progress import progress_bar
 
     measured = [m for m in graded.MEASURES if m.column in pool_people.columns and pool_people[m.column].notna().any()]
+    # people too few a level for the smallest study the design considers: a bootstrap of them is no power
+    study = {lv: int((people["condition"] == lv).sum()) for lv in levels}
+    few = data == "people" and graded.too_few(study, levels)
     bar = progress_bar(total=len(measured) * len(graded.SIZES) * resamples, desc="power", unit="study",
-                       disable=not progress or not resamples, mininterval=1.0, dynamic_ncols=True)
+                       disable=not progress or not resamples or few, mininterval=1.0, dynamic_ncols=True)
     try:
-        # people too few a level for the smallest study the design considers: a bootstrap of them is no power
-        few = data == "people" and min(int((people["condition"] == lv).sum()) for lv in levels) < graded.SIZES[0]
         table = graded.power(pool_people, levels, resamples=resamples, seed=seed, on_study=lambda: bar.update(1)) \
             if resamples and not few else pd.DataFrame(columns=["measure", "per_level", "power", "resamples",
                                                                 "mc_error"])
@@ -314,7 +315,7 @@ def _graded(out: Path, sim_cfg, sizes: dict[str, int], steps: "Steps", resamples
     steps.finish("findings", "", time.perf_counter() - t0)
     text = graded.report(pred, found, table, levels, limits, {c: int((pool_people["condition"] == c).sum())
                                                               for c in levels}, people=data == "people",
-                         study={c: int((people["condition"] == c).sum()) for c in levels})
+                         study=study)
     text += _unmapped_line(people) if fitted else ""
     if not fitted:
         text += ("\nNo fit (`--no-fit`): the fitted depth and risk aversion are neither predicted nor tested; "
