@@ -312,18 +312,25 @@ def test_a_graded_study_takes_paper_people_runs_for_the_levels_whose_people_they
         gather([tmp_path / "other"], tmp_path / "sim4", "graded_budgets", levels, "tiered", graded)
 
 
+def _people_like(sim, per_condition, seed):
+    """A small null_effect cohort simulated into ``sim`` (static physics, two tasks each), whose log stands for an
+    export of people."""
+    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
+                           "predictor=ipe", "predictor.K=10",
+                           f"cohort.participants={{time_limited: {per_condition}, unconstrained: {per_condition}}}",
+                           "cohort.n_tasks=2", f"seed={seed}", "world.physics=static", "progress=false",
+                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return sim
+
+
 def test_a_graded_study_of_peoples_log_is_analysed_and_says_first_what_its_size_cannot_support(tmp_path):
     """``study graded_budgets --log``: an export of people, analysed as a simulation's participants are (Table 1, Γ,
     the flows per level, the trends, power by a bootstrap of them), its report opening with what its size cannot
     support; a log of a condition the study lacks, or --log with --sim, refused in one line."""
     from overhang_framework.behaviour.log import read_log, write_log
 
-    sim = tmp_path / "sim"
-    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
-                           "predictor=ipe", "predictor.K=10", "cohort.participants={time_limited: 4, unconstrained: 4}",
-                           "cohort.n_tasks=2", "seed=3", "world.physics=static", "progress=false",
-                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    sim = _people_like(tmp_path / "sim", 4, seed=3)
     df = read_log(sim / "log.jsonl")
     levels = ["limit_2_5s", "time_limited", "limit_10s", "unconstrained"]
     ids = sorted(df["participant"].unique())
@@ -368,12 +375,7 @@ def test_a_two_condition_study_of_peoples_log_reports_people_and_says_first_what
     says nothing can be concluded."""
     from overhang_framework.studies.report import shortfall
 
-    sim = tmp_path / "sim"
-    proc = subprocess.run([sys.executable, "-m", "overhang_framework.participants", "cohort=null_effect",
-                           "predictor=ipe", "predictor.K=10", "cohort.participants={time_limited: 3, unconstrained: 3}",
-                           "cohort.n_tasks=2", "seed=5", "world.physics=static", "progress=false",
-                           f"hydra.run.dir={sim}"], capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    sim = _people_like(tmp_path / "sim", 3, seed=5)
     out = tmp_path / "study"
     proc = subprocess.run([sys.executable, "-m", "overhang_framework.study", "paper_people", "--out", str(out),
                            "--no-progress", "--world", "world.physics=static", "--log", str(sim / "log.jsonl"),
